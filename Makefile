@@ -1,0 +1,58 @@
+# Two entry points do all the set-up on a fresh machine (Debian python3, gcc, cmake):
+#   make demo   set up, then run the full suite on the default scenario, recording a bag
+#   make test   set up, then run the tests
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+VENV_ABS := $(abspath $(VENV))
+PY := $(VENV_ABS)/bin/python
+SCENARIO ?= standing_push
+CONTROLLER ?= none
+PYTEST_ARGS ?=
+
+# rclpy needs a log dir; DDS stays on this machine; the ament index is the venv.
+export ROS_LOG_DIR ?= $(CURDIR)/build/ros_log
+export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
+export RMW_IMPLEMENTATION := rmw_fastrtps_cpp
+export AMENT_PREFIX_PATH := $(VENV_ABS)
+export MPLBACKEND := Agg
+
+.PHONY: setup demo test bench interfaces install clean
+
+$(PY):
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+
+$(VENV)/.deps-stamp: requirements.txt | $(PY)
+	$(PY) -m pip install -q -r requirements.txt
+	touch $@
+
+INTERFACE_SRC := $(wildcard interfaces/humfall_interfaces/msg/*.msg interfaces/humfall_interfaces/srv/*.srv) \
+	interfaces/humfall_interfaces/CMakeLists.txt interfaces/humfall_interfaces/package.xml
+
+$(VENV)/.interfaces-stamp: $(VENV)/.deps-stamp $(INTERFACE_SRC)
+	rm -rf build/interfaces && mkdir -p build/interfaces
+	cd build/interfaces && source $(VENV_ABS)/bin/activate && \
+	  cmake $(CURDIR)/interfaces/humfall_interfaces -DCMAKE_INSTALL_PREFIX=$(VENV_ABS) \
+	    -DCMAKE_PREFIX_PATH=$(VENV_ABS) -DPython3_EXECUTABLE=$(PY) -DBUILD_TESTING=OFF >cmake.log && \
+	  $(MAKE) -j2 >build.log && $(MAKE) install >install.log
+	touch $@
+
+interfaces: $(VENV)/.interfaces-stamp
+
+install: $(VENV)/.interfaces-stamp
+	$(PY) -m pip install -q --no-deps --force-reinstall .
+
+setup: install
+
+demo: setup
+	$(VENV_ABS)/bin/humfall up --scenario $(SCENARIO) --controller $(CONTROLLER)
+
+test: setup
+	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+bench: setup
+	$(PY) benchmarks/run_all.py
+
+clean:
+	rm -rf build $(VENV) *.egg-info

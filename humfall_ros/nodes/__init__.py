@@ -1,0 +1,1 @@
+"""humfall_ros.nodes"""

@@ -1,0 +1,111 @@
+"""Shared plumbing for the rclpy nodes: parameters from config/*.yaml with
+descriptors, QoS profiles, and a main() wrapper with try/finally shutdown.
+
+Parameter values live in ``config/<node>.yaml`` (ROS 2 params-file format:
+``<node>: {ros__parameters: {...}}``); nodes declare each one here with a
+description and, for numbers, a range. A ``--params-file`` given on the command
+line overrides the file's values as usual.
+"""
+from __future__ import annotations
+
+import math
+import os
+import signal
+import sys
+from typing import Any, Callable
+
+import yaml
+
+from humfall_ros import paths
+
+import rclpy
+import rclpy.executors
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+
+# Lockstep data: every message matters, keep a few in case of a burst.
+QOS_RELIABLE = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+# Events (fall_event, decisions, plans): late joiners get the last one.
+QOS_LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
+# /clock as rclpy's time source subscribes to it.
+QOS_CLOCK = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+
+
+def load_node_defaults(node_name: str) -> dict[str, Any]:
+    """The ros__parameters of ``config/<node_name>.yaml`` (empty if absent)."""
+    p = paths.config_path(f"{node_name}.yaml")
+    if not p.is_file():
+        return {}
+    data = yaml.safe_load(p.read_text()) or {}
+    return dict((data.get(node_name) or {}).get("ros__parameters") or {})
+
+
+class Params:
+    """Declares a node's parameters with defaults from its config file.
+
+    ``p.declare("physics_rate", "physics steps per second", (100, 5000))``
+    returns the value; ``p.values`` keeps all of them.
+    """
+
+    def __init__(self, node: Node, config_name: str | None = None):
+        self.node = node
+        self.defaults = load_node_defaults(config_name or node.get_name())
+        self.values: dict[str, Any] = {}
+
+    def declare(self, name: str, description: str, value_range: tuple | None = None,
+                default: Any = None, read_only: bool = False) -> Any:
+        if name in self.defaults:
+            default = self.defaults[name]
+        if default is None:
+            raise KeyError(f"parameter {name!r} of {self.node.get_name()} has no default in config")
+        desc = ParameterDescriptor(description=description, read_only=read_only)
+        if value_range is not None:
+            lo, hi = value_range
+            if isinstance(default, bool):
+                pass
+            elif isinstance(default, int) and isinstance(lo, int) and isinstance(hi, int):
+                desc.integer_range = [IntegerRange(from_value=lo, to_value=hi, step=0)]
+            else:
+                default = float(default)
+                desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+        value = self.node.declare_parameter(name, default, desc).value
+        self.values[name] = value
+        return value
+
+
+def finite(*values: float) -> bool:
+    return all(math.isfinite(float(v)) for v in values)
+
+
+def run_node(factory: Callable[[], Node], args=None, use_sim_time: bool = True,
+             executor_factory: Callable[[], Any] | None = None) -> int:
+    """Standard main(): init, spin, clean shutdown on SIGINT/SIGTERM, try/finally."""
+    os.environ.setdefault("ROS_LOG_DIR", os.path.join(os.path.expanduser("~"), ".ros", "log"))
+    rclpy.init(args=args if args is not None else sys.argv)
+    node = None
+    # SIGTERM is how `humfall up` stops nodes: turn it into a clean shutdown.
+    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
+    try:
+        node = factory()
+        if use_sim_time and not node.has_parameter("use_sim_time"):
+            node.declare_parameter("use_sim_time", True)
+        if use_sim_time:
+            node.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, True)])
+        executor = executor_factory() if executor_factory else rclpy.executors.SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            close = getattr(node, "close", None)
+            if callable(close):
+                close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
