@@ -1,0 +1,241 @@
+"""The humanoid's model on pinocchio: the single source of robot facts.
+
+Masses, joint limits, feet, sole corners and hands all come from the URDF
+through this module; controllers ask it instead of hard-coding numbers.
+
+Configuration convention (pinocchio free-flyer): ``q = [x, y, z, qx, qy, qz, qw,
+joints...]`` and ``v = [v_base (base frame), omega_base (base frame),
+joint velocities...]``, joints in ``joint_names`` order.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import numpy as np
+import pinocchio as pin
+from scipy.spatial import ConvexHull, QhullError
+
+from humfall_ros import paths
+from humfall_ros.dynamics.pendulum import GRAVITY
+
+SIDES = ("l", "r")
+CORNER_NAMES = ("toe_left", "toe_right", "heel_right", "heel_left")  # counter-clockwise seen from above
+
+
+@dataclasses.dataclass(frozen=True)
+class JointLimits:
+    lower: np.ndarray
+    upper: np.ndarray
+    velocity: np.ndarray
+    effort: np.ndarray
+
+
+class HumanoidModel:
+    """Kinematics and dynamics of the floating-base humanoid (pinocchio)."""
+
+    def __init__(self, urdf_path: str | None = None):
+        self.urdf_path = str(urdf_path or paths.urdf_path())
+        self.model = pin.buildModelFromUrdf(self.urdf_path, pin.JointModelFreeFlyer())
+        self.data = self.model.createData()
+        self.joint_names: list[str] = list(self.model.names[2:])
+        self.njoints = len(self.joint_names)
+        self.total_mass = float(pin.computeTotalMass(self.model))
+        self.weight = self.total_mass * GRAVITY
+        m = self.model
+        self.limits = JointLimits(
+            lower=np.array(m.lowerPositionLimit[7:]), upper=np.array(m.upperPositionLimit[7:]),
+            velocity=np.array(m.velocityLimit[6:]), effort=np.array(m.effortLimit[6:]))
+        self.frame_ids = {f.name: i for i, f in enumerate(m.frames)}
+        self.sole_frame = {s: f"{s}_sole" for s in SIDES}
+        self.foot_link = {s: f"{s}_foot" for s in SIDES}
+        self.hand_frame = {s: f"{s}_hand" for s in SIDES}
+        self.imu_frame = "imu_link"
+        self.corner_frames = {s: [f"{s}_sole_{c}" for c in CORNER_NAMES] for s in SIDES}
+        # sole rectangle in the foot (ankle) frame, from the corner frames
+        q0 = self.neutral()
+        pin.framesForwardKinematics(m, self.data, q0)
+        self.sole_corners_local = {}
+        for s in SIDES:
+            foot = self.data.oMf[self.frame_ids[self.foot_link[s]]]
+            self.sole_corners_local[s] = np.array(
+                [(foot.inverse() * self.data.oMf[self.frame_ids[c]]).translation for c in self.corner_frames[s]])
+        c = self.sole_corners_local["l"]
+        self.foot_length = float(c[:, 0].max() - c[:, 0].min())
+        self.foot_width = float(c[:, 1].max() - c[:, 1].min())
+        self.ankle_height = float(-c[:, 2].mean())
+
+    # ------------------------------------------------------------------ basics
+    def neutral(self) -> np.ndarray:
+        return pin.neutral(self.model)
+
+    def joint_index(self, name: str) -> int:
+        return self.joint_names.index(name)
+
+    def joint_vector(self, mapping: dict[str, float], default: float = 0.0) -> np.ndarray:
+        """Joint-space vector in model order from a name->value mapping."""
+        unknown = set(mapping) - set(self.joint_names)
+        if unknown:
+            raise KeyError(f"unknown joints: {sorted(unknown)}")
+        return np.array([mapping.get(n, default) for n in self.joint_names], dtype=float)
+
+    def configuration(self, base_position, base_quat_xyzw, joints) -> np.ndarray:
+        q = np.empty(self.model.nq)
+        q[:3] = base_position
+        q[3:7] = np.asarray(base_quat_xyzw, dtype=float) / np.linalg.norm(base_quat_xyzw)
+        q[7:] = joints
+        return q
+
+    def velocity(self, base_linear_world, base_angular_world, base_quat_xyzw, joint_velocities) -> np.ndarray:
+        """Free-flyer velocity from world-frame base twist (pinocchio wants it in the base frame)."""
+        R = quat_matrix(base_quat_xyzw)
+        v = np.empty(self.model.nv)
+        v[:3] = R.T @ np.asarray(base_linear_world, dtype=float)
+        v[3:6] = R.T @ np.asarray(base_angular_world, dtype=float)
+        v[6:] = joint_velocities
+        return v
+
+    # ------------------------------------------------------------- kinematics
+    def forward(self, q, v=None) -> None:
+        """Update kinematics (and CoM) for q (and v)."""
+        if v is None:
+            pin.forwardKinematics(self.model, self.data, q)
+        else:
+            pin.forwardKinematics(self.model, self.data, q, v)
+        pin.updateFramePlacements(self.model, self.data)
+        pin.centerOfMass(self.model, self.data, q, v if v is not None else np.zeros(self.model.nv), False)
+
+    def com(self, q) -> np.ndarray:
+        return pin.centerOfMass(self.model, self.data, q).copy()
+
+    def com_jacobian(self, q) -> np.ndarray:
+        """d com / d v (3 x nv)."""
+        return pin.jacobianCenterOfMass(self.model, self.data, q).copy()
+
+    def frame_position(self, name: str) -> np.ndarray:
+        """World position of a frame after forward()."""
+        return self.data.oMf[self.frame_ids[name]].translation.copy()
+
+    def frame_placement(self, name: str) -> pin.SE3:
+        return self.data.oMf[self.frame_ids[name]]
+
+    def frame_jacobian(self, q, name: str) -> np.ndarray:
+        """6 x nv Jacobian of a frame, LOCAL_WORLD_ALIGNED (linear first)."""
+        return pin.computeFrameJacobian(self.model, self.data, q, self.frame_ids[name],
+                                        pin.ReferenceFrame.LOCAL_WORLD_ALIGNED).copy()
+
+    def sole_corners(self, side: str) -> np.ndarray:
+        """World positions (4 x 3, counter-clockwise) of a foot's sole corners after forward()."""
+        return np.array([self.frame_position(f) for f in self.corner_frames[side]])
+
+    # -------------------------------------------------------------- centroidal
+    def centroidal(self, q, v) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(com, com velocity, angular momentum about the com) via pinocchio's CCRBA."""
+        pin.ccrba(self.model, self.data, q, v)
+        h = self.data.hg
+        com = self.data.com[0].copy()
+        return com, h.linear / self.total_mass, h.angular.copy()
+
+    def crb_inertia(self, q) -> np.ndarray:
+        """Composite-rigid-body (centroidal) rotational inertia about the CoM, world axes (3 x 3).
+
+        This is the locked inertia paper 1 shapes in §IV (eq. 11-14).
+        """
+        pin.ccrba(self.model, self.data, q, np.zeros(self.model.nv))
+        return self.data.Ig.inertia.copy()
+
+    # --------------------------------------------------------------- contacts
+    def foot_wrench_to_world(self, side: str, force_local, torque_local) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Wrench measured at a foot's ankle frame (foot-frame axes) as (origin, force, torque) in world."""
+        M = self.frame_placement(self.foot_link[side])
+        R = M.rotation
+        return M.translation.copy(), R @ np.asarray(force_local, float), R @ np.asarray(torque_local, float)
+
+
+def quat_matrix(q_xyzw) -> np.ndarray:
+    x, y, z, w = np.asarray(q_xyzw, dtype=float) / np.linalg.norm(q_xyzw)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+
+def cop_from_wrenches(wrenches, ground_height: float = 0.0, min_normal: float = 1.0):
+    """Centre of pressure on the ground plane from world-frame wrenches.
+
+    ``wrenches``: iterable of (origin, force, torque) with torque about origin.
+    The CoP is the point p on the plane z = h about which the net moment has no
+    horizontal component: tau_x = p_y f_z - h f_y, tau_y = h f_x - p_x f_z.
+    Returns (cop (3,), total normal force), cop is None if unloaded.
+    """
+    f_tot = np.zeros(3)
+    tau_tot = np.zeros(3)  # about the world origin
+    for o, f, t in wrenches:
+        o = np.asarray(o, float)
+        f = np.asarray(f, float)
+        f_tot += f
+        tau_tot += np.asarray(t, float) + np.cross(o, f)
+    fz = f_tot[2]
+    if fz < min_normal:
+        return None, float(fz)
+    h = ground_height
+    # tau = p x f + tau_z_free with p = (px, py, h):
+    # tau_x = py fz - h fy ; tau_y = h fx - px fz
+    px = (h * f_tot[0] - tau_tot[1]) / fz
+    py = (tau_tot[0] + h * f_tot[1]) / fz
+    return np.array([px, py, h]), float(fz)
+
+
+def support_polygon(points) -> np.ndarray:
+    """Convex hull (counter-clockwise, 2-D) of ground contact points; scipy's Qhull.
+
+    Degenerate sets (one point, a segment) come back as they are, ordered.
+    """
+    pts = np.asarray(points, dtype=float)[:, :2]
+    if len(pts) == 0:
+        return np.zeros((0, 2))
+    if len(pts) >= 3:
+        try:
+            hull = ConvexHull(pts)
+            return pts[hull.vertices]  # 2-D hulls are counter-clockwise
+        except QhullError:
+            pass
+    # collinear or fewer than 3: the extreme points of the segment
+    d = pts - pts.mean(axis=0)
+    axis = np.linalg.svd(d, full_matrices=False)[2][0] if len(pts) > 1 else np.array([1.0, 0.0])
+    s = d @ axis
+    return pts[[int(np.argmin(s)), int(np.argmax(s))]] if len(pts) > 1 else pts
+
+
+def point_in_polygon_margin(point, polygon) -> float:
+    """Signed distance of a 2-D point to a convex counter-clockwise polygon (>0 inside)."""
+    p = np.asarray(point, float)[:2]
+    poly = np.asarray(polygon, float)
+    if len(poly) < 3:
+        if len(poly) == 0:
+            return -math.inf
+        if len(poly) == 1:
+            return -float(np.linalg.norm(p - poly[0]))
+        a, b = poly[0], poly[1]
+        t = np.clip(np.dot(p - a, b - a) / max(np.dot(b - a, b - a), 1e-12), 0, 1)
+        return -float(np.linalg.norm(p - (a + t * (b - a))))
+    margin = math.inf
+    n = len(poly)
+    for i in range(n):
+        a, b = poly[i], poly[(i + 1) % n]
+        e = b - a
+        length = math.hypot(e[0], e[1])
+        if length < 1e-12:
+            continue
+        # inward normal of a CCW edge is (-e_y, e_x)
+        d = ((p[0] - a[0]) * -e[1] + (p[1] - a[1]) * e[0]) / length
+        margin = min(margin, d)
+    return float(margin)
+
+
+@functools.lru_cache(maxsize=None)
+def load_model(urdf_path: str | None = None) -> HumanoidModel:
+    """A shared model instance per URDF (building it parses the URDF)."""
+    return HumanoidModel(urdf_path)

@@ -1,0 +1,383 @@
+"""sim_bridge: the PyBullet world on the ROS graph.
+
+Publishes /clock and the sensors each control tick, takes joint commands from
+several controllers through a priority mux (like twist_mux), applies pushes and
+obstacles, and reports ground-truth run metrics at the end.
+
+Lockstep (default): after publishing the sensors stamped t_k, the bridge waits
+until every source in ``lockstep_sources`` has sent its command stamped t_k
+(a JointState with no names means "I release control this tick"), then steps.
+Results then depend only on the commands, never on CPU load. If nothing moves
+for ``retransmit_period`` wall seconds (start-up discovery), the tick's sensors
+are sent again; downstream nodes answer a repeated stamp with their last output.
+Free-run: steps at ``real_time_factor`` x real time with the freshest commands.
+"""
+from __future__ import annotations
+
+import json
+import math
+import signal
+import time
+
+import numpy as np
+import rclpy
+import rclpy.executors
+from builtin_interfaces.msg import Time as TimeMsg
+from geometry_msgs.msg import WrenchStamped
+from humfall_interfaces.msg import Obstacle, ObstacleArray
+from humfall_interfaces.srv import Push, SetObstacles
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64, String
+from std_srvs.srv import Trigger
+
+from humfall_ros import scenario as scenario_mod
+from humfall_ros.nodes.common import QOS_CLOCK, QOS_LATCHED, QOS_RELIABLE, Params
+from humfall_ros.sim.metrics import FallMetrics
+from humfall_ros.sim.world import Box, SimWorld, validate_push
+
+SIDE_TOPIC = {"l": "left_foot/wrench", "r": "right_foot/wrench"}
+
+
+def stamp_of(t: float) -> TimeMsg:
+    ns = int(round(t * 1e9))
+    return TimeMsg(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def seconds(stamp: TimeMsg) -> float:
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def stamp_key(stamp: TimeMsg) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def check_command(msg: JointState, known: dict[str, int]) -> str | None:
+    """None if a joint command is usable, else why it is refused."""
+    if len(msg.position) != len(msg.name):
+        return f"{len(msg.name)} names but {len(msg.position)} positions"
+    if len(msg.velocity) not in (0, len(msg.name)):
+        return f"{len(msg.name)} names but {len(msg.velocity)} velocities"
+    unknown = [n for n in msg.name if n not in known]
+    if unknown:
+        return f"unknown joints {unknown[:3]}"
+    if len(set(msg.name)) != len(msg.name):
+        return "duplicate joint names"
+    if not all(math.isfinite(x) for x in list(msg.position) + list(msg.velocity)):
+        return "non-finite value"
+    return None
+
+
+class SimBridge(Node):
+    def __init__(self):
+        super().__init__("sim_bridge")
+        P = Params(self)
+        self.physics_rate = P.declare("physics_rate", "physics steps per second", (100.0, 10000.0))
+        self.control_rate = P.declare("control_rate", "control ticks per second (sensor and command rate)",
+                                      (10.0, 2000.0))
+        self.lockstep = P.declare("lockstep", "advance a tick only when every lockstep source has answered it")
+        self.rtf_target = P.declare("real_time_factor", "free-run speed target (0: as fast as possible)",
+                                    (0.0, 100.0))
+        self.sources = list(P.declare("command_sources", "joint command sources, highest priority first"))
+        self.lockstep_sources = list(P.declare("lockstep_sources", "sources whose command each tick waits for"))
+        self.command_timeout = P.declare("command_timeout", "sim seconds a command stays live", (0.0, 10.0))
+        self.retransmit_period = P.declare("retransmit_period", "wall seconds without progress before "
+                                           "the tick's sensors are sent again", (0.05, 60.0))
+        self.stall_timeout = P.declare("stall_timeout", "wall seconds to wait for a lockstep command before "
+                                       "stepping without it (logged)", (1.0, 3600.0))
+        self.end_time = P.declare("end_time", "sim time at which the run ends (0: never)", (0.0, 36000.0))
+        self.metrics_file = P.declare("metrics_file", "where to write ground-truth run metrics (JSON)")
+        self.scenario_name = P.declare("scenario", "scenario name or file for obstacles, pushes and posture")
+        friction = P.declare("friction", "ground and foot friction coefficient", (0.05, 3.0))
+        unknown = set(self.lockstep_sources) - set(self.sources)
+        if unknown:
+            raise ValueError(f"lockstep_sources {sorted(unknown)} are not command_sources")
+
+        self.scenario = scenario_mod.load(self.scenario_name) if self.scenario_name else scenario_mod.validate({})
+        posture = None
+        if self.scenario["robot"]["initial_posture"]:
+            from humfall_ros.sim.world import STANDING_POSTURE
+            posture = {**STANDING_POSTURE, **self.scenario["robot"]["initial_posture"]}
+        self.world = SimWorld(self.physics_rate, self.control_rate, friction=friction, initial_posture=posture)
+        self.model = self.world.model
+        self.joint_index = {n: i for i, n in enumerate(self.model.joint_names)}
+        self._apply_scenario()
+
+        self.pub_clock = self.create_publisher(Clock, "/clock", QOS_CLOCK)
+        self.pub_js = self.create_publisher(JointState, "joint_states", QOS_RELIABLE)
+        self.pub_imu = self.create_publisher(Imu, "imu", QOS_RELIABLE)
+        self.pub_wrench = {s: self.create_publisher(WrenchStamped, t, QOS_RELIABLE) for s, t in SIDE_TOPIC.items()}
+        self.pub_odom = self.create_publisher(Odometry, "ground_truth/odom", QOS_RELIABLE)
+        self.pub_active = self.create_publisher(String, "active_controller", QOS_LATCHED)
+        self.pub_rtf = self.create_publisher(Float64, "sim/real_time_factor", QOS_RELIABLE)
+        self.pub_obstacles = self.create_publisher(ObstacleArray, "obstacles", QOS_LATCHED)
+        self.pub_result = self.create_publisher(String, "sim/result", QOS_LATCHED)
+
+        self.latest: dict[str, JointState | None] = {s: None for s in self.sources}
+        self.answered: set[str] = set()
+        self.rejected_commands = 0
+        for s in self.sources:
+            self.create_subscription(JointState, f"joint_command/{s}",
+                                     lambda msg, s=s: self._on_command(s, msg), QOS_RELIABLE)
+        self.create_service(Push, "sim/push", self._on_push)
+        self.create_service(Trigger, "sim/reset", self._on_reset)
+        self.create_service(SetObstacles, "sim/set_obstacles", self._on_set_obstacles)
+        self.active_source = ""
+        self.done = False
+        self._publish_active("none")
+        self._publish_obstacles()
+
+    # ------------------------------------------------------------ scenario
+    def _apply_scenario(self) -> None:
+        sc = self.scenario
+        boxes = [Box(o["name"], tuple(o["position"]), tuple(o["size"]), o["yaw"], o["is_target"])
+                 for o in sc["obstacles"]]
+        self.world.set_obstacles(boxes)
+        for p in sc["push"]:
+            self.world.add_push(p["force"], p["point"], p["duration"], p["link"], start=p["time"])
+        target = next((b for b in boxes if b.is_target), None)
+        self.target = target
+        self.metrics = FallMetrics(None if target is None else target.position[:2])
+        self.first_push_time = min((p["time"] for p in sc["push"]), default=0.0)
+
+    # ------------------------------------------------------------ callbacks
+    def _on_command(self, source: str, msg: JointState) -> None:
+        reason = check_command(msg, self.joint_index)
+        if reason:
+            self.rejected_commands += 1
+            self.get_logger().warning(f"joint_command/{source} refused: {reason}",
+                                      throttle_duration_sec=1.0)
+            msg = JointState(header=msg.header)  # counts as a release for this tick
+        self.latest[source] = msg
+        if stamp_key(msg.header.stamp) == self.tick_key:
+            self.answered.add(source)
+
+    def _on_push(self, req: Push.Request, resp: Push.Response) -> Push.Response:
+        force = [req.force.x, req.force.y, req.force.z]
+        point = [req.point.x, req.point.y, req.point.z]
+        link = req.link or "chest"
+        reason = validate_push(force, point, req.duration)
+        if reason is None and link not in self.world.link_ids:
+            reason = f"unknown link {link!r} (links: {', '.join(sorted(self.world.link_ids))})"
+        if reason:
+            resp.success, resp.message = False, reason
+            self.get_logger().warning(f"sim/push refused: {reason}")
+            return resp
+        self.world.add_push(force, point, req.duration, link)
+        self.metrics.set_reference_cop(self.world.ground_truth_cop())
+        resp.success, resp.message = True, f"pushing {link} with {np.round(force, 1).tolist()} N for {req.duration} s"
+        self.get_logger().info(resp.message)
+        return resp
+
+    def _on_reset(self, req, resp):
+        self.world.reset()
+        self._apply_scenario()
+        self._publish_obstacles()
+        resp.success, resp.message = True, "world reset"
+        return resp
+
+    def _on_set_obstacles(self, req: SetObstacles.Request, resp: SetObstacles.Response):
+        boxes = []
+        for i, o in enumerate(req.obstacles):
+            vals = [o.pose.position.x, o.pose.position.y, o.pose.position.z, o.size.x, o.size.y, o.size.z]
+            if not all(math.isfinite(v) for v in vals) or min(vals[3:]) <= 0 or max(vals[3:]) > 50:
+                resp.success, resp.message = False, f"obstacle {i} ({o.name!r}): sizes must be finite, in (0, 50] m"
+                return resp
+            q = o.pose.orientation
+            yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z)) if q.w or q.z else 0.0
+            boxes.append(Box(o.name or f"box{i}", tuple(vals[:3]), tuple(vals[3:]), yaw, o.is_target))
+        if len({b.name for b in boxes}) != len(boxes):
+            resp.success, resp.message = False, "obstacle names must be unique"
+            return resp
+        self.world.set_obstacles(boxes)
+        self.target = next((b for b in boxes if b.is_target), None)
+        self.metrics.target_xy = None if self.target is None else np.array(self.target.position[:2])
+        self._publish_obstacles()
+        resp.success, resp.message = True, f"{len(boxes)} obstacles set"
+        return resp
+
+    # ------------------------------------------------------------ publishing
+    def _publish_active(self, name: str) -> None:
+        if name != self.active_source:
+            self.active_source = name
+            self.pub_active.publish(String(data=name))
+
+    def _publish_obstacles(self) -> None:
+        msg = ObstacleArray()
+        msg.header.frame_id = "odom"
+        msg.header.stamp = stamp_of(self.world.time)
+        for b in self.world.obstacles:
+            o = Obstacle(name=b.name, is_target=b.is_target)
+            o.pose.position.x, o.pose.position.y, o.pose.position.z = b.position
+            o.pose.orientation.z, o.pose.orientation.w = math.sin(b.yaw / 2), math.cos(b.yaw / 2)
+            o.size.x, o.size.y, o.size.z = b.size
+            msg.obstacles.append(o)
+        self.pub_obstacles.publish(msg)
+
+    def publish_sensors(self) -> None:
+        w = self.world
+        st = stamp_of(w.time)
+        self.pub_clock.publish(Clock(clock=st))
+        q, v, tau = w.joint_states()
+        js = JointState(name=self.model.joint_names, position=q.tolist(), velocity=v.tolist(), effort=tau.tolist())
+        js.header.stamp = st
+        self.pub_js.publish(js)
+        orn, gyro, acc = w.imu()
+        imu = Imu()
+        imu.header.stamp, imu.header.frame_id = st, "imu_link"
+        imu.orientation.x, imu.orientation.y, imu.orientation.z, imu.orientation.w = orn.tolist()
+        imu.angular_velocity.x, imu.angular_velocity.y, imu.angular_velocity.z = gyro.tolist()
+        imu.linear_acceleration.x, imu.linear_acceleration.y, imu.linear_acceleration.z = acc.tolist()
+        self.pub_imu.publish(imu)
+        for side, pub in self.pub_wrench.items():
+            f, t = w.foot_wrench(side)
+            m = WrenchStamped()
+            m.header.stamp, m.header.frame_id = st, self.model.foot_link[side]
+            m.wrench.force.x, m.wrench.force.y, m.wrench.force.z = f.tolist()
+            m.wrench.torque.x, m.wrench.torque.y, m.wrench.torque.z = t.tolist()
+            pub.publish(m)
+        pos, orn_b, lin, ang = w.base_state()
+        od = Odometry()
+        od.header.stamp, od.header.frame_id, od.child_frame_id = st, "odom", "waist"
+        p = od.pose.pose
+        p.position.x, p.position.y, p.position.z = pos.tolist()
+        p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = orn_b.tolist()
+        # REP 105 puts the odom twist in the child frame; we keep it in the world frame
+        # (frame_id) because that is what the estimator comparison needs; documented.
+        od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.linear.z = lin.tolist()
+        od.twist.twist.angular.x, od.twist.twist.angular.y, od.twist.twist.angular.z = ang.tolist()
+        self.pub_odom.publish(od)
+
+    # ------------------------------------------------------------ stepping
+    @property
+    def tick_key(self) -> int:
+        return int(round(self.world.time * 1e9))
+
+    def _mux(self) -> None:
+        t = self.world.time
+        chosen = None
+        for s in self.sources:
+            msg = self.latest[s]
+            if msg is None or not msg.name:
+                continue
+            if t - seconds(msg.header.stamp) <= self.command_timeout + 1e-9:
+                chosen = s
+                break
+        self._publish_active(chosen or "none")
+        if chosen is None:
+            return
+        msg = self.latest[chosen]
+        targets = self.world.targets.copy()
+        vels = self.world.target_velocities.copy() if msg.velocity else np.zeros_like(targets)
+        for i, n in enumerate(msg.name):
+            j = self.joint_index[n]
+            targets[j] = msg.position[i]
+            if msg.velocity:
+                vels[j] = msg.velocity[i]
+        self.world.set_joint_targets(targets, vels)
+
+    def _track_metrics(self) -> None:
+        w = self.world
+        if self.metrics.initial_cop is None and w.time >= self.first_push_time - 1e-9:
+            self.metrics.set_reference_cop(w.ground_truth_cop())
+        q, _ = w.pinocchio_state()
+        com = self.model.com(q)
+        dist = w.distance_to(self.target.name) if self.target is not None else None
+        self.metrics.update(w.time, com, w.trunk_tilt(), w.base_state()[0][2], dist, w.non_foot_contact())
+
+    def result(self) -> dict:
+        r = self.metrics.result()
+        r.update(sim_duration_s=round(self.world.time, 6), rejected_commands=self.rejected_commands,
+                 stalled_ticks=self.stalled_ticks)
+        return r
+
+    def run(self, executor) -> None:
+        """The main loop (instead of executor.spin: the bridge owns time)."""
+        self.stalled_ticks = 0
+        wall0, sim0 = time.monotonic(), self.world.time
+        rtf_wall, rtf_sim = wall0, sim0
+        while rclpy.ok():
+            self.answered = {s for s in self.lockstep_sources
+                             if self.latest[s] is not None and stamp_key(self.latest[s].header.stamp) == self.tick_key}
+            self.publish_sensors()
+            if self.lockstep:
+                waited_since = last_send = time.monotonic()
+                while rclpy.ok() and not set(self.lockstep_sources) <= self.answered:
+                    executor.spin_once(timeout_sec=0.01)
+                    now = time.monotonic()
+                    if now - last_send > self.retransmit_period:
+                        self.publish_sensors()
+                        last_send = now
+                    if now - waited_since > self.stall_timeout:
+                        missing = sorted(set(self.lockstep_sources) - self.answered)
+                        self.get_logger().error(f"t={self.world.time:.3f}: no command from {missing} after "
+                                                f"{self.stall_timeout:.0f} s; stepping without it")
+                        self.stalled_ticks += 1
+                        break
+            else:
+                executor.spin_once(timeout_sec=0.0)
+            if not rclpy.ok():
+                break
+            self._mux()
+            self.world.step_control()
+            self._track_metrics()
+            if self.end_time > 0 and self.world.time >= self.end_time - 1e-9:
+                break
+            if not self.lockstep and self.rtf_target > 0:
+                ahead = (self.world.time - sim0) / self.rtf_target - (time.monotonic() - wall0)
+                if ahead > 0:
+                    time.sleep(ahead)
+                    executor.spin_once(timeout_sec=0.0)
+            now = time.monotonic()
+            if now - rtf_wall >= 1.0:
+                self.pub_rtf.publish(Float64(data=(self.world.time - rtf_sim) / (now - rtf_wall)))
+                rtf_wall, rtf_sim = now, self.world.time
+        self.finish(time.monotonic() - wall0)
+
+    def finish(self, wall: float) -> None:
+        if self.done:
+            return
+        self.done = True
+        r = self.result()
+        r["bridge_wall_time_s"] = round(wall, 3)
+        if rclpy.ok():
+            self.publish_sensors()  # the final state, so every consumer sees the last tick
+            self.pub_result.publish(String(data=json.dumps(r)))
+        if self.metrics_file:
+            with open(self.metrics_file, "w") as f:
+                json.dump(r, f, indent=2)
+        self.get_logger().info(f"run ended at t={self.world.time:.3f} s: fell={r['fell']}")
+
+    def close(self) -> None:
+        self.world.close()
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args)
+    node = None
+    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
+    try:
+        node = SimBridge()
+        executor = rclpy.executors.SingleThreadedExecutor()
+        executor.add_node(node)
+        node.run(executor)
+        # linger briefly so latched results reach late subscribers
+        end = time.monotonic() + 0.3
+        while rclpy.ok() and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            if not node.done and getattr(node, "stalled_ticks", None) is not None and node.metrics_file:
+                node.finish(0.0)
+            node.close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

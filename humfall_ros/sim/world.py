@@ -1,0 +1,302 @@
+"""The PyBullet world: ground, robot, obstacles, pushes and sensors. No rclpy.
+
+One ``SimWorld`` owns one PyBullet client in DIRECT mode. Physics runs at
+``physics_rate``; ``step_control()`` advances one control tick
+(``physics_rate / control_rate`` physics steps) with the current joint targets.
+Recreate the world (``reset()``) for repeatable runs: PyBullet is
+deterministic given the same commands from a fresh world.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pybullet as pb
+
+from humfall_ros.model.humanoid import SIDES, HumanoidModel, load_model, quat_matrix
+
+GRAVITY = 9.81
+MAX_PUSH_FORCE = 5000.0  # N; anything above is a typo, not a push
+
+
+@dataclasses.dataclass
+class Box:
+    name: str
+    position: tuple[float, float, float]
+    size: tuple[float, float, float]
+    yaw: float = 0.0
+    is_target: bool = False
+
+
+@dataclasses.dataclass
+class Push:
+    force: np.ndarray           # world frame, N
+    point: np.ndarray           # in the link frame (URDF frame), m
+    link: str
+    start: float                # sim time, s
+    duration: float
+
+    def active(self, t: float) -> bool:
+        return self.start <= t < self.start + self.duration - 1e-12
+
+
+def validate_push(force, point, duration) -> str | None:
+    """None if the push is sane, else the reason it is refused."""
+    vals = list(force) + list(point) + [duration]
+    if not all(math.isfinite(float(v)) for v in vals):
+        return "push has a non-finite value (NaN or inf)"
+    mag = float(np.linalg.norm(force))
+    if mag > MAX_PUSH_FORCE:
+        return f"push force {mag:.0f} N exceeds the {MAX_PUSH_FORCE:.0f} N limit"
+    if duration <= 0 or duration > 10:
+        return f"push duration {duration} s must be in (0, 10]"
+    if float(np.linalg.norm(point)) > 2.0:
+        return "push application point is more than 2 m from the link origin"
+    return None
+
+
+# A standing posture with bent knees: the CoM sits over the ankles and the knees
+# keep away from the singular straight-leg configuration.
+STANDING_POSTURE = {
+    "l_hip_pitch": -0.35, "l_knee": 0.70, "l_ankle_pitch": -0.35,
+    "r_hip_pitch": -0.35, "r_knee": 0.70, "r_ankle_pitch": -0.35,
+    "l_shoulder_pitch": 0.1, "r_shoulder_pitch": 0.1,
+    "l_shoulder_roll": 0.15, "r_shoulder_roll": -0.15,
+    "l_elbow": -0.5, "r_elbow": -0.5,
+}
+
+
+class SimWorld:
+    def __init__(self, physics_rate: float = 1000.0, control_rate: float = 500.0,
+                 friction: float = 0.9, position_gain: float = 0.3, velocity_gain: float = 1.0,
+                 model: HumanoidModel | None = None, initial_posture: dict | None = None):
+        if physics_rate % control_rate:
+            raise ValueError("physics_rate must be an integer multiple of control_rate")
+        self.physics_rate = float(physics_rate)
+        self.control_rate = float(control_rate)
+        self.substeps = int(round(physics_rate / control_rate))
+        self.dt = 1.0 / physics_rate
+        self.friction = friction
+        self.position_gain = position_gain
+        self.velocity_gain = velocity_gain
+        self.model = model or load_model()
+        self.initial_posture = dict(STANDING_POSTURE if initial_posture is None else initial_posture)
+        self.client = pb.connect(pb.DIRECT)
+        self.obstacles: list[Box] = []
+        self._obstacle_ids: dict[str, int] = {}
+        self.pushes: list[Push] = []
+        self.reset()
+
+    # ------------------------------------------------------------------ setup
+    def reset(self, obstacles: list[Box] | None = None) -> None:
+        c = self.client
+        pb.resetSimulation(physicsClientId=c)
+        pb.setPhysicsEngineParameter(fixedTimeStep=self.dt, numSolverIterations=50,
+                                     deterministicOverlappingPairs=1, physicsClientId=c)
+        pb.setGravity(0, 0, -GRAVITY, physicsClientId=c)
+        plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=c)
+        self.ground = pb.createMultiBody(0, plane, physicsClientId=c)
+        pb.changeDynamics(self.ground, -1, lateralFriction=self.friction, physicsClientId=c)
+        self.robot = pb.loadURDF(self.model.urdf_path, [0, 0, 1.0],
+                                 flags=pb.URDF_USE_INERTIA_FROM_FILE, physicsClientId=c)
+        self._index_joints()
+        for link in range(-1, pb.getNumJoints(self.robot, physicsClientId=c)):
+            pb.changeDynamics(self.robot, link, lateralFriction=self.friction, linearDamping=0.0,
+                              angularDamping=0.0, physicsClientId=c)
+        q_joints = self.model.joint_vector(self.initial_posture)
+        base_z = self.standing_base_height(q_joints)
+        pb.resetBasePositionAndOrientation(self.robot, [0, 0, base_z], [0, 0, 0, 1], physicsClientId=c)
+        for name, value in zip(self.model.joint_names, q_joints):
+            pb.resetJointState(self.robot, self.joint_ids[name], value, 0.0, physicsClientId=c)
+        # default velocity motors off: control goes through set_joint_targets
+        self.targets = q_joints.copy()
+        self.target_velocities = np.zeros(self.model.njoints)
+        self._apply_targets()
+        self.time = 0.0
+        self.step_count = 0
+        self.pushes = []
+        self._prev_imu_velocity = None
+        self.set_obstacles(self.obstacles if obstacles is None else obstacles)
+
+    def standing_base_height(self, q_joints) -> float:
+        """Base height that puts the lowest sole corner on the ground (pinocchio FK)."""
+        q = self.model.configuration([0, 0, 0], [0, 0, 0, 1], q_joints)
+        self.model.forward(q)
+        lowest = min(self.model.sole_corners(s)[:, 2].min() for s in SIDES)
+        return -lowest + 1e-4
+
+    def _index_joints(self) -> None:
+        c = self.client
+        self.joint_ids: dict[str, int] = {}
+        self.link_ids: dict[str, int] = {pb.getBodyInfo(self.robot, physicsClientId=c)[0].decode(): -1}
+        for j in range(pb.getNumJoints(self.robot, physicsClientId=c)):
+            info = pb.getJointInfo(self.robot, j, physicsClientId=c)
+            self.link_ids[info[12].decode()] = j
+            if info[2] == pb.JOINT_REVOLUTE:
+                self.joint_ids[info[1].decode()] = j
+        missing = set(self.model.joint_names) - set(self.joint_ids)
+        if missing:
+            raise RuntimeError(f"pybullet and pinocchio disagree on joints: {sorted(missing)}")
+        self._jidx = [self.joint_ids[n] for n in self.model.joint_names]
+        self._efforts = self.model.limits.effort.copy()
+        self.foot_links = {s: self.link_ids[self.model.foot_link[s]] for s in SIDES}
+        self.imu_link = self.link_ids[self.model.imu_frame]
+
+    def set_obstacles(self, obstacles: list[Box]) -> None:
+        c = self.client
+        for bid in self._obstacle_ids.values():
+            pb.removeBody(bid, physicsClientId=c)
+        self._obstacle_ids = {}
+        self.obstacles = list(obstacles)
+        for box in self.obstacles:
+            half = [s / 2 for s in box.size]
+            shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=c)
+            orn = pb.getQuaternionFromEuler([0, 0, box.yaw])
+            self._obstacle_ids[box.name] = pb.createMultiBody(0, shape, basePosition=box.position,
+                                                              baseOrientation=orn, physicsClientId=c)
+
+    # ---------------------------------------------------------------- control
+    def set_joint_targets(self, positions, velocities=None) -> None:
+        """Position targets (model joint order), clipped to the joint limits."""
+        lim = self.model.limits
+        self.targets = np.clip(np.asarray(positions, float), lim.lower, lim.upper)
+        self.target_velocities = np.zeros(self.model.njoints) if velocities is None else \
+            np.clip(np.asarray(velocities, float), -lim.velocity, lim.velocity)
+        self._apply_targets()
+
+    def _apply_targets(self) -> None:
+        n = len(self._jidx)
+        pb.setJointMotorControlArray(
+            self.robot, self._jidx, pb.POSITION_CONTROL, targetPositions=self.targets.tolist(),
+            targetVelocities=self.target_velocities.tolist(), forces=self._efforts.tolist(),
+            positionGains=[self.position_gain] * n, velocityGains=[self.velocity_gain] * n,
+            physicsClientId=self.client)
+
+    def add_push(self, force, point=(0.0, 0.0, 0.0), duration: float = 0.1, link: str = "chest",
+                 start: float | None = None) -> None:
+        reason = validate_push(force, point, duration)
+        if reason:
+            raise ValueError(reason)
+        if link not in self.link_ids:
+            raise ValueError(f"unknown link {link!r}")
+        self.pushes.append(Push(np.asarray(force, float), np.asarray(point, float), link,
+                                self.time if start is None else start, float(duration)))
+
+    def step_control(self) -> None:
+        c = self.client
+        for _ in range(self.substeps):
+            for p in self.pushes:
+                if p.active(self.time):
+                    lid = self.link_ids[p.link]
+                    pos, orn = self._link_frame(lid)
+                    world_point = np.asarray(pos) + quat_matrix(orn) @ p.point
+                    pb.applyExternalForce(self.robot, lid, p.force.tolist(), world_point.tolist(),
+                                          pb.WORLD_FRAME, physicsClientId=c)
+            pb.stepSimulation(physicsClientId=c)
+            self.step_count += 1
+            self.time = self.step_count * self.dt
+        self.pushes = [p for p in self.pushes if self.time < p.start + p.duration]
+
+    # ---------------------------------------------------------------- sensors
+    def _link_frame(self, lid: int):
+        c = self.client
+        if lid == -1:
+            return pb.getBasePositionAndOrientation(self.robot, physicsClientId=c)
+        s = pb.getLinkState(self.robot, lid, physicsClientId=c)
+        return s[4], s[5]
+
+    def joint_states(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        st = pb.getJointStates(self.robot, self._jidx, physicsClientId=self.client)
+        return (np.array([s[0] for s in st]), np.array([s[1] for s in st]), np.array([s[3] for s in st]))
+
+    def imu(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(orientation xyzw, angular velocity in IMU frame, proper acceleration in IMU frame)."""
+        s = pb.getLinkState(self.robot, self.imu_link, computeLinkVelocity=1, physicsClientId=self.client)
+        orn = np.array(s[5])
+        R = quat_matrix(orn)
+        v = np.array(s[6])
+        w = np.array(s[7])
+        ctrl_dt = 1.0 / self.control_rate
+        acc = np.zeros(3) if self._prev_imu_velocity is None else (v - self._prev_imu_velocity) / ctrl_dt
+        self._prev_imu_velocity = v
+        proper = acc + np.array([0, 0, GRAVITY])
+        return orn, R.T @ w, R.T @ proper
+
+    def foot_wrench(self, side: str) -> tuple[np.ndarray, np.ndarray]:
+        """Ground reaction on a foot as (force, torque) at the ankle frame, foot-frame axes.
+
+        Built from the contact points (what an ankle F/T sensor measures, minus
+        the foot's own inertia, which is small and would only add noise here).
+        """
+        lid = self.foot_links[side]
+        pos, orn = self._link_frame(lid)
+        R = quat_matrix(orn)
+        f_w = np.zeros(3)
+        t_w = np.zeros(3)
+        for cp in pb.getContactPoints(self.robot, self.ground, linkIndexA=lid, physicsClientId=self.client):
+            normal = np.array(cp[7])
+            f = cp[9] * normal + cp[10] * np.array(cp[11]) + cp[12] * np.array(cp[13])
+            r = np.array(cp[6]) - np.asarray(pos)
+            f_w += f
+            t_w += np.cross(r, f)
+        return R.T @ f_w, R.T @ t_w
+
+    def ground_truth_cop(self):
+        """CoP of all robot-ground contacts (world), or None when airborne."""
+        f_tot = np.zeros(3)
+        m = np.zeros(2)
+        for cp in pb.getContactPoints(self.robot, self.ground, physicsClientId=self.client):
+            fz = cp[9] * cp[7][2]
+            f_tot[2] += fz
+            m += fz * np.asarray(cp[6][:2])
+        if f_tot[2] < 1.0:
+            return None
+        return np.array([m[0] / f_tot[2], m[1] / f_tot[2], 0.0])
+
+    def non_foot_contact(self) -> bool:
+        """True when any robot link but the feet touches the ground or an obstacle."""
+        feet = set(self.foot_links.values())
+        for other in [self.ground, *self._obstacle_ids.values()]:
+            for cp in pb.getContactPoints(self.robot, other, physicsClientId=self.client):
+                if cp[3] not in feet or other != self.ground:
+                    return True
+        return False
+
+    def trunk_tilt(self) -> float:
+        """Angle (rad) between the chest's z axis and the vertical."""
+        _, orn = self._link_frame(self.link_ids["chest"])
+        return math.acos(float(np.clip(quat_matrix(orn)[2, 2], -1.0, 1.0)))
+
+    def base_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Ground truth: waist frame position, orientation xyzw, linear and angular velocity (world)."""
+        pos, orn = pb.getBasePositionAndOrientation(self.robot, physicsClientId=self.client)
+        lin, ang = pb.getBaseVelocity(self.robot, physicsClientId=self.client)
+        # pybullet's base frame is the inertial frame; the waist's inertial origin is its URDF origin
+        return np.array(pos), np.array(orn), np.array(lin), np.array(ang)
+
+    def pinocchio_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """Ground-truth (q, v) in the model's convention."""
+        pos, orn, lin, ang = self.base_state()
+        qj, vj, _ = self.joint_states()
+        return self.model.configuration(pos, orn, qj), self.model.velocity(lin, ang, orn, vj)
+
+    def robot_link_positions(self) -> np.ndarray:
+        """URDF-frame positions of all robot links (n x 3), for fall geometry."""
+        pts = [self._link_frame(-1)[0]]
+        for lid in range(pb.getNumJoints(self.robot, physicsClientId=self.client)):
+            pts.append(self._link_frame(lid)[0])
+        return np.array(pts)
+
+    def distance_to(self, name: str, max_distance: float = 10.0) -> float:
+        """Closest distance (m) between the robot and an obstacle; 0 when touching."""
+        bid = self._obstacle_ids[name]
+        pts = pb.getClosestPoints(self.robot, bid, max_distance, physicsClientId=self.client)
+        if not pts:
+            return max_distance
+        return max(0.0, min(p[8] for p in pts))
+
+    def close(self) -> None:
+        if self.client is not None and pb.isConnected(self.client):
+            pb.disconnect(self.client)
+        self.client = None
