@@ -1,0 +1,61 @@
+"""locomotion: the balance controller. Standing now (walking comes with its issue).
+
+Answers every centroidal_state tick with a joint command stamped like it, so
+the bridge can run in lockstep.
+"""
+from __future__ import annotations
+
+from humfall_interfaces.msg import CentroidalState
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+
+from humfall_ros.control.standing import StandingBalance
+from humfall_ros.model.humanoid import load_model
+from humfall_ros.nodes.common import QOS_RELIABLE, Params, run_node
+from humfall_ros.sim.world import STANDING_POSTURE
+
+
+def key(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+class Locomotion(Node):
+    def __init__(self):
+        super().__init__("locomotion")
+        P = Params(self)
+        kp = P.declare("ankle_kp", "ankle offset per metre of CoM error (rad/m)", (0.0, 20.0))
+        kd = P.declare("ankle_kd", "ankle offset per m/s of CoM velocity (rad s/m)", (0.0, 5.0))
+        max_off = P.declare("ankle_max_offset", "largest ankle correction (rad)", (0.0, 0.5))
+        self.model = load_model()
+        self.balance = StandingBalance(self.model, STANDING_POSTURE, kp, kd, max_off)
+        self.pub = self.create_publisher(JointState, "joint_command/locomotion", QOS_RELIABLE)
+        self.create_subscription(CentroidalState, "centroidal_state", self._on_state, QOS_RELIABLE)
+        self.last_key = -1
+        self.last_cmd: JointState | None = None
+
+    def _on_state(self, msg: CentroidalState) -> None:
+        k = key(msg.header.stamp)
+        if k <= self.last_key:
+            if k == self.last_key and self.last_cmd is not None:
+                self.pub.publish(self.last_cmd)  # retransmitted tick
+            return
+        self.last_key = k
+        try:
+            q = self.balance.command([msg.com.x, msg.com.y, msg.com.z],
+                                     [msg.com_velocity.x, msg.com_velocity.y, msg.com_velocity.z],
+                                     [[p.x, p.y] for p in msg.support_polygon])
+            cmd = JointState(name=self.model.joint_names, position=q.tolist())
+        except Exception as e:  # noqa: BLE001 - never die on a bad state; release this tick
+            self.get_logger().error(f"standing command failed: {e}", throttle_duration_sec=1.0)
+            cmd = JointState()
+        cmd.header.stamp = msg.header.stamp
+        self.pub.publish(cmd)
+        self.last_cmd = cmd
+
+
+def main(args=None) -> int:
+    return run_node(Locomotion, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,163 @@
+"""state_estimator: joint states + IMU + ankle wrenches -> centroidal_state.
+
+Waits for all sensor messages of one stamp (the bridge sends them together),
+runs the leg-odometry estimator (humfall_ros.model.estimation) and publishes
+``centroidal_state`` with the same stamp, so lockstep controllers answer the
+right tick. Standard PointStamped / PolygonStamped / MarkerArray copies go out
+at ``viz_rate`` for RViz and Foxglove.
+"""
+from __future__ import annotations
+
+import numpy as np
+from geometry_msgs.msg import Point, Point32, PointStamped, PolygonStamped, WrenchStamped
+from humfall_interfaces.msg import CentroidalState
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from sensor_msgs.msg import Imu, JointState
+from visualization_msgs.msg import Marker, MarkerArray
+
+from humfall_ros.model.estimation import CentroidalEstimator
+from humfall_ros.model.humanoid import SIDES, load_model
+from humfall_ros.nodes.common import QOS_RELIABLE, Params, run_node
+
+SIDE_TOPIC = {"l": "left_foot/wrench", "r": "right_foot/wrench"}
+
+
+def key(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def to_point(v) -> Point:
+    return Point(x=float(v[0]), y=float(v[1]), z=float(v[2]) if len(v) > 2 else 0.0)
+
+
+class StateEstimator(Node):
+    def __init__(self):
+        super().__init__("state_estimator")
+        P = Params(self)
+        self.use_ground_truth = P.declare("use_ground_truth", "use the simulator's base pose instead of odometry")
+        viz_rate = P.declare("viz_rate", "rate of the PointStamped/PolygonStamped/MarkerArray copies (Hz)",
+                             (0.0, 1000.0))
+        contact_force = P.declare("contact_force", "normal force above which a foot is in contact (N)",
+                                  (0.0, 500.0))
+        self.model = load_model()
+        self.estimator = CentroidalEstimator(self.model, contact_force=contact_force)
+        self.viz_period = 1.0 / viz_rate if viz_rate > 0 else float("inf")
+        self.last_viz = -float("inf")
+        self.pending: dict[int, dict] = {}
+        self.last_key = -1
+        self.last_msg: CentroidalState | None = None
+        self.bad_messages = 0
+        self.needed = {"js", "imu", "l", "r"} | ({"odom"} if self.use_ground_truth else set())
+        self.pub = self.create_publisher(CentroidalState, "centroidal_state", QOS_RELIABLE)
+        self.pub_com = self.create_publisher(PointStamped, "centroidal_state/com", QOS_RELIABLE)
+        self.pub_cop = self.create_publisher(PointStamped, "centroidal_state/cop", QOS_RELIABLE)
+        self.pub_cp = self.create_publisher(PointStamped, "centroidal_state/capture_point", QOS_RELIABLE)
+        self.pub_poly = self.create_publisher(PolygonStamped, "centroidal_state/support_polygon", QOS_RELIABLE)
+        self.pub_markers = self.create_publisher(MarkerArray, "centroidal_state/markers", QOS_RELIABLE)
+        self.create_subscription(JointState, "joint_states", lambda m: self._add("js", m), QOS_RELIABLE)
+        self.create_subscription(Imu, "imu", lambda m: self._add("imu", m), QOS_RELIABLE)
+        for s, topic in SIDE_TOPIC.items():
+            self.create_subscription(WrenchStamped, topic, lambda m, s=s: self._add(s, m), QOS_RELIABLE)
+        if self.use_ground_truth:
+            self.create_subscription(Odometry, "ground_truth/odom", lambda m: self._add("odom", m), QOS_RELIABLE)
+
+    def _add(self, kind: str, msg) -> None:
+        k = key(msg.header.stamp)
+        if k <= self.last_key:
+            # a retransmitted tick: answer it again so lockstep can move on
+            if k == self.last_key and kind == "js" and self.last_msg is not None:
+                self.pub.publish(self.last_msg)
+            return
+        slot = self.pending.setdefault(k, {})
+        slot[kind] = msg
+        if self.needed <= slot.keys():
+            for old in [x for x in self.pending if x <= k]:
+                del self.pending[old]
+            try:
+                self._estimate(k, slot)
+            except Exception as e:  # noqa: BLE001 - a bad message must never kill the estimator
+                self.bad_messages += 1
+                self.get_logger().error(f"estimate failed at stamp {k}: {e}", throttle_duration_sec=1.0)
+            self.last_key = k
+
+    def _estimate(self, k: int, slot: dict) -> None:
+        js: JointState = slot["js"]
+        if list(js.name) != self.model.joint_names:
+            idx = {n: i for i, n in enumerate(js.name)}
+            missing = [n for n in self.model.joint_names if n not in idx]
+            if missing:
+                raise ValueError(f"joint_states lacks {missing[:3]}")
+            order = [idx[n] for n in self.model.joint_names]
+            qj = np.array(js.position)[order]
+            vj = np.array(js.velocity)[order]
+        else:
+            qj, vj = np.array(js.position), np.array(js.velocity)
+        imu: Imu = slot["imu"]
+        o = imu.orientation
+        quat = [o.x, o.y, o.z, o.w]
+        gyro = [imu.angular_velocity.x, imu.angular_velocity.y, imu.angular_velocity.z]
+        wrenches = {}
+        for s in SIDES:
+            w = slot[s].wrench
+            wrenches[s] = ([w.force.x, w.force.y, w.force.z], [w.torque.x, w.torque.y, w.torque.z])
+        truth = None
+        if self.use_ground_truth:
+            od: Odometry = slot["odom"]
+            p, oq = od.pose.pose.position, od.pose.pose.orientation
+            tl, ta = od.twist.twist.linear, od.twist.twist.angular
+            truth = ([p.x, p.y, p.z], [oq.x, oq.y, oq.z, oq.w], [tl.x, tl.y, tl.z], [ta.x, ta.y, ta.z])
+        t = k * 1e-9
+        e = self.estimator.update(t, qj, vj, quat, gyro, wrenches, base_truth=truth)
+        msg = CentroidalState()
+        msg.header.stamp = js.header.stamp
+        msg.header.frame_id = "odom"
+        msg.com = to_point(e.com)
+        msg.com_velocity.x, msg.com_velocity.y, msg.com_velocity.z = (float(x) for x in e.com_velocity)
+        msg.cop = to_point(e.cop)
+        msg.capture_point = to_point(e.capture_point)
+        msg.angular_momentum.x, msg.angular_momentum.y, msg.angular_momentum.z = (float(x) for x in e.angular_momentum)
+        msg.support_polygon = [to_point(p) for p in e.support_polygon]
+        msg.lean_angle = float(e.lean_angle)
+        msg.lean_direction = float(e.lean_direction)
+        msg.normal_force = float(e.normal_force)
+        msg.left_contact, msg.right_contact = bool(e.contacts["l"]), bool(e.contacts["r"])
+        msg.cop_on_edge = e.cop_on_edge
+        self.pub.publish(msg)
+        self.last_msg = msg
+        if t - self.last_viz >= self.viz_period - 1e-9:
+            self.last_viz = t
+            self._publish_viz(msg)
+
+    def _publish_viz(self, msg: CentroidalState) -> None:
+        h = msg.header
+        for pub, p in ((self.pub_com, msg.com), (self.pub_cop, msg.cop), (self.pub_cp, msg.capture_point)):
+            pub.publish(PointStamped(header=h, point=p))
+        poly = PolygonStamped(header=h)
+        poly.polygon.points = [Point32(x=p.x, y=p.y, z=0.0) for p in msg.support_polygon]
+        self.pub_poly.publish(poly)
+        arr = MarkerArray()
+        colors = {"com": (0.1, 0.4, 1.0), "cop": (1.0, 0.2, 0.1), "capture_point": (0.1, 0.8, 0.2)}
+        for i, (name, p) in enumerate((("com", msg.com), ("cop", msg.cop), ("capture_point", msg.capture_point))):
+            m = Marker(header=h, ns=name, id=i, type=Marker.SPHERE, action=Marker.ADD)
+            m.pose.position = p
+            m.pose.orientation.w = 1.0
+            m.scale.x = m.scale.y = m.scale.z = 0.04
+            m.color.r, m.color.g, m.color.b = colors[name]
+            m.color.a = 1.0
+            arr.markers.append(m)
+        m = Marker(header=h, ns="support_polygon", id=3, type=Marker.LINE_STRIP, action=Marker.ADD)
+        m.pose.orientation.w = 1.0
+        m.scale.x = 0.01
+        m.color.r, m.color.g, m.color.b, m.color.a = 1.0, 0.8, 0.0, 1.0
+        m.points = list(msg.support_polygon) + list(msg.support_polygon[:1])
+        arr.markers.append(m)
+        self.pub_markers.publish(arr)
+
+
+def main(args=None) -> int:
+    return run_node(StateEstimator, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
