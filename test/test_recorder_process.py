@@ -95,8 +95,9 @@ def log_tail(out: pathlib.Path) -> str:
 
 
 def joint_state(i: int) -> JointState:
+    # Empty velocity on purpose: FastCDR pads empty float64 sequences; every reader must cope.
     return JointState(name=JOINTS, position=[i + 0.001 * k for k in range(len(JOINTS))],
-                      velocity=[0.0] * len(JOINTS), effort=[float(i)] * len(JOINTS))
+                      velocity=[], effort=[float(i)] * len(JOINTS))
 
 
 def centroidal(i: int) -> CentroidalState:
@@ -282,7 +283,7 @@ def test_garbage_messages_do_not_stop_recording(graph, ros_env, tmp_path):
             cs.publish(centroidal(i))
             if i % 5 == 0:
                 cs.publish(garbage[(i // 5) % len(garbage)])   # raw bytes: not a CentroidalState
-        text.publish(garbage[1])
+        text.publish(garbage[0])
         text.publish(String(data="still alive"))
         time.sleep(1.0)
         assert rec.poll() is None, log_tail(out)
