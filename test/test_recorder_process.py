@@ -304,3 +304,37 @@ def test_garbage_messages_do_not_stop_recording(graph, ros_env, tmp_path):
     from humfall_ros.recording.plots import plot_run
 
     assert plot_run(out / "bag.mcap", tmp_path / "plots")
+
+
+def test_unknown_types_are_skipped_not_fatal(in_ros_domain, tmp_path, monkeypatch):
+    """In-process: a type this environment cannot import, or whose definition cannot be
+    built, is skipped (logged, listed in the stats); the node and the bag carry on."""
+    from humfall_ros.nodes import recorder as rec_mod
+    from humfall_ros.recording import schema as schema_mod
+
+    out = tmp_path / "run"
+    # Recorder() uses the default context: initialise it for this test only.
+    rclpy.init(args=["--ros-args", "-p", f"output_dir:={out}", "-p", "clock:=wall"])
+    node = None
+    try:
+        node = rec_mod.Recorder()
+        node._subscribe("/bogus", ["nonexistent_pkg/msg/Nope"], [])
+        node._subscribe("/bogus2", ["std_msgs/msg/DoesNotExist"], [])
+
+        def no_schema(type_name, loader=None):
+            raise schema_mod.SchemaError(f"no definition for {type_name}")
+
+        with monkeypatch.context() as m:
+            m.setattr("humfall_ros.recording.writer.build_schema", no_schema)
+            node._subscribe("/no_schema", ["std_msgs/msg/String"], [])
+        node._subscribe("/fine", ["std_msgs/msg/String"], [])
+        assert set(node.writer.skipped) == {"/bogus", "/bogus2", "/no_schema"}
+        assert "/fine" in node._subs
+        node.close()
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    stats = json.loads((out / "recording_stats.json").read_text())
+    assert set(stats["skipped_topics"]) == {"/bogus", "/bogus2", "/no_schema"}
+    assert stats["finalized"] and reader.bag_info(out)["finalized"]
