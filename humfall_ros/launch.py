@@ -1,0 +1,245 @@
+"""`humfall up`: start the suite as separate processes, run a scenario, collect the results.
+
+What ``ros2 launch`` would do on a full ROS install, for pip-only machines:
+one process per node, each with its log file in the run folder, clean stop
+(SIGINT, then SIGTERM, then SIGKILL) on the end of the run, on Ctrl-C or when a
+node dies (then the log tail is shown and the exit status is non-zero).
+No rclpy here: results come from the bridge's metrics file and the bag.
+"""
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+import yaml
+
+from humfall_ros import scenario as scenario_mod
+
+# Which node serves which fall controller (nodes of later issues plug in here).
+CONTROLLER_NODES: dict[str, list[str]] = {"none": []}
+# Command sources each node answers in lockstep.
+LOCKSTEP_SOURCE = {"locomotion": "locomotion"}
+
+
+class RunError(RuntimeError):
+    pass
+
+
+def ros_value(v) -> str:
+    """A parameter value as `-p name:=value` wants it (YAML)."""
+    if isinstance(v, str):
+        return v if v else "''"
+    return yaml.safe_dump(v, default_flow_style=True).strip().removesuffix("...").strip()
+
+
+class Proc:
+    def __init__(self, name: str, cmd: list[str], env: dict, log_dir: pathlib.Path):
+        self.name = name
+        self.log_path = log_dir / f"{name}.log"
+        self.log = open(self.log_path, "wb")
+        self.p = subprocess.Popen(cmd, env=env, stdout=self.log, stderr=subprocess.STDOUT,
+                                  start_new_session=True)  # our Ctrl-C is handled here, not by the node
+
+    def alive(self) -> bool:
+        return self.p.poll() is None
+
+    def stop(self, timeout: float = 10.0) -> int:
+        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 3.0), (signal.SIGKILL, 3.0)):
+            if not self.alive():
+                break
+            try:
+                self.p.send_signal(sig)
+                self.p.wait(wait)
+            except subprocess.TimeoutExpired:
+                continue
+        self.log.close()
+        return self.p.returncode
+
+    def tail(self, n: int = 25) -> str:
+        try:
+            lines = self.log_path.read_text(errors="replace").splitlines()
+        except OSError:
+            return ""
+        return "\n".join(lines[-n:])
+
+
+def make_run_dir(runs_dir: pathlib.Path, name: str) -> pathlib.Path:
+    stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    d = runs_dir / f"{stamp}-{name}"
+    i = 1
+    while d.exists():
+        i += 1
+        d = runs_dir / f"{stamp}-{name}-{i}"
+    d.mkdir(parents=True)
+    return d
+
+
+def node_command(node: str, params: dict) -> list[str]:
+    cmd = [sys.executable, "-m", f"humfall_ros.nodes.{node}", "--ros-args"]
+    for k, v in params.items():
+        cmd += ["-p", f"{k}:={ros_value(v)}"]
+    return cmd
+
+
+def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[tuple[str, dict]]:
+    """(node, parameters) in start order; the bridge last so the others are listening."""
+    controller = sc["controller"]
+    if controller not in CONTROLLER_NODES:
+        raise RunError(f"controller {controller!r} is not available yet (available: {', '.join(CONTROLLER_NODES)})")
+    extra = sc["params"]
+    nodes = []
+    if record:
+        nodes.append(("recorder", {"output_dir": str(run_dir), "scenario": sc["name"]}))
+    control_nodes = ["state_estimator", "locomotion", *CONTROLLER_NODES[controller]]
+    for n in control_nodes:
+        nodes.append((n, {}))
+    s = sc["sim"]
+    nodes.append(("sim_bridge", {
+        "scenario": str(run_dir / "scenario.yaml"),
+        "end_time": float(sc["duration"]),
+        "metrics_file": str(run_dir / "metrics.json"),
+        "lockstep": bool(s["lockstep"]),
+        "physics_rate": float(s["physics_rate"]),
+        "control_rate": float(s["control_rate"]),
+        "real_time_factor": float(s["real_time_factor"]),
+        "friction": float(s["friction"]),
+        "lockstep_sources": [LOCKSTEP_SOURCE[n] for n in control_nodes if n in LOCKSTEP_SOURCE],
+    }))
+    unknown = set(extra) - {n for n, _ in nodes}
+    if unknown:
+        raise RunError(f"params for nodes that are not in this run: {sorted(unknown)}")
+    return [(n, {**p, **extra.get(n, {})}) for n, p in nodes]
+
+
+def child_env(run_dir: pathlib.Path) -> dict:
+    env = dict(os.environ)
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env["RMW_IMPLEMENTATION"] = "rmw_fastrtps_cpp"
+    env["ROS_LOG_DIR"] = str(run_dir / "logs" / "ros")
+    env.setdefault("HOME", str(run_dir))
+    env["PYTHONUNBUFFERED"] = "1"
+    env["MPLBACKEND"] = "Agg"
+    # children import the same humfall_ros as this process
+    pkg_root = str(pathlib.Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = os.pathsep.join(x for x in (pkg_root, env.get("PYTHONPATH", "")) if x)
+    return env
+
+
+def up(scenario: str, controller: str | None = None, overrides: list[str] | None = None,
+       runs_dir: str = "runs", record: bool = True, plots: bool = True, quiet: bool = False,
+       timeout: float | None = None) -> tuple[int, dict]:
+    """Run a scenario end to end; returns (exit status, result dict)."""
+    def say(*a):
+        if not quiet:
+            print(*a, flush=True)
+
+    sc = scenario_mod.load(scenario, overrides)
+    if controller:
+        sc = scenario_mod.apply_override(sc, f"controller={controller}")
+    run_dir = make_run_dir(pathlib.Path(runs_dir), sc["name"])
+    (run_dir / "scenario.yaml").write_text(scenario_mod.dump(sc))
+    log_dir = run_dir / "logs"
+    log_dir.mkdir()
+    nodes = plan_nodes(sc, run_dir, record)
+    env = child_env(run_dir)
+    say(f"run folder {run_dir}  (ROS_DOMAIN_ID={env.get('ROS_DOMAIN_ID', '0')})")
+    procs: list[Proc] = []
+    status, failure = 0, None
+    interrupted = False
+    t0 = time.monotonic()
+
+    def on_sigint(*_):
+        nonlocal interrupted
+        interrupted = True
+
+    old = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        for name, params in nodes:
+            if name == "sim_bridge":
+                time.sleep(1.0)  # let the others finish start-up before time starts
+            procs.append(Proc(name, node_command(name, params), env, log_dir))
+            say(f"  started {name} (pid {procs[-1].p.pid})")
+        bridge = procs[-1]
+        limit = timeout if timeout is not None else max(120.0, 60.0 * float(sc["duration"]))
+        while not interrupted:
+            if not bridge.alive():
+                if bridge.p.returncode != 0:
+                    failure = bridge
+                break
+            dead = [p for p in procs[:-1] if not p.alive()]
+            if dead:
+                failure = dead[0]
+                break
+            if time.monotonic() - t0 > limit:
+                failure = bridge
+                say(f"run exceeded its {limit:.0f} s wall-time limit")
+                break
+            time.sleep(0.1)
+    finally:
+        # stop in reverse start order: the recorder last, so it records everything
+        for p in reversed(procs):
+            p.stop()
+        signal.signal(signal.SIGINT, old)
+    wall = time.monotonic() - t0
+    if failure is not None:
+        status = 1
+        say(f"\nnode {failure.name} died (exit {failure.p.returncode}); last lines of {failure.log_path}:")
+        say(failure.tail())
+    if interrupted:
+        status = status or 130
+        say("interrupted: stopped every node cleanly")
+    result = collect_result(sc, run_dir, wall, record, plots and status == 0)
+    (run_dir / "result.json").write_text(json.dumps(result, indent=2))
+    say(summary(result))
+    return status, result
+
+
+def collect_result(sc: dict, run_dir: pathlib.Path, wall: float, record: bool, plots: bool) -> dict:
+    metrics_path = run_dir / "metrics.json"
+    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+    bag = next(iter(sorted(run_dir.glob("*.mcap"))), None)
+    result = {
+        "scenario": sc["name"],
+        "controller": sc["controller"],
+        "fell": metrics.get("fell"),
+        "fall_direction_deg": metrics.get("fall_direction_deg"),
+        "avoidance_angle_deg": metrics.get("avoidance_angle_deg"),
+        "min_target_distance_m": metrics.get("min_target_distance_m"),
+        "sim_duration_s": metrics.get("sim_duration_s"),
+        "wall_time_s": round(wall, 3),
+        "bag": str(bag) if bag else None,
+        "metrics": metrics,
+        "plots": [],
+    }
+    stats = run_dir / "recording_stats.json"
+    if stats.is_file():
+        result["recording"] = json.loads(stats.read_text())
+    if plots and bag is not None:
+        try:
+            from humfall_ros.recording import plot_run
+
+            result["plots"] = [str(p) for p in plot_run(bag, run_dir)]
+        except Exception as e:  # noqa: BLE001 - a plot failure must not lose the result
+            result["plot_error"] = str(e)
+    return result
+
+
+def summary(r: dict) -> str:
+    def f(x, unit=""):
+        return "n/a" if x is None else (f"{x:.1f}{unit}" if isinstance(x, float) else f"{x}{unit}")
+
+    lines = [f"\n{r['scenario']} / controller {r['controller']}",
+             f"  fell: {r['fell']}   fall direction: {f(r['fall_direction_deg'], ' deg')}   "
+             f"avoidance angle: {f(r['avoidance_angle_deg'], ' deg')}",
+             f"  min distance to target: {f(r['min_target_distance_m'], ' m')}",
+             f"  sim {f(r['sim_duration_s'], ' s')} in {f(r['wall_time_s'], ' s')} wall",
+             f"  bag: {r['bag']}"]
+    if r.get("plots"):
+        lines.append(f"  plots: {', '.join(pathlib.Path(p).name for p in r['plots'])}")
+    return "\n".join(lines)
