@@ -109,7 +109,8 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[tuple[str,
         "control_rate": float(s["control_rate"]),
         "real_time_factor": float(s["real_time_factor"]),
         "friction": float(s["friction"]),
-        "lockstep_sources": [LOCKSTEP_SOURCE[n] for n in control_nodes if n in LOCKSTEP_SOURCE],
+        "lockstep_sources": [LOCKSTEP_SOURCE[n] for n in control_nodes if n in LOCKSTEP_SOURCE] or [""],
+        "wait_for_nodes": ["recorder"] if record else [""],
     }))
     unknown = set(extra) - {n for n, _ in nodes}
     if unknown:

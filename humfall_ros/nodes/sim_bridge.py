@@ -54,6 +54,11 @@ def stamp_key(stamp: TimeMsg) -> int:
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
+def _names(values) -> list[str]:
+    """A string-array parameter; [''] stands for the empty list ROS cannot type."""
+    return [v for v in values if v]
+
+
 def check_command(msg: JointState, known: dict[str, int]) -> str | None:
     """None if a joint command is usable, else why it is refused."""
     if len(msg.position) != len(msg.name):
@@ -80,14 +85,18 @@ class SimBridge(Node):
         self.lockstep = P.declare("lockstep", "advance a tick only when every lockstep source has answered it")
         self.rtf_target = P.declare("real_time_factor", "free-run speed target (0: as fast as possible)",
                                     (0.0, 100.0))
-        self.sources = list(P.declare("command_sources", "joint command sources, highest priority first"))
-        self.lockstep_sources = list(P.declare("lockstep_sources", "sources whose command each tick waits for"))
+        self.sources = _names(P.declare("command_sources", "joint command sources, highest priority first"))
+        self.lockstep_sources = _names(P.declare("lockstep_sources", "sources whose command each tick waits for "
+                                                 "([''] for none)"))
         self.command_timeout = P.declare("command_timeout", "sim seconds a command stays live", (0.0, 10.0))
         self.retransmit_period = P.declare("retransmit_period", "wall seconds without progress before "
                                            "the tick's sensors are sent again", (0.05, 60.0))
         self.stall_timeout = P.declare("stall_timeout", "wall seconds to wait for a lockstep command before "
                                        "stepping without it (logged)", (1.0, 3600.0))
         self.end_time = P.declare("end_time", "sim time at which the run ends (0: never)", (0.0, 36000.0))
+        self.wait_for_nodes = _names(P.declare("wait_for_nodes", "nodes (e.g. the recorder) that must subscribe to "
+                                             "joint_states before time starts"))
+        self.wait_timeout = P.declare("wait_timeout", "wall seconds to wait for wait_for_nodes", (0.0, 600.0))
         self.metrics_file = P.declare("metrics_file", "where to write ground-truth run metrics (JSON)")
         self.scenario_name = P.declare("scenario", "scenario name or file for obstacles, pushes and posture")
         friction = P.declare("friction", "ground and foot friction coefficient", (0.05, 3.0))
@@ -293,9 +302,24 @@ class SimBridge(Node):
                  stalled_ticks=self.stalled_ticks)
         return r
 
+    def wait_for_subscribers(self, executor) -> None:
+        """Hold time at zero until the listed nodes listen (so the bag starts at t=0)."""
+        deadline = time.monotonic() + self.wait_timeout
+        topic = self.pub_js.topic_name
+        while rclpy.ok() and self.wait_for_nodes:
+            present = {i.node_name for i in self.get_subscriptions_info_by_topic(topic)}
+            missing = [n for n in self.wait_for_nodes if n not in present]
+            if not missing:
+                return
+            if time.monotonic() > deadline:
+                self.get_logger().warning(f"starting without {missing}: not subscribed after {self.wait_timeout} s")
+                return
+            executor.spin_once(timeout_sec=0.05)
+
     def run(self, executor) -> None:
         """The main loop (instead of executor.spin: the bridge owns time)."""
         self.stalled_ticks = 0
+        self.wait_for_subscribers(executor)
         wall0, sim0 = time.monotonic(), self.world.time
         rtf_wall, rtf_sim = wall0, sim0
         while rclpy.ok():

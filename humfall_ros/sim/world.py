@@ -117,6 +117,7 @@ class SimWorld:
         self.step_count = 0
         self.pushes = []
         self._prev_imu_velocity = None
+        self._ground_contacts = None
         self.set_obstacles(self.obstacles if obstacles is None else obstacles)
 
     def standing_base_height(self, q_joints) -> float:
@@ -194,11 +195,18 @@ class SimWorld:
                     pb.applyExternalForce(self.robot, lid, p.force.tolist(), world_point.tolist(),
                                           pb.WORLD_FRAME, physicsClientId=c)
             pb.stepSimulation(physicsClientId=c)
+            self._ground_contacts = None
             self.step_count += 1
             self.time = self.step_count * self.dt
         self.pushes = [p for p in self.pushes if self.time < p.start + p.duration]
 
     # ---------------------------------------------------------------- sensors
+    def ground_contacts(self) -> tuple:
+        """Robot-ground contact points of the current step (cached: PyBullet's query is slow)."""
+        if self._ground_contacts is None:
+            self._ground_contacts = pb.getContactPoints(self.robot, self.ground, physicsClientId=self.client)
+        return self._ground_contacts
+
     def _link_frame(self, lid: int):
         c = self.client
         if lid == -1:
@@ -234,7 +242,9 @@ class SimWorld:
         R = quat_matrix(orn)
         f_w = np.zeros(3)
         t_w = np.zeros(3)
-        for cp in pb.getContactPoints(self.robot, self.ground, linkIndexA=lid, physicsClientId=self.client):
+        for cp in self.ground_contacts():
+            if cp[3] != lid:
+                continue
             normal = np.array(cp[7])
             f = cp[9] * normal + cp[10] * np.array(cp[11]) + cp[12] * np.array(cp[13])
             r = np.array(cp[6]) - np.asarray(pos)
@@ -246,7 +256,7 @@ class SimWorld:
         """CoP of all robot-ground contacts (world), or None when airborne."""
         f_tot = np.zeros(3)
         m = np.zeros(2)
-        for cp in pb.getContactPoints(self.robot, self.ground, physicsClientId=self.client):
+        for cp in self.ground_contacts():
             fz = cp[9] * cp[7][2]
             f_tot[2] += fz
             m += fz * np.asarray(cp[6][:2])
@@ -257,11 +267,10 @@ class SimWorld:
     def non_foot_contact(self) -> bool:
         """True when any robot link but the feet touches the ground or an obstacle."""
         feet = set(self.foot_links.values())
-        for other in [self.ground, *self._obstacle_ids.values()]:
-            for cp in pb.getContactPoints(self.robot, other, physicsClientId=self.client):
-                if cp[3] not in feet or other != self.ground:
-                    return True
-        return False
+        if any(cp[3] not in feet for cp in self.ground_contacts()):
+            return True
+        return any(pb.getContactPoints(self.robot, other, physicsClientId=self.client)
+                   for other in self._obstacle_ids.values())
 
     def trunk_tilt(self) -> float:
         """Angle (rad) between the chest's z axis and the vertical."""
