@@ -1,0 +1,108 @@
+"""The robot model: URDF facts, pinocchio vs PyBullet, centroidal helpers."""
+import math
+
+import numpy as np
+import pybullet as pb
+import pytest
+
+from humfall_ros.dynamics.pendulum import GRAVITY, capture_point, lean_angle
+from humfall_ros.model.humanoid import (HumanoidModel, cop_from_wrenches, point_in_polygon_margin,
+                                        support_polygon)
+from humfall_ros.sim.world import SimWorld
+
+
+@pytest.fixture(scope="module")
+def model():
+    return HumanoidModel()
+
+
+def test_urdf_is_hrp2_class(model):
+    assert 55.0 <= model.total_mass <= 60.0
+    assert model.njoints == 22
+    assert abs(model.foot_length - 0.24) < 1e-9 and abs(model.foot_width - 0.14) < 1e-9
+    # every joint has position, velocity and effort limits
+    lim = model.limits
+    assert np.all(lim.upper > lim.lower)
+    assert np.all(lim.velocity > 0) and np.all(lim.effort > 0)
+    # four sole corners per foot, a hand frame per side, an IMU frame
+    for s in ("l", "r"):
+        assert len(model.corner_frames[s]) == 4
+        assert model.hand_frame[s] in model.frame_ids
+    assert model.imu_frame in model.frame_ids
+
+
+def test_pinocchio_and_pybullet_agree_on_mass_and_standing_com(model):
+    world = SimWorld(model=model)
+    try:
+        c = world.client
+        pb_mass = sum(pb.getDynamicsInfo(world.robot, i, physicsClientId=c)[0]
+                      for i in range(-1, pb.getNumJoints(world.robot, physicsClientId=c)))
+        assert pb_mass == pytest.approx(model.total_mass, abs=1e-6)
+        # PyBullet's CoM: mass-weighted link CoM positions (getLinkState[0] is the inertial frame)
+        com_pb = np.zeros(3)
+        pos, _ = pb.getBasePositionAndOrientation(world.robot, physicsClientId=c)
+        com_pb += pb.getDynamicsInfo(world.robot, -1, physicsClientId=c)[0] * np.array(pos)
+        for i in range(pb.getNumJoints(world.robot, physicsClientId=c)):
+            mi = pb.getDynamicsInfo(world.robot, i, physicsClientId=c)[0]
+            com_pb += mi * np.array(pb.getLinkState(world.robot, i, physicsClientId=c)[0])
+        com_pb /= pb_mass
+        q, _ = world.pinocchio_state()
+        com_pin = model.com(q)
+        assert np.linalg.norm(com_pin - com_pb) < 1e-6
+        # standing: the CoM is over the support polygon and about 0.74 m high
+        model.forward(q)
+        poly = support_polygon(np.vstack([model.sole_corners("l"), model.sole_corners("r")]))
+        assert point_in_polygon_margin(com_pin, poly) > 0.05
+        assert 0.65 < com_pin[2] < 0.85
+    finally:
+        world.close()
+
+
+def test_support_polygon_is_the_hull_of_both_soles(model):
+    q = model.configuration([0, 0, 0.7], [0, 0, 0, 1], np.zeros(model.njoints))
+    model.forward(q)
+    pts = np.vstack([model.sole_corners("l"), model.sole_corners("r")])
+    poly = support_polygon(pts)
+    assert len(poly) == 4
+    # counter-clockwise: positive signed area = foot length x outer width
+    x, y = poly[:, 0], poly[:, 1]
+    area = 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)
+    width = pts[:, 1].max() - pts[:, 1].min()
+    assert area == pytest.approx(model.foot_length * width, rel=1e-9)
+    assert point_in_polygon_margin([10, 0], poly) < 0
+
+
+def test_cop_from_wrenches_matches_point_forces():
+    # two vertical point forces: the CoP is their weighted mean
+    w1 = (np.array([0.1, 0.1, 0.1]), np.array([0, 0, 300.0]), np.zeros(3))
+    w2 = (np.array([-0.1, -0.1, 0.1]), np.array([0, 0, 100.0]), np.zeros(3))
+    # express each wrench at a point 0.1 m above its force's line of action
+    cop, fz = cop_from_wrenches([w1, w2])
+    assert fz == pytest.approx(400.0)
+    assert cop[:2] == pytest.approx([0.05, 0.05])
+    assert cop_from_wrenches([(np.zeros(3), np.zeros(3), np.zeros(3))])[0] is None
+
+
+def test_capture_point_eq_1_2():
+    com, vel = np.array([0.1, -0.2, 0.8]), np.array([0.5, 0.25, 0.0])
+    cp = capture_point(com, vel)
+    k = math.sqrt(0.8 / GRAVITY)
+    assert cp == pytest.approx([0.1 + k * 0.5, -0.2 + k * 0.25, 0.0])
+    angle, heading = lean_angle([0.3, 0.0, 0.3], [0, 0, 0])
+    assert angle == pytest.approx(math.pi / 4) and heading == pytest.approx(0.0)
+
+
+def test_crb_inertia_is_the_centroidal_inertia(model):
+    q = model.configuration([0, 0, 0.7], [0, 0, 0, 1], np.zeros(model.njoints))
+    I = model.crb_inertia(q)
+    assert np.allclose(I, I.T) and np.all(np.linalg.eigvalsh(I) > 0)
+    # cross-check against a spin about the CoM: h = I_G * omega for a rigid rotation
+    v = np.zeros(model.model.nv)
+    v[3:6] = [0.0, 1.0, 0.0]
+    com = model.com(q)
+    base = q[:3]
+    v[:3] = -np.cross(v[3:6], base - com)  # base velocity of a rotation about the CoM
+    _, _, h = model.centroidal(q, v)
+    assert h == pytest.approx(I @ v[3:6], rel=1e-9, abs=1e-9)
+    # an upright humanoid is taller than wide: pitch/roll inertia exceed yaw
+    assert I[0, 0] > I[2, 2] and I[1, 1] > I[2, 2]
