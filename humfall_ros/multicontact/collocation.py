@@ -1,0 +1,619 @@
+"""Trajectory optimisation: opt_self_motion and opt_transition_motion (paper 2, Sec. III-C, III-D).
+
+Transcription (Sec. III-C.2): Nd knots over a free duration T (h = T/(Nd-1)).
+Per knot the decision variables are q, qdot, qddot, u and the contact forces
+lambda of the segment's mode. Positions follow the cubic Hermite spline fixed by
+(q, qdot) at both knots (eq. 7); velocities the cubic fixed by (qdot, qddot);
+u and lambda are piecewise linear. Eq. 1 holds at every knot (the knot
+accelerations are the ones eq. 1 gives for the knot's state, control and force:
+written in inverse-dynamics form, which is the same condition without a
+symbolic inverse of D), and at the mid-point s = 1/2 the collocation constraints
+ask (i) the slope of the position spline to equal the velocity spline and
+(ii) eq. 1 to hold with the interpolated q, qdot, qddot and the averaged u,
+lambda (eq. 8).
+
+Constraints: eq. 3 (contact rows at zero distance for the mode, clearance
+eps_cl for everything else, a ramp from the initial distance for points that
+start closer), eq. 4 (contact velocities zero), eq. 5 (friction cone, linear in
+the planar case), eq. 6 (joint, velocity and torque limits from the URDF).
+Objective eq. 9: kinetic energy at the last knot (pre-impact for an added
+contact, as in Sec. III-A), plus a tiny torque regulariser that only breaks ties.
+
+Speed: each NLP structure (kind, mode, target, environment shape, Nd) is built
+once as a casadi SX graph and an IPOPT instance with exact Hessians, and cached.
+Everything that changes between calls (initial state, contact anchors, wall
+position, clearance ramps, the removed contact's zero force) enters through the
+variable and constraint bounds, so no rebuild is needed.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+import time
+
+import casadi as ca
+import numpy as np
+
+from humfall_ros.multicontact import contacts as C
+from humfall_ros.multicontact.model import EXTREMITIES, FEET, PlanarModel
+from humfall_ros.multicontact.modes import Environment, Mode, make_mode, mode_label
+
+
+@dataclasses.dataclass
+class OptConfig:
+    """Table I defaults plus solver settings (all configurable from the node yaml)."""
+
+    n_knots: int = 8              # Nd
+    t_min: float = 0.25           # T_min (s)
+    t_max: float = 3.5            # T_max (s)
+    n_seed_durations: int = 40    # N_tot: seed duration grid over [T_min, T_max]
+    max_seed_attempts: int = 3    # seeds tried per NLP call (evenly spread over the grid)
+    seed_first_duration: float = 0.8  # the first seed tried (T is a variable anyway)
+    eps_ke: float = 0.1           # J, stationary threshold
+    eps_cl: float = 0.025         # m, clearance of non-contact points
+    mu: float = 0.35              # friction coefficient
+    torque_reg: float = 1e-4      # weight of sum (u/u_max)^2 h (tie breaker)
+    max_iter: int = 400
+    tol: float = 1e-6
+    constr_viol_tol: float = 1e-5
+    feasibility_tol: float = 1e-4  # our own check of the returned solution
+    root_z_min: float = 0.0
+    acc_max: float = 100.0          # rad/s^2 or m/s^2 at the knots
+    force_max_mg: float = 3.0       # contact force component cap, in units of M g
+    contact_pos_tol: float = 0.002   # m, eq. 3 at the knots (drift bound)
+    contact_vel_tol: float = 0.02    # m/s, eq. 4 at the knots
+    nlp_max_wall_time: float = 20.0  # s, cap of one IPOPT run (the tree also checks its budget)
+
+    @staticmethod
+    def from_dict(d: dict) -> "OptConfig":
+        names = {f.name for f in dataclasses.fields(OptConfig)}
+        return OptConfig(**{k: v for k, v in d.items() if k in names})
+
+    def seed_durations(self) -> list[float]:
+        """Seeds tried by increasing duration (Sec. III-D), capped for speed.
+
+        The paper sweeps the whole grid; here T is a decision variable, so a
+        few well-spread seeds starting near ``seed_first_duration`` suffice.
+        """
+        grid = np.linspace(self.t_min, self.t_max, max(2, self.n_seed_durations))
+        start = int(np.argmin(np.abs(grid - self.seed_first_duration)))
+        rest = grid[start:]
+        k = max(1, self.max_seed_attempts)
+        idx = np.unique(np.round(np.linspace(0, len(rest) - 1, k)).astype(int)) if k > 1 else [0]
+        return [float(rest[i]) for i in idx]
+
+
+@dataclasses.dataclass
+class Segment:
+    """One optimised trajectory (a tree edge or a node's self-motion)."""
+
+    kind: str            # 'self_motion' | 'transition'
+    mode: Mode           # contact mode during the segment
+    target_mode: Mode
+    change: str          # '', 'add', 'remove'
+    extremity: str       # changed extremity ('' for self-motion)
+    time: np.ndarray     # Nd
+    q: np.ndarray        # Nd x n
+    v: np.ndarray
+    a: np.ndarray
+    u: np.ndarray        # Nd x m
+    lam: np.ndarray      # Nd x rows
+    rows: list           # ContactRow list of lambda columns
+    ke: np.ndarray       # Nd
+    success: bool
+    status: str
+    iterations: int
+    nlp_time: float
+    seed_duration: float
+    attempts: int
+    max_violation: float
+
+    @property
+    def final_ke(self) -> float:
+        return float(self.ke[-1])
+
+    def to_dict(self, model: PlanarModel | None = None) -> dict:
+        return {
+            "kind": self.kind, "mode": mode_label(self.mode), "target_mode": mode_label(self.target_mode),
+            "change": self.change, "extremity": self.extremity,
+            "time": self.time.tolist(), "q": self.q.tolist(), "v": self.v.tolist(), "a": self.a.tolist(),
+            "u": self.u.tolist(), "lam": self.lam.tolist(),
+            "rows": [dataclasses.asdict(r) for r in self.rows], "ke": self.ke.tolist(),
+            "success": self.success, "status": self.status, "iterations": self.iterations,
+            "nlp_time": self.nlp_time, "seed_duration": self.seed_duration, "attempts": self.attempts,
+            "max_violation": self.max_violation,
+        }
+
+
+# ---------------------------------------------------------------- splines
+def hermite_mid(q0, v0, q1, v1, a0, a1, h):
+    """Mid-point (s = 1/2) values of the implicit cubic splines (eq. 7-8).
+
+    Returns q_mid, qdot_mid (velocity spline), qddot_mid (slope of the velocity
+    spline) and the slope of the position spline at s = 1/2.
+    """
+    q_mid = 0.5 * (q0 + q1) + h / 8.0 * (v0 - v1)
+    v_mid = 0.5 * (v0 + v1) + h / 8.0 * (a0 - a1)
+    a_mid = 1.5 / h * (v1 - v0) - 0.25 * (a0 + a1)
+    qdot_mid = 1.5 / h * (q1 - q0) - 0.25 * (v0 + v1)
+    return q_mid, v_mid, a_mid, qdot_mid
+
+
+def hermite_eval(t0, t1, y0, dy0, y1, dy1, t):
+    """Cubic Hermite interpolation on [t0, t1] (value and derivative)."""
+    h = t1 - t0
+    s = (t - t0) / h
+    h00 = 2 * s**3 - 3 * s**2 + 1
+    h10 = s**3 - 2 * s**2 + s
+    h01 = -2 * s**3 + 3 * s**2
+    h11 = s**3 - s**2
+    y = h00 * y0 + h10 * h * dy0 + h01 * y1 + h11 * h * dy1
+    dh00 = (6 * s**2 - 6 * s) / h
+    dh10 = (3 * s**2 - 4 * s + 1)
+    dh01 = (-6 * s**2 + 6 * s) / h
+    dh11 = (3 * s**2 - 2 * s)
+    dy = dh00 * y0 + dh10 * dy0 + dh01 * y1 + dh11 * dy1
+    return y, dy
+
+
+# ----------------------------------------------------------- NLP structure
+@dataclasses.dataclass(frozen=True)
+class StructureKey:
+    change: str           # '' (self-motion), 'add', 'remove'
+    mode: Mode            # mode during the segment
+    extremity: str
+    has_wall: bool
+    n_knots: int
+
+
+class SegmentNLP:
+    """One cached NLP structure (see module doc)."""
+
+    def __init__(self, model: PlanarModel, key: StructureKey, cfg: OptConfig):
+        self.model, self.key, self.cfg = model, key, cfg
+        n, m, N = model.n, model.m, key.n_knots
+        env_shape = Environment(0.0 if key.has_wall else None)  # surfaces only; wall_x enters via bounds
+        self.rows = C.contact_rows(key.mode, env_shape)
+        self.nl = len(self.rows)
+        self.clear_pts = self._clearance_points(env_shape)
+        nk = 3 * n + m + self.nl
+        self.nk = nk
+        # Decision variables in scaled units: u = u_max * u~, lambda = M g * lambda~,
+        # so that every block is O(1) for IPOPT.
+        self.u_scale = np.asarray(model.u_max, float)
+        self.f_scale = model.total_mass * 9.81
+        w = ca.SX.sym("w", 1 + N * nk)
+        T = w[0]
+        h = T / (N - 1)
+        knots = []
+        for k in range(N):
+            o = 1 + k * nk
+            knots.append(dict(q=w[o:o + n], v=w[o + n:o + 2 * n], a=w[o + 2 * n:o + 3 * n],
+                              u=ca.DM(self.u_scale) * w[o + 3 * n:o + 3 * n + m],
+                              l=self.f_scale * w[o + 3 * n + m:o + nk]))
+        dyn_scale = 1.0 / self.f_scale
+        g, self.g_tags = [], []  # tags: (block, knot, index-in-block)
+
+        def add(block, k, expr):
+            g.append(expr)
+            self.g_tags += [(block, k, i) for i in range(expr.shape[0])]
+
+        Bs = ca.DM(model.B)
+        row_fns = [self._row_fn(r) for r in self.rows]
+        dJv_fns = [self._row_dJv(r) for r in self.rows]
+
+        def generalized_force(q, lam):
+            f = ca.SX.zeros(n)
+            for i, (_, J) in enumerate(row_fns):
+                f += J(q).T * lam[i]
+            return f
+
+        for k, kn in enumerate(knots):
+            # eq. 1 at the knot (residual in units of M g * 1 m)
+            add("dyn", k, dyn_scale * (model.f_id(kn["q"], kn["v"], kn["a"]) - Bs @ kn["u"]
+                                       - generalized_force(kn["q"], kn["l"])))
+        for k in range(N - 1):
+            k0, k1 = knots[k], knots[k + 1]
+            q_mid, v_mid, a_mid, qdot_mid = hermite_mid(k0["q"], k0["v"], k1["q"], k1["v"], k0["a"], k1["a"], h)
+            u_mid = 0.5 * (k0["u"] + k1["u"])
+            l_mid = 0.5 * (k0["l"] + k1["l"])
+            # position-spline slope == velocity spline at s = 1/2 (scaled by h)
+            add("coll_q", k, h * (qdot_mid - v_mid))
+            # eq. 8
+            add("coll_dyn", k, dyn_scale * (model.f_id(q_mid, v_mid, a_mid) - Bs @ u_mid
+                                            - generalized_force(q_mid, l_mid)))
+        # Contact rows. Holding positions and velocities exactly at every knot
+        # over-determines the discrete problem (one control lost per row and
+        # interval, none left with four contacts), and a velocity-correction
+        # slack would let q move without kinetic energy, which the objective
+        # exploits. So: the contact *acceleration* J a + Jdot v = 0 holds
+        # exactly at every knot (index reduction: balanced with lambda), and
+        # eq. 3-4 hold at every knot within small tolerances
+        # (contact_pos_tol, contact_vel_tol), which bound the drift.
+        for k in range(1, N):
+            kn = knots[k]
+            for i, (val, J) in enumerate(row_fns):
+                add("cacc", k, J(kn["q"]) @ kn["a"] + dJv_fns[i](kn["q"], kn["v"]))
+                add("cpos", k, val(kn["q"]))           # eq. 3 (contact at distance 0, anchored)
+                add("cvel", k, J(kn["q"]) @ kn["v"])   # eq. 4
+        for k in range(N):
+            lam = knots[k]["l"]
+            for ti, ni in C.friction_groups(self.rows):   # eq. 5 (planar: two half-planes)
+                fn = sum(lam[i] for i in ni)
+                add("fric", k, ca.vertcat(cfg.mu * fn - lam[ti], cfg.mu * fn + lam[ti]))
+        for k in range(1, N):
+            qk = knots[k]["q"]
+            for (pt, surf) in self.clear_pts:            # eq. 3, non-contact clearance
+                p = model.f_point[pt](qk)
+                add("clear", k, p[1] if surf == "ground" else p[0])
+        qN, vN = knots[-1]["q"], knots[-1]["v"]
+        ke = model.f_ke(qN, vN)   # eq. 9
+        reg = 0
+        for k in range(N):
+            o = 1 + k * nk
+            reg += ca.sumsqr(w[o + 3 * n:o + 3 * n + m])
+        f = ke + cfg.torque_reg * reg * h
+        G = ca.vertcat(*g)
+        self.ng = G.shape[0]
+        self.nw = w.shape[0]
+        opts = {
+            "ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
+            "ipopt.max_iter": cfg.max_iter, "ipopt.tol": cfg.tol,
+            "ipopt.constr_viol_tol": cfg.constr_viol_tol,
+            "ipopt.acceptable_tol": 1e-4, "ipopt.acceptable_iter": 10,
+            "ipopt.mu_strategy": "adaptive",
+            "ipopt.linear_solver": "mumps",
+            "ipopt.max_wall_time": cfg.nlp_max_wall_time,
+        }
+        self.solver = ca.nlpsol(f"seg_{id(self)}", "ipopt", {"x": w, "f": f, "g": G}, opts)
+        self.f_ke_end = ca.Function("ke_end", [w], [ke])
+        self.f_g = ca.Function("g", [w], [G])
+        tags = np.array([t[0] for t in self.g_tags])
+        self._block_idx = {b: np.where(tags == b)[0] for b in set(tags)}
+        self.knot_slices = [(1 + k * nk, 1 + (k + 1) * nk) for k in range(N)]
+        self.lock = threading.Lock()
+
+    def _row_fn(self, row: C.ContactRow):
+        model = self.model
+        d = C.row_direction(row)
+        fp = model.f_point[row.point]
+        fj = model.f_point_jac[row.point]
+
+        def val(q):
+            p = fp(q)
+            return d[0] * p[0] + d[1] * p[1]
+
+        def jac(q):
+            J = fj(q)
+            return d[0] * J[0, :] + d[1] * J[1, :]
+        return val, jac
+
+    def _row_dJv(self, row: C.ContactRow):
+        d = C.row_direction(row)
+        f = self.model.f_point_dJv[row.point]
+
+        def dJv(q, v):
+            x = f(q, v)
+            return d[0] * x[0] + d[1] * x[1]
+        return dJv
+
+    def _clearance_points(self, env: Environment):
+        """(point, surface) pairs kept at clearance: every point not in a contact row."""
+        model = self.model
+        in_contact = {r.point for r in self.rows}
+        # the foot's toe and heel are both in contact rows when the foot is
+        pts = []
+        for nm in model.point_names:
+            if nm in in_contact:
+                continue
+            ext = nm.split("_")[0] if nm.split("_")[0] in EXTREMITIES else None
+            if ext is not None and ext in self.key.mode:
+                continue
+            pts.append((nm, "ground"))
+            if env.has_wall:
+                pts.append((nm, "wall"))
+        return pts
+
+    # ------------------------------------------------------------ bounds
+    def bounds(self, q0, v0, env: Environment, lb_clear_start: np.ndarray | None = None):
+        """Numeric variable and constraint bounds for one solve."""
+        model, cfg, key = self.model, self.cfg, self.key
+        n, m, N = model.n, model.m, key.n_knots
+        lbx = np.full(self.nw, -np.inf)
+        ubx = np.full(self.nw, np.inf)
+        lbx[0], ubx[0] = cfg.t_min, cfg.t_max
+        for k, (a, b) in enumerate(self.knot_slices):
+            o = a
+            # q
+            lbx[o + 1] = cfg.root_z_min
+            lbx[o + 2], ubx[o + 2] = -math.pi, math.pi
+            lbx[o + 3:o + n], ubx[o + 3:o + n] = model.q_min, model.q_max
+            # v
+            lbx[o + n + 3:o + 2 * n], ubx[o + n + 3:o + 2 * n] = -model.v_max, model.v_max
+            # u (scaled by u_max)
+            lbx[o + 3 * n:o + 3 * n + m], ubx[o + 3 * n:o + 3 * n + m] = -1.0, 1.0
+            # a: bounded so that the splines cannot hide an oscillating
+            # acceleration between the collocation points
+            lbx[o + 2 * n:o + 3 * n], ubx[o + 2 * n:o + 3 * n] = -cfg.acc_max, cfg.acc_max
+            # lambda (scaled by M g): normal components >= 0 (eq. 5), and a cap
+            # on any component (no impulsive forces inside a segment)
+            lo = o + 3 * n + m
+            lbx[lo:lo + self.nl], ubx[lo:lo + self.nl] = -cfg.force_max_mg, cfg.force_max_mg
+            for i in C.normal_row_indices(self.rows):
+                lbx[lo + i] = 0.0
+            if k == 0:
+                lbx[o:o + n] = ubx[o:o + n] = q0
+                lbx[o + n:o + 2 * n] = ubx[o + n:o + 2 * n] = v0
+        if key.change == "remove":
+            # the released contact carries no force at the end (mode sigma_j dynamics)
+            lo = self.knot_slices[-1][0] + 3 * n + m
+            for i, r in enumerate(self.rows):
+                if r.extremity == key.extremity:
+                    lbx[lo + i] = ubx[lo + i] = 0.0
+        lbg = np.zeros(self.ng)
+        ubg = np.zeros(self.ng)
+        # contact positions: anchored at the start values (tangential), on the surface (normal)
+        anchors = C.rows_value(model, self.rows, q0)
+        for i, r in enumerate(self.rows):
+            if r.axis == "n":
+                anchors[i] = -(env.wall_x) if r.surface == "wall" else 0.0
+        idx = self._block_idx.get("cpos", np.array([], int))
+        if len(idx):
+            rep = np.tile(anchors, N - 1)
+            lbg[idx] = rep - cfg.contact_pos_tol
+            ubg[idx] = rep + cfg.contact_pos_tol
+        idx = self._block_idx.get("cvel", np.array([], int))
+        lbg[idx], ubg[idx] = -cfg.contact_vel_tol, cfg.contact_vel_tol
+        idx = self._block_idx.get("fric", np.array([], int))
+        ubg[idx] = np.inf
+        idx = self._block_idx.get("clear", np.array([], int))
+        if len(idx):
+            lo, hi = self._clearance_bounds(q0, env)
+            lbg[idx], ubg[idx] = lo, hi
+        return lbx, ubx, lbg, ubg
+
+    def _clearance_bounds(self, q0, env: Environment):
+        """Clearance rows: phi >= eps_cl, ramped from the start value for points
+        that start closer (a lifted foot); the target of an added contact may go
+        down to 0 and is put on its surface at the last knot."""
+        cfg, key, model = self.cfg, self.key, self.model
+        N = key.n_knots
+        lo, hi = [], []
+        phi0 = [C.signed_distance(model, pt, s, env, q0) for pt, s in self.clear_pts]
+        for k in range(1, N):
+            frac = k / (N - 1)
+            for (pt, s), p0 in zip(self.clear_pts, phi0):
+                target = key.change == "add" and pt.split("_")[0] == key.extremity
+                surf_target = target and env.surface_of(key.extremity) == s
+                if surf_target:
+                    dist_lb = 0.0
+                    dist_ub = 0.0 if k == N - 1 else np.inf
+                else:
+                    dist_lb = min(cfg.eps_cl, max(0.0, p0) + cfg.eps_cl * frac) if p0 < cfg.eps_cl else cfg.eps_cl
+                    if target:
+                        dist_lb = 0.0  # the landing limb may touch the other surface's corner region
+                    dist_ub = np.inf
+                if s == "ground":        # row value is z = phi
+                    lo.append(dist_lb)
+                    hi.append(dist_ub)
+                else:                    # row value is x = wall_x - phi
+                    lo.append(env.wall_x - dist_ub)
+                    hi.append(env.wall_x - dist_lb)
+        return np.array(lo), np.array(hi)
+
+    # ------------------------------------------------------------- packing
+    def pack(self, T, q, v, a, u, lam) -> np.ndarray:
+        w = np.zeros(self.nw)
+        w[0] = T
+        n, m = self.model.n, self.model.m
+        for k, (o, _) in enumerate(self.knot_slices):
+            w[o:o + n] = q[k]
+            w[o + n:o + 2 * n] = v[k]
+            w[o + 2 * n:o + 3 * n] = a[k]
+            w[o + 3 * n:o + 3 * n + m] = u[k] / self.u_scale
+            w[o + 3 * n + m:o + self.nk] = lam[k] / self.f_scale
+        return w
+
+    def unpack(self, w):
+        n, m = self.model.n, self.model.m
+        W = np.asarray(w).ravel()
+        T = float(W[0])
+        blocks = np.stack([W[o:e] for o, e in self.knot_slices])
+        return (T, blocks[:, :n], blocks[:, n:2 * n], blocks[:, 2 * n:3 * n],
+                blocks[:, 3 * n:3 * n + m] * self.u_scale, blocks[:, 3 * n + m:] * self.f_scale)
+
+    def violation(self, w, lbx, ubx, lbg, ubg) -> float:
+        """Worst bound or constraint violation of a candidate (our own check)."""
+        g = np.array(self.f_g(w)).ravel()
+        W = np.asarray(w).ravel()
+        vg = np.maximum(0, np.maximum(lbg - g, g - ubg))
+        vx = np.maximum(0, np.maximum(lbx - W, W - ubx))
+        return float(max(vg.max(initial=0.0), vx.max(initial=0.0)))
+
+
+# ------------------------------------------------------------------ seeds
+class SeedProjector:
+    """Projection of the reference goal configuration onto the goal mode's
+    constraint manifold (Sec. III-D step 2): a small least-squares NLP."""
+
+    def __init__(self, model: PlanarModel, goal_rows: list, clear_pts: list, has_wall: bool):
+        self.model, self.goal_rows, self.clear_pts = model, goal_rows, clear_pts
+        n = model.n
+        q = ca.SX.sym("q", n)
+        qref = ca.SX.sym("qref", n)
+        g = []
+        for r in goal_rows:
+            d = C.row_direction(r)
+            p = model.f_point[r.point](q)
+            g.append(d[0] * p[0] + d[1] * p[1])
+        for pt, s in clear_pts:
+            p = model.f_point[pt](q)
+            g.append(p[1] if s == "ground" else p[0])
+        G = ca.vertcat(*g) if g else ca.SX.zeros(0)
+        wts = np.ones(n)
+        wts[:3] = 4.0  # keep the trunk where it would be, move the limbs
+        f = ca.sumsqr(ca.DM(np.sqrt(wts)) * (q - qref))
+        self.solver = ca.nlpsol(f"proj_{id(self)}", "ipopt", {"x": q, "p": qref, "f": f, "g": G},
+                                {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
+                                 "ipopt.max_iter": 200, "ipopt.linear_solver": "mumps"})
+        self.ng = G.shape[0]
+
+
+def parabolic_seed(model: PlanarModel, q0, v0, qg, T, N, rows):
+    """Sec. III-D steps 3-4: parabola q0 -> qg over T with initial velocity v0,
+    sampled at the knots; u and lambda from the pseudo-inverse of [B, J^T]."""
+    q0, v0, qg = (np.asarray(x, float) for x in (q0, v0, qg))
+    acc = 2.0 * (qg - q0 - v0 * T) / T**2
+    t = np.linspace(0.0, T, N)
+    q = q0 + np.outer(t, v0) + 0.5 * np.outer(t**2, acc)
+    v = v0 + np.outer(t, acc)
+    a = np.tile(acc, (N, 1))
+    u = np.zeros((N, model.m))
+    lam = np.zeros((N, len(rows)))
+    for k in range(N):
+        rhs = np.array(model.f_id(q[k], v[k], a[k])).ravel()
+        J = C.rows_jacobian(model, rows, q[k]) if rows else np.zeros((0, model.n))
+        A = np.hstack([model.B, J.T])
+        x = np.linalg.pinv(A) @ rhs
+        u[k] = np.clip(x[:model.m], -model.u_max, model.u_max)
+        lam[k] = x[model.m:]
+    return t, q, v, a, u, lam
+
+
+# -------------------------------------------------------------- optimiser
+class TrajectoryOptimizer:
+    """opt_self_motion / opt_transition_motion with cached NLP structures."""
+
+    def __init__(self, model: PlanarModel, cfg: OptConfig | None = None):
+        self.model = model
+        self.cfg = cfg or OptConfig()
+        self._nlps: dict[StructureKey, SegmentNLP] = {}
+        self._proj: dict[tuple, SeedProjector] = {}
+        self._lock = threading.Lock()
+        self.build_times: dict[str, float] = {}
+
+    def nlp(self, key: StructureKey) -> SegmentNLP:
+        with self._lock:
+            if key not in self._nlps:
+                t0 = time.perf_counter()
+                self._nlps[key] = SegmentNLP(self.model, key, self.cfg)
+                self.build_times[str(key)] = time.perf_counter() - t0
+            return self._nlps[key]
+
+    def projector(self, goal_mode: Mode, env: Environment, nlp: SegmentNLP) -> SeedProjector:
+        pkey = (goal_mode, env.has_wall, nlp.key)
+        with self._lock:
+            if pkey not in self._proj:
+                shape = Environment(0.0 if env.has_wall else None)
+                rows = C.contact_rows(goal_mode, shape)
+                self._proj[pkey] = SeedProjector(self.model, rows, nlp.clear_pts, env.has_wall)
+            return self._proj[pkey]
+
+    # ---------------------------------------------------------- public API
+    def opt_self_motion(self, q0, v0, mode: Mode, env: Environment, deadline: float | None = None) -> Segment:
+        """Fixed-contact (inertial shaping) trajectory at mode sigma (Alg. 1 line 5)."""
+        return self._optimize(q0, v0, mode, "", "", env, deadline)
+
+    def opt_transition_motion(self, q0, v0, mode: Mode, target: Mode, env: Environment,
+                              deadline: float | None = None) -> Segment:
+        """Trajectory from mode sigma_i that ends ready for sigma_j (Alg. 1 line 13)."""
+        added = set(target) - set(mode)
+        removed = set(mode) - set(target)
+        if len(added) + len(removed) != 1:
+            raise ValueError("adjacent modes differ by exactly one extremity")
+        change, ext = ("add", added.pop()) if added else ("remove", removed.pop())
+        return self._optimize(q0, v0, mode, change, ext, env, deadline)
+
+    def seed(self, q0, v0, mode: Mode, change: str, ext: str, env: Environment, T: float):
+        """Initial guess for one duration (Sec. III-D); returns (nlp, guess arrays, q_goal)."""
+        key = StructureKey(change, tuple(mode), ext, env.has_wall, self.cfg.n_knots)
+        nlp = self.nlp(key)
+        # a released contact is held until the end of the transition, so only
+        # an added contact changes the manifold the goal is projected onto
+        goal_mode = make_mode(set(mode) | {ext}) if change == "add" else tuple(mode)
+        q_goal = self.project_goal(q0, v0, mode, goal_mode, env, nlp, T)
+        t, q, v, a, u, lam = parabolic_seed(self.model, q0, v0, q_goal, T, key.n_knots, nlp.rows)
+        return nlp, (t, q, v, a, u, lam), q_goal
+
+    def project_goal(self, q0, v0, mode, goal_mode, env, nlp: SegmentNLP, T):
+        q0 = np.asarray(q0, float)
+        q_ref = q0 + 0.5 * np.asarray(v0, float) * T  # q_dot decreasing linearly to 0 at T
+        proj = self.projector(goal_mode, env, nlp)
+        # bounds: goal rows anchored like the NLP's last knot
+        lbg, ubg = [], []
+        anchors = C.rows_value(self.model, proj.goal_rows, q0)
+        for i, r in enumerate(proj.goal_rows):
+            if r.axis == "n":
+                val = -(env.wall_x) if r.surface == "wall" else 0.0
+                lbg.append(val); ubg.append(val)
+            elif r.extremity in mode:
+                lbg.append(anchors[i]); ubg.append(anchors[i])
+            else:
+                lbg.append(-np.inf); ubg.append(np.inf)
+        lo, hi = nlp._clearance_bounds(q0, env)
+        nc = len(nlp.clear_pts)
+        lo, hi = (lo[-nc:].copy(), hi[-nc:].copy()) if nc else (np.zeros(0), np.zeros(0))
+        goal_points = {(r.point, r.surface) for r in proj.goal_rows}
+        for i, ps in enumerate(nlp.clear_pts):
+            if ps in goal_points:  # already an equality among the goal rows
+                lo[i], hi[i] = -np.inf, np.inf
+        lbg += list(lo)
+        ubg += list(hi)
+        lbx = np.full(self.model.n, -np.inf)
+        ubx = np.full(self.model.n, np.inf)
+        lbx[1] = self.cfg.root_z_min
+        lbx[3:], ubx[3:] = self.model.q_min, self.model.q_max
+        x0 = np.clip(q_ref, lbx, ubx)
+        try:
+            sol = proj.solver(x0=x0, p=q_ref, lbx=lbx, ubx=ubx, lbg=np.array(lbg), ubg=np.array(ubg))
+            qg = np.array(sol["x"]).ravel()
+            if proj.solver.stats()["success"]:
+                return qg
+        except RuntimeError:
+            pass
+        return x0
+
+    def _optimize(self, q0, v0, mode, change, ext, env, deadline) -> Segment:
+        cfg, model = self.cfg, self.model
+        q0 = np.asarray(q0, float)
+        v0 = np.asarray(v0, float)
+        target = make_mode(set(mode) | {ext}) if change == "add" else (
+            make_mode(set(mode) - {ext}) if change == "remove" else tuple(mode))
+        t_start = time.perf_counter()
+        best = None
+        attempts = 0
+        for T in cfg.seed_durations():
+            if deadline is not None and time.perf_counter() >= deadline:
+                break
+            attempts += 1
+            nlp, (t, q, v, a, u, lam), _ = self.seed(q0, v0, mode, change, ext, env, T)
+            lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env)
+            w0 = np.clip(nlp.pack(T, q, v, a, u, lam), lbx, ubx)
+            with nlp.lock:
+                sol = nlp.solver(x0=w0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
+                stats = nlp.solver.stats()
+            w = np.array(sol["x"]).ravel()
+            viol = nlp.violation(w, lbx, ubx, lbg, ubg)
+            ok = stats["return_status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level") \
+                and viol <= cfg.feasibility_tol
+            seg = self._segment(nlp, w, mode, target, change, ext, ok, stats, T, viol)
+            if best is None or (ok and not best.success) or (ok == best.success and seg.final_ke < best.final_ke):
+                best = seg
+            if ok:
+                break
+        if best is None:
+            raise TimeoutError("time budget exhausted before the first NLP")
+        best.nlp_time = time.perf_counter() - t_start
+        best.attempts = attempts
+        return best
+
+    def _segment(self, nlp, w, mode, target, change, ext, ok, stats, T_seed, viol) -> Segment:
+        T, q, v, a, u, lam = nlp.unpack(w)
+        N = nlp.key.n_knots
+        ke = np.array([self.model.kinetic_energy(q[k], v[k]) for k in range(N)])
+        return Segment(kind="transition" if change else "self_motion", mode=tuple(mode), target_mode=target,
+                       change=change, extremity=ext, time=np.linspace(0, T, N), q=q, v=v, a=a, u=u, lam=lam,
+                       rows=list(nlp.rows), ke=ke, success=bool(ok), status=str(stats["return_status"]),
+                       iterations=int(stats.get("iter_count", -1)), nlp_time=0.0, seed_duration=T_seed,
+                       attempts=1, max_violation=viol)
