@@ -53,6 +53,7 @@ import time
 from typing import Any
 
 import rclpy
+import rclpy.executors
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -113,6 +114,11 @@ class Recorder(Node):
                                           (0.05, 5.0), default=0.25)
         self.depth = p.declare("queue_depth", "history depth of every subscription", (1, 100000),
                                default=1000)
+        self.drain_max = p.declare("drain_max", "extra queued messages taken per callback "
+                                   "(0: one per executor wait)", (0, 100000), default=1000)
+        self.batch_period = p.declare("batch_period", "s to let messages gather before each "
+                                      "executor wait (CPU vs latency; 0: wait at once)",
+                                      (0.0, 0.05), default=0.005)
         exclude = p.declare("exclude_regex", "topics matching this regex are not recorded "
                             "(empty: record everything)", default="")
         if self.clock_mode not in ("sim", "wall"):
@@ -177,8 +183,9 @@ class Recorder(Node):
             return
         self.writer.channels[cid].qos = qos_dict(qos)
 
-        def on_message(data: bytes, info: dict, cid: int = cid) -> None:
+        def on_message(data: bytes, info: dict, cid: int = cid, topic: str = topic) -> None:
             self._record(cid, data, info)
+            self._drain(topic, cid)
 
         try:
             self._subs[topic] = self.create_subscription(cls, topic, on_message, qos, raw=True)
@@ -207,6 +214,29 @@ class Recorder(Node):
         except Exception as exc:  # noqa: BLE001 - never lose the node (and the bag) over one message
             self.writer.write_errors += 1
             self._error(f"write failed on channel {cid}: {exc}")
+
+    def _drain(self, topic: str, cid: int) -> None:
+        """Take what else is queued on this subscription now.
+
+        The rclpy executor takes one message per subscription per wait, and rebuilding
+        the wait set costs far more than recording a message (~0.3 ms vs ~0.03 ms
+        here). Draining the reader queue in the callback makes a backlog cost one wait,
+        so the recorder catches up instead of falling further behind. Uses the
+        subscription handle's take_message, as the executor itself does.
+        """
+        sub = self._subs.get(topic)
+        if sub is None or self.drain_max <= 0:
+            return
+        try:
+            for _ in range(self.drain_max):
+                with sub.handle:
+                    taken = sub.handle.take_message(sub.msg_type, True)
+                if taken is None:
+                    return
+                self._record(cid, taken[0], taken[1])
+        except Exception as exc:  # noqa: BLE001 - rclpy internals changed: fall back to one per wait
+            self.drain_max = 0
+            self._error(f"draining disabled: {exc}")
 
     def _flush(self) -> None:
         if self._closed:
@@ -242,9 +272,32 @@ class Recorder(Node):
                   f"{len(self.writer.channels)} topics; stats in {p}", flush=True)
 
 
+class PacedExecutor(rclpy.executors.SingleThreadedExecutor):
+    """A single-threaded executor that waits at most once per ``batch_period``.
+
+    Every executor wait costs ~0.3 ms of Python here (wait-set rebuild over all the
+    node's entities) whatever it returns; recording one message costs ~0.03 ms. At
+    lockstep rates (a dozen topics at 500 Hz) one wait per message would eat a core
+    of a 2-core machine. Sleeping ``batch_period`` before each wait lets messages
+    gather in the DDS reader queues (deep, reliable: nothing is lost, they only
+    arrive a few ms later), then one wait serves all of them (with ``_drain``).
+    """
+
+    pace = 0.0
+
+    def add_node(self, node) -> bool:
+        self.pace = float(getattr(node, "batch_period", 0.0))
+        return super().add_node(node)
+
+    def _wait_for_ready_callbacks(self, *args, **kwargs):
+        if self.pace > 0:
+            time.sleep(self.pace)
+        yield from super()._wait_for_ready_callbacks(*args, **kwargs)
+
+
 def main(args=None) -> int:
     # use_sim_time is set by the node from its `clock` parameter, not forced by run_node.
-    return run_node(Recorder, args=args, use_sim_time=False)
+    return run_node(Recorder, args=args, use_sim_time=False, executor_factory=PacedExecutor)
 
 
 if __name__ == "__main__":
