@@ -104,20 +104,22 @@ def plot_top_view(cs: dict[str, list], obstacles: list[Any], path: pathlib.Path)
 
     fig, (ax,) = _figure(size=(8, 7))
     k = _stride(len(cs["t"]))
-    for key, label, style in (("com", "CoM (ground projection)", "-"), ("cop", "CoP", "-"),
-                              ("cp", "capture point", "--")):
+    for key, label, style, width in (("com", "CoM (ground projection)", "-", 1.6), ("cop", "CoP", "-", 0.7),
+                                     ("cp", "capture point", "--", 1.0)):
         xs = [p[0] for p in cs[key][::k]]
         ys = [p[1] for p in cs[key][::k]]
-        ax.plot(xs, ys, style, label=label, linewidth=1.2)
+        ax.plot(xs, ys, style, label=label, linewidth=width)
         ax.plot(xs[:1], ys[:1], "o", color=ax.lines[-1].get_color(), markersize=4)
     n = len(cs["poly"])
     picks = sorted({round(i * (n - 1) / max(1, POLYGON_SAMPLES - 1)) for i in range(POLYGON_SAMPLES)}) if n else []
+    labelled = False
     for j, i in enumerate(picks):
         poly = cs["poly"][i]
-        if len(poly) >= 2:
-            shade = 0.25 + 0.75 * j / max(1, len(picks) - 1)
+        if len(poly) >= 2:   # empty while airborne / lying: nothing to draw
+            shade = 0.25 + 0.75 * j / max(1, len(picks) - 1)   # later samples darker
             ax.add_patch(Polygon(poly, closed=True, fill=False, edgecolor=(0.2, 0.2, 0.2, shade),
-                                 linewidth=0.8, label="support polygon (sampled)" if j == 0 else None))
+                                 linewidth=0.8, label=None if labelled else "support polygon (sampled)"))
+            labelled = True
     for ob in obstacles:
         color = "tab:red" if ob.is_target else "tab:gray"
         ax.add_patch(Polygon(_box_corners(ob), closed=True, alpha=0.35, color=color))
