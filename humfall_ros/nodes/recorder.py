@@ -46,7 +46,6 @@ from __future__ import annotations
 
 import datetime
 import importlib
-import os
 import pathlib
 import re
 import time
