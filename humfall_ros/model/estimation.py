@@ -144,8 +144,9 @@ class CentroidalEstimator:
         else:
             # airborne: ballistic prediction from the last estimate
             self.anchors = {}
-            if self.last is None:
-                base_pos, v_base = np.array([*self.base_xy, 1.0]), np.zeros(3)
+            if self.last is None:  # no history: assume the lowest sole corner is on the ground
+                zmin = min(d.oMf[fid].translation[2] for s in SIDES for fid in self._corner_ids[s])
+                base_pos, v_base = np.array([*self.base_xy, -zmin]), np.zeros(3)
             else:
                 dt = max(t - self.last.time, 0.0)
                 R_prev = quat_matrix(self.last.q[3:7])

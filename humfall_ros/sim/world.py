@@ -113,6 +113,9 @@ class SimWorld:
         self.targets = q_joints.copy()
         self.target_velocities = np.zeros(self.model.njoints)
         self._apply_targets()
+        # settle onto the ground before time starts, so t=0 is a loaded stance
+        for _ in range(int(self.physics_rate * 0.1)):
+            pb.stepSimulation(physicsClientId=c)
         self.time = 0.0
         self.step_count = 0
         self.pushes = []
