@@ -6,11 +6,10 @@ Two checks per segment:
   qdot from (qdot, qddot), linear u and lambda) are sampled finely and eq. 1 is
   evaluated with pinocchio's ``rnea`` and frame Jacobians; contact rows are
   checked for position and velocity (eq. 3-4).
-* forward re-simulation: RK4 on pinocchio's ``aba`` from the segment's start
-  state, driven open loop by the plan's u(t) and lambda(t) applied as
-  generalised forces J^T lambda; reports how far the contact points drift and
-  how far the end state lands from the plan. Open loop on a falling robot the
-  error grows with time, so this is a consistency measure, not a controller.
+* forward re-simulation: RK4 on pinocchio's constrained dynamics (crba, rnea,
+  frame Jacobians and accelerations, a KKT solve), driven by the plan's u(t),
+  with the contact forces computed by the simulator and compared to the plan's
+  lambda(t) (see ``forward_resim``).
 """
 from __future__ import annotations
 
@@ -84,46 +83,100 @@ def dense_check(model: PlanarModel, seg: Segment, env: Environment, samples_per_
             "contact_pos_max_m": worst_pos, "contact_vel_max_mps": worst_vel}
 
 
-def forward_resim(model: PlanarModel, seg: Segment, env: Environment, dt: float = 1e-3) -> dict:
-    """RK4 on pinocchio's ABA with the plan's u and lambda (open loop)."""
-    pc = PinContacts(model)
+def _constrained_accel(model: PlanarModel, pc: PinContacts, pd, rows, q, v, u, anchors, env, baumgarte):
+    """KKT forward dynamics with the segment's contacts held (Baumgarte-stabilised)."""
     pm = pc.pm
-    pd = pm.createData()
+    M = pin.crba(pm, pd, q)
+    M = np.triu(M) + np.triu(M, 1).T
+    b = pin.rnea(pm, pd, q, v, np.zeros(model.n))
+    tau = model.B @ u
+    if not rows:
+        return np.linalg.solve(M, tau - b), np.zeros(0)
+    val, J = pc.rows(rows, q, env)
+    pin.forwardKinematics(pm, pc.pd, q, v, np.zeros(model.n))
+    dJv = np.zeros(len(rows))
+    for i, r in enumerate(rows):
+        acc = pin.getFrameClassicalAcceleration(pm, pc.pd, pc.fid[r.point], pin.LOCAL_WORLD_ALIGNED).linear
+        d = C.row_direction(r)
+        dJv[i] = d[0] * acc[0] + d[1] * acc[2]
+    kp, kd = baumgarte
+    rhs_c = -dJv - kd * (J @ v) - kp * (val - anchors)
+    k = len(rows)
+    K = np.block([[M, -J.T], [J, np.zeros((k, k))]])
+    sol = np.linalg.lstsq(K, np.concatenate([tau - b, rhs_c]), rcond=None)[0]
+    return sol[:model.n], sol[model.n:]
+
+
+def forward_resim(model: PlanarModel, seg: Segment, env: Environment, dt: float = 1e-3,
+                  baumgarte=(400.0, 40.0), mu: float = 0.35) -> dict:
+    """Re-simulate the segment with RK4 on pinocchio's constrained dynamics.
+
+    The plan's u(t) drives the robot; the contacts of the segment's mode are
+    held by constraint forces that the simulator computes itself (KKT system),
+    which are then compared with the plan's lambda(t). Done twice:
+
+    * per interval: restart from the plan at every knot and integrate to the
+      next one; the end-state mismatch is the local integration defect of the
+      transcription (what the collocation promises);
+    * whole segment open loop: integrate from the first knot to the end; a
+      falling robot is unstable, so this grows with the duration and is
+      reported for information.
+    """
+    pc = PinContacts(model)
+    pd = pc.pm.createData()
     anchors, _ = pc.rows(seg.rows, seg.q[0], env)
     for i, r in enumerate(seg.rows):
         if r.axis == "n":
             anchors[i] = -env.wall_x if r.surface == "wall" else 0.0
+    mg = model.total_mass * 9.81
+    stats = {"lam_err": 0.0, "unilateral": 0.0, "friction": 0.0}
+    groups = C.friction_groups(seg.rows)
 
     def f(t, x):
         q, v = x[:model.n], x[model.n:]
-        _, _, _, u, lam = _interp(seg, t)
-        _, J = pc.rows(seg.rows, q, env)
-        tau = model.B @ u + J.T @ lam
-        return np.concatenate([v, pin.aba(pm, pd, q, v, tau)])
+        _, _, _, u, lam_plan = _interp(seg, t)
+        a, lam = _constrained_accel(model, pc, pd, seg.rows, q, v, u, anchors, env, baumgarte)
+        if len(lam):
+            stats["lam_err"] = max(stats["lam_err"], float(np.abs(lam - lam_plan).max()) / mg)
+            for ti, ni in groups:
+                fn = sum(lam[i] for i in ni)
+                stats["unilateral"] = max(stats["unilateral"], max(0.0, -min(lam[i] for i in ni)) / mg)
+                stats["friction"] = max(stats["friction"], max(0.0, abs(lam[ti]) - mu * fn) / mg)
+        return np.concatenate([v, a])
 
-    x = np.concatenate([seg.q[0], seg.v[0]])
-    T = float(seg.time[-1])
-    steps = max(1, int(np.ceil(T / dt)))
-    h = T / steps
-    t = 0.0
-    worst_pos = worst_vel = 0.0
-    for _ in range(steps):
-        k1 = f(t, x)
-        k2 = f(t + h / 2, x + h / 2 * k1)
-        k3 = f(t + h / 2, x + h / 2 * k2)
-        k4 = f(t + h, x + h * k3)
-        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-        t += h
-        if len(seg.rows):
-            val, J = pc.rows(seg.rows, x[:model.n], env)
-            worst_pos = max(worst_pos, float(np.abs(val - anchors).max()))
-            worst_vel = max(worst_vel, float(np.abs(J @ x[model.n:]).max()))
-    q_end, v_end = x[:model.n], x[model.n:]
-    return {"contact_drift_max_m": worst_pos, "contact_vel_max_mps": worst_vel,
-            "end_q_error_max": float(np.abs(q_end - seg.q[-1]).max()),
-            "end_v_error_max": float(np.abs(v_end - seg.v[-1]).max()),
-            "end_ke_sim": float(0.5 * v_end @ model.pin_crba(q_end) @ v_end), "end_ke_plan": seg.final_ke,
-            "duration_s": T}
+    def integrate(x, t0, t1):
+        steps = max(1, int(np.ceil((t1 - t0) / dt)))
+        h = (t1 - t0) / steps
+        t = t0
+        for _ in range(steps):
+            k1 = f(t, x)
+            k2 = f(t + h / 2, x + h / 2 * k1)
+            k3 = f(t + h / 2, x + h / 2 * k2)
+            k4 = f(t + h, x + h * k3)
+            x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            t += h
+        return x
+
+    n = model.n
+    local_q = local_v = 0.0
+    for k in range(len(seg.time) - 1):
+        x = integrate(np.concatenate([seg.q[k], seg.v[k]]), seg.time[k], seg.time[k + 1])
+        local_q = max(local_q, float(np.abs(x[:n] - seg.q[k + 1]).max()))
+        local_v = max(local_v, float(np.abs(x[n:] - seg.v[k + 1]).max()))
+    local = dict(stats)
+    stats.update({"lam_err": 0.0, "unilateral": 0.0, "friction": 0.0})
+    x = integrate(np.concatenate([seg.q[0], seg.v[0]]), seg.time[0], seg.time[-1])
+    q_end, v_end = x[:n], x[n:]
+    M = model.pin_crba(q_end)
+    return {
+        "local_q_error_max": local_q, "local_v_error_max": local_v,
+        "local_force_error_max_mg": local["lam_err"], "local_unilateral_violation_mg": local["unilateral"],
+        "local_friction_violation_mg": local["friction"],
+        "open_loop_end_q_error_max": float(np.abs(q_end - seg.q[-1]).max()),
+        "open_loop_end_v_error_max": float(np.abs(v_end - seg.v[-1]).max()),
+        "open_loop_end_ke": float(0.5 * v_end @ M @ v_end), "plan_end_ke": seg.final_ke,
+        "duration_s": float(seg.time[-1]),
+    }
 
 
 def check_segment(model: PlanarModel, seg: Segment, env: Environment) -> dict:

@@ -1,0 +1,187 @@
+"""Contact transition tree search (paper 2, Algorithm 1, Sec. III-A/B).
+
+Nodes hold a contact mode, a robot state and (once popped) their self-motion;
+edges hold the transition trajectory from the parent. The frontier is a
+priority queue on kinetic energy. The whole tree is kept and serialisable to
+JSON for inspection and plotting (Fig. 1 style).
+
+Two additions to the paper's algorithm, both documented in docs/multicontact.md:
+a wall-clock budget (checked before every NLP; on expiry the search stops with
+the deepest depth reached), and a symmetry cut: the planar model's left and
+right limbs are identical, so when a node's state and mode are left/right
+symmetric, a neighbour that is the mirror image of one already tried is
+skipped (same NLP up to relabelling).
+"""
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import itertools
+import time
+
+import numpy as np
+
+from humfall_ros.multicontact import contacts as C
+from humfall_ros.multicontact.collocation import Segment, TrajectoryOptimizer
+from humfall_ros.multicontact.model import mirror_extremity
+from humfall_ros.multicontact.modes import Environment, Mode, adjacent_modes, make_mode, mode_label
+
+
+@dataclasses.dataclass
+class TreeNode:
+    id: int
+    parent: int | None
+    depth: int
+    mode: Mode
+    q: np.ndarray
+    v: np.ndarray
+    ke: float
+    pre_impact_ke: float | None = None
+    min_normal_impulse: float | None = None
+    edge: Segment | None = None          # transition from the parent
+    self_motion: Segment | None = None
+    status: str = "frontier"             # frontier | expanded | terminal | unexpanded
+    children: list = dataclasses.field(default_factory=list)
+
+    def to_dict(self, with_trajectories: bool = True) -> dict:
+        d = {"id": self.id, "parent": self.parent, "depth": self.depth, "mode": mode_label(self.mode),
+             "ke": self.ke, "pre_impact_ke": self.pre_impact_ke, "min_normal_impulse": self.min_normal_impulse,
+             "status": self.status, "children": list(self.children),
+             "q": self.q.tolist(), "v": self.v.tolist()}
+        for name, seg in (("edge", self.edge), ("self_motion", self.self_motion)):
+            if seg is None:
+                d[name] = None
+            elif with_trajectories:
+                d[name] = seg.to_dict()
+            else:
+                d[name] = {"success": seg.success, "final_ke": seg.final_ke, "nlp_time": seg.nlp_time,
+                           "duration": float(seg.time[-1]), "status": seg.status}
+        return d
+
+
+@dataclasses.dataclass
+class SearchResult:
+    success: bool
+    reason: str
+    nodes: list[TreeNode]
+    path: list[int]                       # node ids root..terminal (empty on failure)
+    nlp_log: list[dict]                   # every NLP in call order
+    total_time: float
+    deepest_depth: int
+
+    @property
+    def contact_sequence(self) -> list[str]:
+        return [mode_label(self.nodes[i].mode) for i in self.path]
+
+    @property
+    def node_ke(self) -> list[float]:
+        return [self.nodes[i].ke for i in self.path]
+
+    @property
+    def final_ke(self) -> float:
+        if not self.path:
+            return float("nan")
+        return self.nodes[self.path[-1]].self_motion.final_ke
+
+    def segments(self) -> list[Segment]:
+        """Transitions along the path, then the terminal self-motion."""
+        segs = [self.nodes[i].edge for i in self.path[1:]]
+        if self.path:
+            segs.append(self.nodes[self.path[-1]].self_motion)
+        return segs
+
+    def tree_dict(self, with_trajectories: bool = False) -> dict:
+        return {"success": self.success, "reason": self.reason, "path": self.path,
+                "deepest_depth": self.deepest_depth, "total_time_s": self.total_time,
+                "nodes": [n.to_dict(with_trajectories) for n in self.nodes], "nlp_log": self.nlp_log}
+
+
+def _mirror_mode(mode: Mode) -> Mode:
+    return make_mode(mirror_extremity(e) for e in mode)
+
+
+def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
+           eps_ke: float | None = None, max_depth: int = 4, time_budget: float = 60.0,
+           symmetry_cut: bool = True) -> SearchResult:
+    """Algorithm 1: grow the tree by least kinetic energy until a node's
+    self-motion ends with E_K < eps_KE, the frontier empties or the budget ends."""
+    model = opt.model
+    eps_ke = opt.cfg.eps_ke if eps_ke is None else eps_ke
+    t0 = time.perf_counter()
+    deadline = t0 + time_budget
+    q0 = np.asarray(q0, float)
+    v0 = np.asarray(v0, float)
+    root = TreeNode(0, None, 0, tuple(mode0), q0, v0, model.kinetic_energy(q0, v0))
+    nodes = [root]
+    counter = itertools.count()
+    frontier = [(root.ke, next(counter), 0)]
+    log: list[dict] = []
+    deepest = 0
+
+    def result(success, reason, path):
+        for n in nodes:
+            if n.status == "frontier" and n.self_motion is None and path and n.id not in path:
+                n.status = "unexpanded"
+        return SearchResult(success, reason, nodes, path, log, time.perf_counter() - t0, deepest)
+
+    def record(kind, node, seg, target=None):
+        log.append({"kind": kind, "node": node.id, "mode": mode_label(node.mode),
+                    "target": mode_label(target) if target is not None else mode_label(node.mode),
+                    "success": seg.success, "final_ke": seg.final_ke, "nlp_time": seg.nlp_time,
+                    "iterations": seg.iterations, "attempts": seg.attempts, "status": seg.status})
+
+    while frontier:
+        if time.perf_counter() >= deadline:
+            return result(False, f"no solution within the time budget of {time_budget:.1f} s "
+                                 f"(deepest tree depth reached: {deepest})", [])
+        _, _, nid = heapq.heappop(frontier)
+        d = nodes[nid]
+        deepest = max(deepest, d.depth)
+        try:
+            y = opt.opt_self_motion(d.q, d.v, d.mode, env, deadline=deadline)   # line 5
+        except TimeoutError:
+            continue
+        d.self_motion = y
+        record("self_motion", d, y)
+        if y.success and y.final_ke < eps_ke:                                  # lines 6-10
+            d.status = "terminal"
+            path = []
+            i = d.id
+            while i is not None:
+                path.append(i)
+                i = nodes[i].parent
+            return result(True, f"stabilised at depth {d.depth}: final kinetic energy "
+                                f"{y.final_ke:.3g} J < {eps_ke:g} J", path[::-1])
+        d.status = "expanded"
+        if d.depth >= max_depth:
+            continue
+        symmetric = symmetry_cut and model.is_symmetric(d.q, d.v) and _mirror_mode(d.mode) == d.mode
+        tried: set = set()
+        for sigma_j, change, ext in adjacent_modes(d.mode):                   # line 12
+            if symmetric and _mirror_mode(sigma_j) in tried:
+                continue
+            tried.add(sigma_j)
+            if time.perf_counter() >= deadline:
+                break
+            try:
+                y_ij = opt.opt_transition_motion(d.q, d.v, d.mode, sigma_j, env, deadline=deadline)  # line 13
+            except TimeoutError:
+                break
+            record("transition", d, y_ij, sigma_j)
+            if not y_ij.success:
+                continue
+            qj, vj = y_ij.q[-1].copy(), y_ij.v[-1].copy()                       # line 15
+            pre, min_imp = None, None
+            if change == "add":                                                # line 16, eq. 10
+                pre = model.kinetic_energy(qj, vj)
+                rows = C.contact_rows(sigma_j, env)
+                vj, impulse = C.impact_map(model, qj, vj, rows)
+                normals = [impulse[i] for i, r in enumerate(rows) if r.axis == "n"]
+                min_imp = float(min(normals)) if normals else None
+            child = TreeNode(len(nodes), d.id, d.depth + 1, sigma_j, qj, vj, model.kinetic_energy(qj, vj),
+                             pre_impact_ke=pre, min_normal_impulse=min_imp, edge=y_ij)
+            nodes.append(child)                                               # lines 17-19
+            d.children.append(child.id)
+            deepest = max(deepest, child.depth)
+            heapq.heappush(frontier, (child.ke, next(counter), child.id))     # line 20
+    return result(False, f"no solution found: tree exhausted (deepest tree depth reached: {deepest})", [])

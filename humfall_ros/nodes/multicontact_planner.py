@@ -1,0 +1,165 @@
+"""multicontact_planner: the ``plan_fall`` service (paper 2, Algorithm 1).
+
+Thin shell over humfall_ros.multicontact.planner. The service callback runs
+in a reentrant callback group on a MultiThreadedExecutor, so a plan that takes
+tens of seconds never blocks the executor (IPOPT runs with the GIL released).
+One plan runs at a time; up to ``queue_size`` further requests wait their turn,
+any more are answered at once with success=false and the reason.
+"""
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+
+import numpy as np
+import rclpy.executors
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.node import Node
+
+from humfall_interfaces.msg import PlanSegment
+from humfall_interfaces.srv import PlanFall
+from humfall_ros.multicontact import contacts as C
+from humfall_ros.multicontact.collocation import OptConfig, StructureKey
+from humfall_ros.multicontact.modes import mode_label
+from humfall_ros.multicontact.planner import FallPlanner, PlannerConfig
+from humfall_ros.nodes.common import Params, run_node
+
+NAME = "multicontact_planner"
+
+
+class MulticontactPlanner(Node):
+    def __init__(self):
+        super().__init__(NAME)
+        p = Params(self)
+        opt = {
+            "n_knots": p.declare("n_knots", "knots per trajectory (Nd, Table I)", (3, 40)),
+            "t_min": p.declare("t_min", "shortest trajectory duration T_min (s)", (0.05, 10.0)),
+            "t_max": p.declare("t_max", "longest trajectory duration T_max (s)", (0.1, 20.0)),
+            "n_seed_durations": p.declare("n_seed_durations", "seed duration grid size (N_tot)", (1, 400)),
+            "max_seed_attempts": p.declare("max_seed_attempts", "seeds tried per NLP", (1, 40)),
+            "seed_first_duration": p.declare("seed_first_duration", "first seed duration tried (s)", (0.05, 20.0)),
+            "eps_ke": p.declare("eps_ke", "stationary kinetic energy eps_KE (J)", (1e-6, 100.0)),
+            "eps_cl": p.declare("eps_cl", "clearance of non-contact points eps_cl (m)", (0.0, 0.5)),
+            "mu": p.declare("mu", "friction coefficient", (0.0, 2.0)),
+            "acc_max": p.declare("acc_max", "knot acceleration bound", (1.0, 1e4)),
+            "force_max_mg": p.declare("force_max_mg", "contact force cap (M g)", (0.1, 100.0)),
+            "contact_pos_tol": p.declare("contact_pos_tol", "contact position tolerance at knots (m)", (0.0, 0.05)),
+            "contact_vel_tol": p.declare("contact_vel_tol", "contact velocity tolerance at knots (m/s)", (0.0, 1.0)),
+            "max_iter": p.declare("max_iter", "IPOPT iteration cap", (1, 100000)),
+            "tol": p.declare("tol", "IPOPT tolerance", (1e-12, 1.0)),
+            "nlp_max_wall_time": p.declare("nlp_max_wall_time", "wall-time cap of one NLP (s)", (0.1, 3600.0)),
+        }
+        plan = {
+            "max_depth": p.declare("max_depth", "deepest tree level expanded", (0, 20)),
+            "time_budget": p.declare("time_budget", "default planning budget (s)", (0.1, 3600.0)),
+            "max_time_budget": p.declare("max_time_budget", "largest budget a request may ask (s)", (0.1, 36000.0)),
+            "max_kinetic_energy": p.declare("max_kinetic_energy", "largest initial kinetic energy (J)", (0.0, 1e5)),
+            "symmetry_cut": p.declare("symmetry_cut", "skip mirror-image neighbours of symmetric nodes"),
+        }
+        stance = {k: p.declare(f"stance_{k}", f"nominal stance {k} (rad)", (-3.2, 3.2))
+                  for k in ("hip_pitch", "knee", "shoulder_pitch", "elbow")}
+        self.queue_size = p.declare("queue_size", "requests that may wait while one is planned", (0, 16))
+        warm = p.declare("warm_up", "build the two-foot NLP structures in the background at start")
+        self.planner = FallPlanner(OptConfig.from_dict(opt), PlannerConfig.from_dict({**plan, "stance": stance}))
+        self._state = threading.Lock()
+        self._plan_lock = threading.Lock()
+        self._pending = 0
+        self._running_since: float | None = None
+        self.group = ReentrantCallbackGroup()
+        self.srv = self.create_service(PlanFall, "plan_fall", self.on_plan_fall, callback_group=self.group)
+        self._closing = False
+        if warm:
+            threading.Thread(target=self._warm_up, name="nlp-warm-up", daemon=True).start()
+        self.get_logger().info(f"plan_fall ready (n={self.planner.model.n}, m={self.planner.model.m}, "
+                               f"Nd={opt['n_knots']}, queue_size={self.queue_size})")
+
+    def _warm_up(self):
+        """Build the NLP structures of the root two-foot mode (the sweep's first
+        level) so that the first request does not pay for them."""
+        opt = self.planner.opt
+        N = opt.cfg.n_knots
+        keys = [StructureKey("", ("LF", "RF"), "", False, N), StructureKey("add", ("LF", "RF"), "LH", False, N),
+                StructureKey("remove", ("LF", "RF"), "LF", False, N), StructureKey("", ("RF",), "", False, N),
+                StructureKey("add", ("RF",), "LF", False, N)]
+        t0 = time.perf_counter()
+        for k in keys:
+            if self._closing:
+                return
+            opt.nlp(k)
+        self.get_logger().info(f"warm-up: {len(keys)} NLP structures built in {time.perf_counter() - t0:.1f} s")
+
+    def close(self):
+        self._closing = True
+
+    # ------------------------------------------------------------ service
+    def on_plan_fall(self, request: PlanFall.Request, response: PlanFall.Response):
+        with self._state:
+            if self._pending > self.queue_size:
+                since = time.perf_counter() - (self._running_since or time.perf_counter())
+                response.success = False
+                response.reason = (f"busy: a plan has been running for {since:.1f} s and "
+                                   f"{self._pending - 1} request(s) are queued (queue_size={self.queue_size}); "
+                                   "retry later")
+                return response
+            self._pending += 1
+        try:
+            with self._plan_lock:
+                self._running_since = time.perf_counter()
+                req = {"q": list(request.q), "v": list(request.v), "kinetic_energy": request.kinetic_energy,
+                       "direction": request.direction, "initial_mode": request.initial_mode,
+                       "wall_distance": request.wall_distance, "time_budget": request.time_budget}
+                try:
+                    result = self.planner.plan(req)
+                except Exception as e:  # noqa: BLE001 - the node must keep serving
+                    self.get_logger().error(f"planner failed: {e!r}")
+                    result = {"success": False, "reason": f"internal error: {e}", "segments": []}
+                self._fill(response, result)
+                self.get_logger().info(f"plan_fall: success={response.success} "
+                                       f"sequence={list(response.contact_sequence)} "
+                                       f"nlps={response.nlp_count} t={response.total_time_s:.1f}s: {response.reason}")
+        finally:
+            with self._state:
+                self._pending -= 1
+        return response
+
+    def _fill(self, resp: PlanFall.Response, r: dict):
+        model = self.planner.model
+        resp.success = bool(r.get("success", False))
+        resp.reason = str(r.get("reason", ""))
+        resp.contact_sequence = list(r.get("contact_sequence", []))
+        resp.node_ke = [float(x) for x in r.get("node_ke", [])]
+        fk = r.get("final_ke", float("nan"))
+        resp.final_ke = float(fk) if fk is not None else math.nan
+        resp.nlp_times_s = [float(x) for x in r.get("nlp_times_s", [])]
+        resp.total_time_s = float(r.get("total_time_s", 0.0))
+        resp.nlp_count = int(r.get("nlp_count", 0))
+        resp.tree_nodes = int(r.get("tree_nodes", 0))
+        resp.deepest_depth = int(r.get("deepest_depth", 0))
+        resp.tree_json = json.dumps(r["tree"]) if r.get("tree") is not None else ""
+        segs = []
+        for s in r.get("segments", []):
+            m = PlanSegment()
+            m.kind = s.kind
+            m.mode = mode_label(s.mode)
+            m.target_mode = mode_label(s.target_mode)
+            m.coordinate_names = list(model.coordinate_names)
+            m.actuated_names = list(model.joint_names)
+            m.time = s.time.tolist()
+            m.q = s.q.ravel().tolist()
+            m.v = s.v.ravel().tolist()
+            m.u = s.u.ravel().tolist()
+            m.contact_force = np.asarray(C.forces_per_point(s.rows, s.lam)).ravel().tolist()
+            m.kinetic_energy = s.ke.tolist()
+            segs.append(m)
+        resp.segments = segs
+
+
+def main(args=None) -> int:
+    return run_node(MulticontactPlanner, args=args, use_sim_time=False,
+                    executor_factory=lambda: rclpy.executors.MultiThreadedExecutor(num_threads=4))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,117 @@
+"""Client of the ``plan_fall`` service, behind ``humfall plan-fall``.
+
+    humfall plan-fall --ke 30 [--wall 0.8] [--direction 1] [--mode LF/RF] [--budget S] [--json]
+
+Prints a human summary, or with --json one JSON object (success, reason,
+contact_sequence, node_ke, final_ke, nlp_times_s, total_time_s, ...).
+Exit code: 0 plan found, 1 no plan (service answered success=false),
+2 service unavailable or no answer in time.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+
+SERVICE = "plan_fall"
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(prog="humfall plan-fall", description="Plan a multi-contact fall mitigation")
+    ap.add_argument("--ke", type=float, required=True, help="initial kinetic energy (J)")
+    ap.add_argument("--wall", type=float, default=0.0, help="wall at x = WALL m ahead of the stance (<= 0: none)")
+    ap.add_argument("--direction", type=float, default=1.0, help="+1 forward push, -1 backward")
+    ap.add_argument("--mode", default="LF/RF", help="initial contact mode, e.g. LF/RF")
+    ap.add_argument("--budget", type=float, default=0.0, help="planning time budget (s); 0: node default")
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--service", default=SERVICE, help="service name")
+    ap.add_argument("--wait", type=float, default=10.0, help="seconds to wait for the service to appear")
+    ap.add_argument("--timeout", type=float, default=0.0,
+                    help="seconds to wait for the answer (default: budget + 30 s, or 630 s)")
+    return ap.parse_args(argv)
+
+
+def _nan_to_none(x):
+    return None if isinstance(x, float) and not math.isfinite(x) else x
+
+
+def response_to_dict(resp) -> dict:
+    return {
+        "success": bool(resp.success), "reason": resp.reason,
+        "contact_sequence": list(resp.contact_sequence), "node_ke": [float(x) for x in resp.node_ke],
+        "final_ke": _nan_to_none(float(resp.final_ke)), "nlp_times_s": [float(x) for x in resp.nlp_times_s],
+        "total_time_s": float(resp.total_time_s), "nlp_count": int(resp.nlp_count),
+        "tree_nodes": int(resp.tree_nodes), "deepest_depth": int(resp.deepest_depth),
+        "segments": [{"kind": s.kind, "mode": s.mode, "target_mode": s.target_mode,
+                      "duration_s": float(s.time[-1]) if len(s.time) else 0.0,
+                      "ke_start": float(s.kinetic_energy[0]) if len(s.kinetic_energy) else None,
+                      "ke_end": float(s.kinetic_energy[-1]) if len(s.kinetic_energy) else None}
+                     for s in resp.segments],
+    }
+
+
+def summary(d: dict) -> str:
+    lines = [("PLAN FOUND: " if d["success"] else "NO PLAN: ") + d["reason"]]
+    if d["contact_sequence"]:
+        seq = "  ->  ".join(f"{m} ({ke:.1f} J)" for m, ke in zip(d["contact_sequence"], d["node_ke"]))
+        lines.append(f"contact sequence: {seq}")
+        lines.append(f"final kinetic energy: {d['final_ke']:.3g} J")
+    for s in d["segments"]:
+        tgt = f" -> {s['target_mode']}" if s["kind"] == "transition" else ""
+        lines.append(f"  {s['kind']:<11} {s['mode']}{tgt}: {s['duration_s']:.2f} s, "
+                     f"KE {s['ke_start']:.2f} -> {s['ke_end']:.3g} J")
+    times = d["nlp_times_s"]
+    if times:
+        med = sorted(times)[len(times) // 2]
+        lines.append(f"{d['nlp_count']} NLPs (median {med:.2f} s), tree of {d['tree_nodes']} nodes, "
+                     f"depth {d['deepest_depth']}, total {d['total_time_s']:.1f} s")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(sys.argv[1:] if argv is None else argv)
+    os.environ.setdefault("ROS_LOG_DIR", os.path.join(os.path.expanduser("~"), ".ros", "log"))
+    import rclpy
+    from humfall_interfaces.srv import PlanFall
+
+    rclpy.init(args=None)
+    node = rclpy.create_node("plan_fall_client")
+    try:
+        client = node.create_client(PlanFall, args.service)
+        if not client.wait_for_service(timeout_sec=args.wait):
+            msg = (f"service '{args.service}' not available after {args.wait:.0f} s: "
+                   "is the multicontact_planner node running (humfall run multicontact_planner)?")
+            if args.json:
+                print(json.dumps({"success": False, "reason": msg}))
+            else:
+                print(msg, file=sys.stderr)
+            return 2
+        req = PlanFall.Request()
+        req.kinetic_energy = float(args.ke)
+        req.direction = float(args.direction)
+        req.initial_mode = args.mode
+        req.wall_distance = float(args.wall)
+        req.time_budget = float(args.budget)
+        timeout = args.timeout or ((args.budget + 30.0) if args.budget > 0 else 630.0)
+        future = client.call_async(req)
+        t0 = time.monotonic()
+        while rclpy.ok() and not future.done() and time.monotonic() - t0 < timeout:
+            rclpy.spin_until_future_complete(node, future, timeout_sec=0.5)
+        if not future.done():
+            msg = f"no answer from '{args.service}' within {timeout:.0f} s"
+            print(json.dumps({"success": False, "reason": msg}) if args.json else msg,
+                  file=sys.stdout if args.json else sys.stderr)
+            return 2
+        d = response_to_dict(future.result())
+        print(json.dumps(d) if args.json else summary(d))
+        return 0 if d["success"] else 1
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
