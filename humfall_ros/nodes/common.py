@@ -20,6 +20,7 @@ from humfall_ros import paths
 
 import rclpy
 import rclpy.executors
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -109,3 +110,56 @@ def run_node(factory: Callable[[], Node], args=None, use_sim_time: bool = True,
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+# Our per-tick topics need no QoS event callbacks; each one would be another
+# entity in every wait set rclpy rebuilds per spin.
+NO_SUB_EVENTS = SubscriptionEventCallbacks(use_default_callbacks=False)
+NO_PUB_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
+
+
+class Drainer:
+    """Take every queued message of a group of subscriptions in one callback.
+
+    rclpy's executor takes one message per wait and rebuilds its wait set each
+    time (~0.3 ms here); a node that needs several messages per control tick
+    would spend most of the tick there. After the first message arrives, the
+    rest are usually queued already: take them directly with the subscription
+    handle's take_message (what the executor does internally). If that internal
+    API fails, the drainer switches itself off and the executor path remains.
+    """
+
+    def __init__(self, node: Node):
+        self.node = node
+        self.subs: list[tuple[Any, type, Callable]] = []
+        self.enabled = True
+        self._draining = False
+
+    def subscribe(self, msg_type, topic: str, callback: Callable, qos=None):
+        def cb(msg):
+            callback(msg)
+            self.drain()
+        sub = self.node.create_subscription(msg_type, topic, cb, qos or QOS_RELIABLE,
+                                            event_callbacks=NO_SUB_EVENTS)
+        self.subs.append((sub, msg_type, callback))
+        return sub
+
+    def drain(self) -> None:
+        if not self.enabled or self._draining:
+            return
+        self._draining = True
+        try:
+            progress = True
+            while progress:
+                progress = False
+                for sub, msg_type, callback in self.subs:
+                    with sub.handle:
+                        taken = sub.handle.take_message(msg_type, False)
+                    if taken is not None:
+                        progress = True
+                        callback(taken[0])
+        except Exception as e:  # noqa: BLE001 - rclpy internals changed: fall back to the executor
+            self.enabled = False
+            self.node.get_logger().warning(f"direct take disabled: {e}")
+        finally:
+            self._draining = False

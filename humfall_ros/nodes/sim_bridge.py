@@ -27,6 +27,7 @@ from geometry_msgs.msg import WrenchStamped
 from humfall_interfaces.msg import Obstacle, ObstacleArray
 from humfall_interfaces.srv import Push, SetObstacles
 from nav_msgs.msg import Odometry
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState
@@ -128,9 +129,16 @@ class SimBridge(Node):
         self.latest: dict[str, JointState | None] = {s: None for s in self.sources}
         self.answered: set[str] = set()
         self.rejected_commands = 0
-        for s in self.sources:
-            self.create_subscription(JointState, f"joint_command/{s}",
-                                     lambda msg, s=s: self._on_command(s, msg), QOS_RELIABLE)
+        # Commands arrive every tick: they get a node of their own with nothing else on it,
+        # so the hot loop waits on 3 subscriptions instead of every service, parameter
+        # service and QoS event of the bridge (rclpy builds the wait set each spin).
+        self.command_node = rclpy.create_node("sim_bridge_commands", start_parameter_services=False,
+                                              enable_rosout=False)
+        no_events = SubscriptionEventCallbacks(use_default_callbacks=False)
+        self.command_subs = {s: self.command_node.create_subscription(
+            JointState, f"joint_command/{s}", lambda msg, s=s: self._on_command(s, msg), QOS_RELIABLE,
+            event_callbacks=no_events) for s in self.sources}
+        self._can_take = True
         self.create_service(Push, "sim/push", self._on_push)
         self.create_service(Trigger, "sim/reset", self._on_reset)
         self.create_service(SetObstacles, "sim/set_obstacles", self._on_set_obstacles)
@@ -163,6 +171,26 @@ class SimBridge(Node):
         self.latest[source] = msg
         if stamp_key(msg.header.stamp) == self.tick_key:
             self.answered.add(source)
+
+    def take_commands(self) -> None:
+        """Take queued commands without a wait (cheap when they are already here).
+
+        Uses the subscription handle's take_message, as rclpy's executor does; if
+        that internal API changes, the executor path alone still works.
+        """
+        if not self._can_take:
+            return
+        try:
+            for s, sub in self.command_subs.items():
+                while True:
+                    with sub.handle:
+                        taken = sub.handle.take_message(JointState, False)
+                    if taken is None:
+                        break
+                    self._on_command(s, taken[0])
+        except Exception as e:  # noqa: BLE001
+            self._can_take = False
+            self.get_logger().warning(f"direct take disabled ({e}); using the executor only")
 
     def _on_push(self, req: Push.Request, resp: Push.Response) -> Push.Response:
         force = [req.force.x, req.force.y, req.force.z]
@@ -321,12 +349,18 @@ class SimBridge(Node):
                 return
             executor.spin_once(timeout_sec=0.05)
 
-    def run(self, executor) -> None:
-        """The main loop (instead of executor.spin: the bridge owns time)."""
+    def run(self, executor, command_executor) -> None:
+        """The main loop (instead of executor.spin: the bridge owns time).
+
+        ``command_executor`` spins the command node every tick; ``executor`` (services,
+        parameters) is serviced every ``service_period`` of wall time.
+        """
         self.stalled_ticks = 0
         self.wait_for_subscribers(executor)
         wall0, sim0 = time.monotonic(), self.world.time
         rtf_wall, rtf_sim = wall0, sim0
+        next_service = wall0
+        service_period = 0.02
         while rclpy.ok():
             self.answered = {s for s in self.lockstep_sources
                              if self.latest[s] is not None and stamp_key(self.latest[s].header.stamp) == self.tick_key}
@@ -334,11 +368,15 @@ class SimBridge(Node):
             if self.lockstep:
                 waited_since = last_send = time.monotonic()
                 while rclpy.ok() and not set(self.lockstep_sources) <= self.answered:
-                    executor.spin_once(timeout_sec=0.01)
+                    self.take_commands()
+                    if set(self.lockstep_sources) <= self.answered:
+                        break
+                    command_executor.spin_once(timeout_sec=0.01)
                     now = time.monotonic()
                     if now - last_send > self.retransmit_period:
                         self.publish_sensors()
                         last_send = now
+                        executor.spin_once(timeout_sec=0.0)
                     if now - waited_since > self.stall_timeout:
                         missing = sorted(set(self.lockstep_sources) - self.answered)
                         self.get_logger().error(f"t={self.world.time:.3f}: no command from {missing} after "
@@ -346,7 +384,13 @@ class SimBridge(Node):
                         self.stalled_ticks += 1
                         break
             else:
+                self.take_commands()
+                if not self._can_take:
+                    command_executor.spin_once(timeout_sec=0.0)
+            now = time.monotonic()
+            if now >= next_service:  # pushes, resets, obstacles, parameters
                 executor.spin_once(timeout_sec=0.0)
+                next_service = now + service_period
             if not rclpy.ok():
                 break
             self._mux()
@@ -358,7 +402,6 @@ class SimBridge(Node):
                 ahead = (self.world.time - sim0) / self.rtf_target - (time.monotonic() - wall0)
                 if ahead > 0:
                     time.sleep(ahead)
-                    executor.spin_once(timeout_sec=0.0)
             now = time.monotonic()
             if now - rtf_wall >= 1.0:
                 self.pub_rtf.publish(Float64(data=(self.world.time - rtf_sim) / (now - rtf_wall)))
@@ -392,7 +435,9 @@ def main(args=None) -> int:
         node = SimBridge()
         executor = rclpy.executors.SingleThreadedExecutor()
         executor.add_node(node)
-        node.run(executor)
+        command_executor = rclpy.executors.SingleThreadedExecutor()
+        command_executor.add_node(node.command_node)
+        node.run(executor, command_executor)
         # linger briefly so latched results reach late subscribers
         end = time.monotonic() + 0.3
         while rclpy.ok() and time.monotonic() < end:
@@ -404,6 +449,7 @@ def main(args=None) -> int:
             if not node.done and getattr(node, "stalled_ticks", None) is not None and node.metrics_file:
                 node.finish(0.0)
             node.close()
+            node.command_node.destroy_node()
             node.destroy_node()
         rclpy.try_shutdown()
     return 0

@@ -18,7 +18,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from humfall_ros.model.estimation import CentroidalEstimator
 from humfall_ros.model.humanoid import SIDES, load_model
-from humfall_ros.nodes.common import QOS_RELIABLE, Params, run_node
+from humfall_ros.nodes.common import QOS_RELIABLE, Drainer, Params, run_node
 
 SIDE_TOPIC = {"l": "left_foot/wrench", "r": "right_foot/wrench"}
 
@@ -55,12 +55,13 @@ class StateEstimator(Node):
         self.pub_cp = self.create_publisher(PointStamped, "centroidal_state/capture_point", QOS_RELIABLE)
         self.pub_poly = self.create_publisher(PolygonStamped, "centroidal_state/support_polygon", QOS_RELIABLE)
         self.pub_markers = self.create_publisher(MarkerArray, "centroidal_state/markers", QOS_RELIABLE)
-        self.create_subscription(JointState, "joint_states", lambda m: self._add("js", m), QOS_RELIABLE)
-        self.create_subscription(Imu, "imu", lambda m: self._add("imu", m), QOS_RELIABLE)
+        sensors = Drainer(self)  # one tick's sensor messages arrive together: take them in one go
+        sensors.subscribe(JointState, "joint_states", lambda m: self._add("js", m))
+        sensors.subscribe(Imu, "imu", lambda m: self._add("imu", m))
         for s, topic in SIDE_TOPIC.items():
-            self.create_subscription(WrenchStamped, topic, lambda m, s=s: self._add(s, m), QOS_RELIABLE)
+            sensors.subscribe(WrenchStamped, topic, lambda m, s=s: self._add(s, m))
         if self.use_ground_truth:
-            self.create_subscription(Odometry, "ground_truth/odom", lambda m: self._add("odom", m), QOS_RELIABLE)
+            sensors.subscribe(Odometry, "ground_truth/odom", lambda m: self._add("odom", m))
 
     def _add(self, kind: str, msg) -> None:
         k = key(msg.header.stamp)

@@ -243,17 +243,19 @@ class SimWorld:
         lid = self.foot_links[side]
         pos, orn = self._link_frame(lid)
         R = quat_matrix(orn)
-        f_w = np.zeros(3)
-        t_w = np.zeros(3)
-        for cp in self.ground_contacts():
+        fx = fy = fz = tx = ty = tz = 0.0
+        px, py, pz = pos
+        for cp in self.ground_contacts():  # plain floats: numpy is slow on 3-vectors
             if cp[3] != lid:
                 continue
-            normal = np.array(cp[7])
-            f = cp[9] * normal + cp[10] * np.array(cp[11]) + cp[12] * np.array(cp[13])
-            r = np.array(cp[6]) - np.asarray(pos)
-            f_w += f
-            t_w += np.cross(r, f)
-        return R.T @ f_w, R.T @ t_w
+            n, d1, d2 = cp[7], cp[11], cp[13]
+            f0 = cp[9] * n[0] + cp[10] * d1[0] + cp[12] * d2[0]
+            f1 = cp[9] * n[1] + cp[10] * d1[1] + cp[12] * d2[1]
+            f2 = cp[9] * n[2] + cp[10] * d1[2] + cp[12] * d2[2]
+            r0, r1, r2 = cp[6][0] - px, cp[6][1] - py, cp[6][2] - pz
+            fx, fy, fz = fx + f0, fy + f1, fz + f2
+            tx, ty, tz = tx + r1 * f2 - r2 * f1, ty + r2 * f0 - r0 * f2, tz + r0 * f1 - r1 * f0
+        return R.T @ np.array([fx, fy, fz]), R.T @ np.array([tx, ty, tz])
 
     def ground_truth_cop(self):
         """CoP of all robot-ground contacts (world), or None when airborne."""

@@ -1,0 +1,121 @@
+"""Whole-suite speed: real-time factor in lockstep and free-run, and per-hop latency.
+
+Starts `humfall up` (every node its own process, recorder included) on
+standing_quiet in a private ROS domain on localhost, once in lockstep and once
+free-running as fast as it can (and once at a 1.0 target), and reads the
+sim/wall times from result.json. During the lockstep run a probe node in this
+process timestamps, per control tick, the arrival of joint_states (bridge out),
+centroidal_state (estimator out) and joint_command/locomotion (controller out),
+and of the next tick's joint_states (bridge stepped): the three hops of
+sim -> estimator -> controller -> sim. The probe's own delivery delay is in
+every timestamp alike, so differences are the hops. Prints one JSON object.
+
+    python benchmarks/bench_suite.py [--seconds 10] [--control-rate 500]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import tempfile
+import time
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def up(seconds: float, rate: float, lockstep: bool, rtf: float, runs: pathlib.Path, env: dict,
+       probe: bool = False) -> dict:
+    cmd = [sys.executable, "-m", "humfall_ros.cli", "up", "--scenario", "standing_quiet", "--runs-dir", str(runs),
+           "--no-plots", "--set", f"duration={seconds}", "--set", f"sim.control_rate={rate}",
+           "--set", f"sim.lockstep={str(lockstep).lower()}", "--set", f"sim.real_time_factor={rtf}"]
+    before = set(runs.glob("*")) if runs.exists() else set()
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    hops = run_probe(proc) if probe else None
+    proc.wait()
+    (run_dir,) = set(runs.glob("*")) - before
+    r = json.loads((run_dir / "result.json").read_text())
+    bridge_wall = r["metrics"].get("bridge_wall_time_s")
+    out = {"sim_s": r["sim_duration_s"], "bridge_wall_s": bridge_wall,
+           "real_time_factor": round(r["sim_duration_s"] / bridge_wall, 3) if bridge_wall else None,
+           "total_wall_s_incl_startup": r["wall_time_s"]}
+    if "recording" in r:
+        out["recorded_messages"] = r["recording"].get("message_count")
+    if hops is not None:
+        out["hops_ms"] = hops
+    return out
+
+
+def run_probe(proc) -> dict:
+    import numpy as np
+    import rclpy
+    from humfall_interfaces.msg import CentroidalState
+    from sensor_msgs.msg import JointState
+
+    from humfall_ros.nodes.common import QOS_RELIABLE
+
+    rclpy.init()
+    node = rclpy.create_node("latency_probe")
+    seen: dict[str, dict[int, float]] = {"js": {}, "cs": {}, "cmd": {}}
+
+    def rec(kind):
+        def cb(msg):
+            k = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            seen[kind].setdefault(k, time.perf_counter())
+        return cb
+
+    node.create_subscription(JointState, "joint_states", rec("js"), QOS_RELIABLE)
+    node.create_subscription(CentroidalState, "centroidal_state", rec("cs"), QOS_RELIABLE)
+    node.create_subscription(JointState, "joint_command/locomotion", rec("cmd"), QOS_RELIABLE)
+    try:
+        while proc.poll() is None:
+            rclpy.spin_once(node, timeout_sec=0.05)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    keys = sorted(set(seen["js"]) & set(seen["cs"]) & set(seen["cmd"]))
+    est, ctl, sim = [], [], []
+    for a, b in zip(keys, keys[1:]):
+        if b not in seen["js"]:
+            continue
+        est.append(seen["cs"][a] - seen["js"][a])
+        ctl.append(seen["cmd"][a] - seen["cs"][a])
+        sim.append(seen["js"][b] - seen["cmd"][a])
+    def stats(x):
+        x = np.array(x) * 1e3
+        return {"median": round(float(np.median(x)), 3), "p95": round(float(np.percentile(x, 95)), 3)} if len(x) \
+            else None
+    return {"ticks": len(est), "sim_to_estimator_out": stats(est), "estimator_to_controller_out": stats(ctl),
+            "controller_to_next_sensors": stats(sim),
+            "tick_total": stats(np.array(est) + np.array(ctl) + np.array(sim))}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--control-rate", type=float, default=500.0)
+    a = ap.parse_args()
+    env = dict(os.environ)
+    env["ROS_DOMAIN_ID"] = str(60 + os.getpid() % 30)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
+    os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp())
+    with tempfile.TemporaryDirectory() as tmp:
+        runs = pathlib.Path(tmp) / "runs"
+        res = {
+            "benchmark": "suite",
+            "cpu_count": os.cpu_count(),
+            "control_rate_hz": a.control_rate,
+            "lockstep": up(a.seconds, a.control_rate, True, 1.0, runs, env, probe=True),
+            "free_run_max": up(a.seconds, a.control_rate, False, 0.0, runs, env),
+            "free_run_target_1": up(a.seconds, a.control_rate, False, 1.0, runs, env),
+        }
+    print(json.dumps(res, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,31 @@
+"""`make bench`: run every benchmark and print one JSON object of their figures."""
+from __future__ import annotations
+
+import json
+import pathlib
+import subprocess
+import sys
+
+HERE = pathlib.Path(__file__).resolve().parent
+BENCHES = ["bench_suite.py", "bench_recorder.py", "bench_multicontact.py"]
+
+
+def main() -> int:
+    out, status = {}, 0
+    for name in BENCHES:
+        path = HERE / name
+        if not path.is_file():
+            out[name] = {"skipped": "not present"}
+            continue
+        p = subprocess.run([sys.executable, str(path)], capture_output=True, text=True)
+        try:
+            out[name] = json.loads(p.stdout[p.stdout.index("{"):])
+        except ValueError:
+            out[name] = {"error": f"exit {p.returncode}", "stderr_tail": p.stderr[-2000:]}
+        status = status or p.returncode
+    print(json.dumps(out, indent=2))
+    return status
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
