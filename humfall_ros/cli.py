@@ -4,7 +4,7 @@
     humfall run NODE [--ros-args ...]
     humfall push FX FY FZ [--duration S] [--link L] [--point X Y Z]
     humfall plan-fall --ke 30 [--wall 0.8] [--json]
-    humfall bag info FILE | humfall bag plot FILE [--out DIR]
+    humfall bag info FILE | humfall bag plot FILE [--out DIR] | humfall bag recover FILE [--out F]
 """
 from __future__ import annotations
 
@@ -84,6 +84,11 @@ def _cmd_bag(a) -> int:
         from humfall_ros.recording.summary import info_main
 
         return info_main(a.file)
+    if a.action == "recover":
+        from humfall_ros.recording import recover
+
+        print(recover(a.file, a.out))
+        return 0
     from humfall_ros.recording import plot_main
 
     return plot_main(a.file, a.out)
@@ -113,9 +118,9 @@ def parser() -> argparse.ArgumentParser:
     push.add_argument("--timeout", type=float, default=5.0)
     sub.add_parser("plan-fall", help="call the multi-contact planner (see plan-fall --help)", add_help=False)
     bag = sub.add_parser("bag", help="inspect a recorded run")
-    bag.add_argument("action", choices=["info", "plot"])
+    bag.add_argument("action", choices=["info", "plot", "recover"])
     bag.add_argument("file")
-    bag.add_argument("--out", default=None)
+    bag.add_argument("--out", default=None, help="plot: output folder; recover: output file")
     return p
 
 

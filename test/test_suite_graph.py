@@ -3,6 +3,7 @@
 Each test runs in its own ROS_DOMAIN_ID on localhost (conftest.in_ros_domain).
 """
 import math
+import pathlib
 import subprocess
 import sys
 import time
@@ -53,7 +54,6 @@ def test_up_standing_push_falls_onto_the_target_and_records_everything(run_up):
     assert recorded["/centroidal_state"] >= published["/joint_states"] - 1
     # the bag opens in an independent reader (rosbags) with our custom type
     from rosbags.highlevel import AnyReader
-    import pathlib
 
     with AnyReader([pathlib.Path(r["bag"])]) as reader:
         conns = [c for c in reader.connections if c.topic == "/centroidal_state"]
@@ -64,6 +64,27 @@ def test_up_standing_push_falls_onto_the_target_and_records_everything(run_up):
             assert math.isfinite(msg.com.z) and 0.0 < msg.com.z < 1.0
             n += 1
         assert n == recorded["/centroidal_state"]
+    # and the humfall bag tools read it
+    cli = [sys.executable, "-m", "humfall_ros.cli", "bag"]
+    info = subprocess.run(cli + ["info", r["bag"]], capture_output=True, text=True, timeout=120)
+    assert info.returncode == 0 and "/centroidal_state" in info.stdout and "CentroidalState" in info.stdout
+    out = pathlib.Path(r["bag"]).parent / "replot"
+    plot = subprocess.run(cli + ["plot", r["bag"], "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert plot.returncode == 0 and sorted(p.name for p in out.glob("*.png"))
+
+
+def test_cli_refuses_what_it_cannot_do(in_ros_domain, tmp_path):
+    cli = [sys.executable, "-m", "humfall_ros.cli"]
+    p = subprocess.run(cli + ["run", "warp_core"], env=in_ros_domain, capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and "unknown node" in p.stderr
+    p = subprocess.run(cli + ["push", "nan", "0", "0"], env=in_ros_domain, capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and "non-finite" in p.stderr
+    p = subprocess.run(cli + ["push", "10", "0", "0", "--timeout", "1"], env=in_ros_domain, capture_output=True,
+                       text=True, timeout=60)
+    assert p.returncode == 1 and "no sim/push service" in p.stderr
+    p = subprocess.run(cli + ["bag", "info", str(tmp_path / "none.mcap")], env=in_ros_domain, capture_output=True,
+                       text=True, timeout=60)
+    assert p.returncode == 2 and "no such file" in p.stderr
 
 
 def test_two_lockstep_runs_give_identical_joint_states(run_up):
