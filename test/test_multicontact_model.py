@@ -1,0 +1,201 @@
+"""Planar model, impact map, seeds and request validation of the multi-contact
+planner (paper 2). No ROS graph and no full NLP solve here."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from humfall_ros.multicontact import contacts as C
+from humfall_ros.multicontact.collocation import OptConfig, TrajectoryOptimizer, hermite_mid
+from humfall_ros.multicontact.initial_state import nominal_configuration, velocity_for_energy
+from humfall_ros.multicontact.model import load_model
+from humfall_ros.multicontact.modes import Environment, adjacent_modes, parse_mode
+from humfall_ros.multicontact.planner import InvalidRequest, PlannerConfig, validate
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model()
+
+
+def random_state(model, rng):
+    q = np.zeros(model.n)
+    q[:3] = rng.uniform([-0.5, 0.3, -1.0], [0.5, 1.2, 1.0])
+    q[3:] = rng.uniform(model.q_min, model.q_max)
+    v = rng.uniform(-3, 3, model.n)
+    a = rng.uniform(-20, 20, model.n)
+    return q, v, a
+
+
+def test_planar_model_matches_table_one_and_urdf(model):
+    assert (model.n, model.m) == (13, 10)
+    assert model.coordinate_names[:3] == ["root_x", "root_z", "root_pitch"]
+    # facts from the URDF through pinocchio, not literals of ours
+    full = pin.buildModelFromUrdf(str(model.urdf))
+    assert model.total_mass == pytest.approx(sum(i.mass for i in full.inertias), rel=1e-9)
+    knee = full.getJointId("l_knee")
+    i = model.joint_names.index("l_knee")
+    assert model.q_max[i] == full.upperPositionLimit[full.joints[knee].idx_q]
+    assert model.u_max[i] == full.effortLimit[full.joints[knee].idx_v]
+    assert model.v_max[i] == full.velocityLimit[full.joints[knee].idx_v]
+
+
+def test_casadi_dynamics_match_pinocchio(model):
+    rng = np.random.default_rng(3)
+    pm, pd = model.pin_model, model.pin_model.createData()
+    for _ in range(10):
+        q, v, a = random_state(model, rng)
+        np.testing.assert_allclose(model.D(q), model.pin_crba(q), atol=1e-10)
+        tau = np.array(model.f_id(q, v, a)).ravel()
+        np.testing.assert_allclose(tau, model.pin_rnea(q, v, a), atol=1e-9)
+        np.testing.assert_allclose(model.bias(q, v), pin.rnea(pm, pd, q, v, np.zeros(model.n)), atol=1e-9)
+        pin.forwardKinematics(pm, pd, q, v, np.zeros(model.n))
+        pin.computeJointJacobians(pm, pd, q)
+        pin.updateFramePlacements(pm, pd)
+        for point, frame in (("LH", "r_hand"), ("LF_toe", "l_sole_toe_right"), ("RF_heel", "r_sole_heel_left")):
+            if point == "LH":
+                frame = "l_hand"
+            fid = pm.getFrameId(frame)
+            np.testing.assert_allclose(model.point(point, q), pd.oMf[fid].translation[[0, 2]], atol=1e-12)
+            J = pin.getFrameJacobian(pm, pd, fid, pin.LOCAL_WORLD_ALIGNED)
+            np.testing.assert_allclose(model.point_jacobian(point, q), J[[0, 2]], atol=1e-12)
+            acc = pin.getFrameClassicalAcceleration(pm, pd, fid, pin.LOCAL_WORLD_ALIGNED).linear
+            np.testing.assert_allclose(np.array(model.f_point_dJv[point](q, v)).ravel(), acc[[0, 2]], atol=1e-9)
+
+
+def test_modes_adjacency_and_parsing():
+    assert parse_mode("RF/LF") == ("LF", "RF")
+    with pytest.raises(ValueError, match="unknown extremity 'LK'"):
+        parse_mode("LF/LK")
+    adj = adjacent_modes(("LF", "RF"))
+    assert {m for m, _, _ in adj} == {("LF", "RF", "LH"), ("LF", "RF", "RH"), ("LF",), ("RF",)}
+    assert all(m for m, _, _ in adjacent_modes(("LF",)))  # never the empty mode
+
+
+def test_impact_map_zeroes_contact_velocity_and_conserves_momentum(model):
+    q = nominal_configuration(model)
+    env = Environment()
+    rng = np.random.default_rng(7)
+    v_minus = rng.uniform(-1.5, 1.5, model.n)
+    rows = C.contact_rows(("LF", "RF", "LH"), env)
+    v_plus, impulse = C.impact_map(model, q, v_minus, rows)
+    J = C.rows_jacobian(model, rows, q)
+    D = model.D(q)
+    np.testing.assert_allclose(J @ v_plus, 0.0, atol=1e-9)               # eq. 10, second row
+    np.testing.assert_allclose(D @ (v_plus - v_minus), J.T @ impulse, atol=1e-9)  # eq. 10, first row
+    assert model.kinetic_energy(q, v_plus) <= model.kinetic_energy(q, v_minus) + 1e-9  # inelastic
+
+
+def test_initial_velocity_has_requested_energy_and_keeps_feet(model):
+    q = nominal_configuration(model)
+    env = Environment()
+    mode = ("LF", "RF")
+    for ke, direction in ((10.0, 1.0), (55.0, -1.0)):
+        v = velocity_for_energy(model, q, mode, ke, direction, env)
+        assert model.kinetic_energy(q, v) == pytest.approx(ke, rel=1e-9)
+        J = C.rows_jacobian(model, C.contact_rows(mode, env), q)
+        np.testing.assert_allclose(J @ v, 0.0, atol=1e-9)
+        assert np.sign(v[0]) == direction  # trunk moves with the push
+    pts = model.all_points(q)
+    for p in ("LF_toe", "LF_heel", "RF_toe", "RF_heel"):
+        assert abs(pts[p][1]) < 1e-12
+
+
+def test_seed_satisfies_boundary_conditions(model):
+    q0 = nominal_configuration(model)
+    env = Environment()
+    mode = ("LF", "RF")
+    v0 = velocity_for_energy(model, q0, mode, 30.0, 1.0, env)
+    opt = TrajectoryOptimizer(model, OptConfig())
+    T = 1.0
+    nlp, (t, q, v, a, u, lam), q_goal = opt.seed(q0, v0, mode, "add", "LH", env, T)
+    assert t[0] == 0 and t[-1] == pytest.approx(T)
+    np.testing.assert_allclose(q[0], q0, atol=1e-12)
+    np.testing.assert_allclose(v[0], v0, atol=1e-12)
+    np.testing.assert_allclose(q[-1], q_goal, atol=1e-9)
+    # the goal is on the goal mode's manifold: hand on the ground, feet where they were
+    assert abs(model.point("LH", q_goal)[1]) < 1e-5
+    goal_rows = C.contact_rows(("LF", "RF"), env)
+    np.testing.assert_allclose(C.rows_value(model, goal_rows, q_goal), C.rows_value(model, goal_rows, q0), atol=1e-5)
+    assert np.all(q_goal[3:] >= model.q_min - 1e-6) and np.all(q_goal[3:] <= model.q_max + 1e-6)
+    # u, lambda from the pseudo-inverse: eq. 1 holds at the knots up to the torque clipping
+    for k in range(len(t)):
+        J = C.rows_jacobian(model, nlp.rows, q[k])
+        res = np.array(model.f_id(q[k], v[k], a[k])).ravel() - model.B @ u[k] - J.T @ lam[k]
+        clipped = np.any(np.abs(u[k]) >= model.u_max - 1e-9)
+        if not clipped:
+            assert np.abs(res).max() < 1e-6
+    # parabola: constant acceleration, q(T) from q0, v0 and a
+    np.testing.assert_allclose(q[-1], q0 + v0 * T + 0.5 * a[0] * T**2, atol=1e-9)
+
+
+def test_hermite_mid_point_formulas_exact_for_cubics():
+    # q(t) = t^3 on [0, h]: the mid-point values of eq. 7 must be exact
+    h = 0.3
+    q0, q1 = 0.0, h**3
+    v0, v1 = 0.0, 3 * h**2
+    a0, a1 = 0.0, 6 * h
+    q_mid, v_mid, a_mid, qdot_mid = hermite_mid(q0, v0, q1, v1, a0, a1, h)
+    assert q_mid == pytest.approx((h / 2) ** 3)
+    assert qdot_mid == pytest.approx(3 * (h / 2) ** 2)
+    assert v_mid == pytest.approx(3 * (h / 2) ** 2)
+    assert a_mid == pytest.approx(6 * h / 2)
+
+
+# ------------------------------------------------------------ validation
+def _req(**kw):
+    r = {"q": [], "v": [], "kinetic_energy": 20.0, "direction": 1.0, "initial_mode": "LF/RF",
+         "wall_distance": 0.0, "time_budget": 0.0}
+    r.update(kw)
+    return r
+
+
+@pytest.mark.parametrize("change, match", [
+    (dict(kinetic_energy=float("nan")), "kinetic_energy is not a finite"),
+    (dict(q=[0.0] * 12 + [float("inf")]), "q contains a non-finite"),
+    (dict(q=[0.0] * 5), "q has 5 entries, expected 13"),
+    (dict(v=[0.0] * 14), "v has 14 entries"),
+    (dict(initial_mode="LF/RK"), "unknown extremity 'RK'"),
+    (dict(initial_mode="LF/RF/LH"), "does not match the configuration: LH"),
+    (dict(wall_distance=0.1), "wall .* inside the robot"),
+    (dict(kinetic_energy=5000.0), "exceeds the maximum"),
+    (dict(direction=0.0), "direction must be"),
+    (dict(time_budget=-1.0), "time_budget must be >= 0"),
+    (dict(wall_distance=float("inf")), "wall_distance is not a finite"),
+])
+def test_validation_rejects_bad_requests(model, change, match):
+    with pytest.raises(InvalidRequest, match=match):
+        validate(model, _req(**change), PlannerConfig())
+
+
+def test_validation_rejects_bad_configurations(model):
+    cfg = PlannerConfig()
+    q = nominal_configuration(model)
+    knee = model.q_index["l_knee"]
+    bad = q.copy()
+    bad[knee] = model.q_max[knee - 3] + 0.5
+    with pytest.raises(InvalidRequest, match="outside joint limits: l_knee"):
+        validate(model, _req(q=bad.tolist()), cfg)
+    sunk = q.copy()
+    sunk[1] -= 0.05
+    with pytest.raises(InvalidRequest, match="penetrates the ground"):
+        validate(model, _req(q=sunk.tolist()), cfg)
+    lifted = q.copy()
+    lifted[1] += 0.1
+    with pytest.raises(InvalidRequest, match="does not match the configuration: LF"):
+        validate(model, _req(q=lifted.tolist()), cfg)
+    ahead = q.copy()
+    ahead[0] += 2.0  # robot now stands beyond a wall at 0.8 m
+    with pytest.raises(InvalidRequest, match="behind the robot"):
+        validate(model, _req(q=ahead.tolist(), wall_distance=0.8), cfg)
+    sliding = np.zeros(model.n)
+    sliding[0] = 1.0  # the whole robot translating: feet slide
+    with pytest.raises(InvalidRequest, match="moves the contacts"):
+        validate(model, _req(q=q.tolist(), v=sliding.tolist()), cfg)
+    ok = validate(model, _req(wall_distance=0.8), cfg)
+    assert ok.env.wall_x == 0.8 and ok.mode == ("LF", "RF")
+    assert model.kinetic_energy(ok.q, ok.v) == pytest.approx(20.0)
+    assert math.isfinite(ok.time_budget) and ok.time_budget == cfg.time_budget

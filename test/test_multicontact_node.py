@@ -1,0 +1,96 @@
+"""multicontact_planner as a real process: the plan_fall service answers a valid
+and an invalid request, keeps serving, and the CLI client prints JSON."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import pytest
+
+from conftest import python_node_cmd
+
+
+@pytest.fixture
+def planner_process(ros_env):
+    cmd = python_node_cmd("humfall_ros.nodes.multicontact_planner", "--ros-args", "-p", "warm_up:=false")
+    proc = subprocess.Popen(cmd, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    yield proc
+    proc.terminate()
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def test_plan_fall_service_valid_and_invalid(planner_process, in_ros_domain):
+    import rclpy
+    from humfall_interfaces.srv import PlanFall
+
+    rclpy.init()
+    node = rclpy.create_node("test_plan_fall_client")
+    try:
+        client = node.create_client(PlanFall, "plan_fall")
+        assert client.wait_for_service(timeout_sec=30.0), "plan_fall service did not appear"
+
+        def call(req, timeout=90.0):
+            fut = client.call_async(req)
+            t0 = time.monotonic()
+            while not fut.done() and time.monotonic() - t0 < timeout:
+                rclpy.spin_until_future_complete(node, fut, timeout_sec=0.5)
+            assert fut.done(), "no answer"
+            return fut.result()
+
+        bad = PlanFall.Request()
+        bad.kinetic_energy = float("nan")
+        r = call(bad)
+        assert not r.success and "not a finite" in r.reason and r.nlp_count == 0
+
+        bad_len = PlanFall.Request()
+        bad_len.q = [0.0] * 4
+        r = call(bad_len)
+        assert not r.success and "q has 4 entries" in r.reason
+
+        good = PlanFall.Request()
+        good.kinetic_energy = 10.0
+        good.direction = 1.0
+        good.initial_mode = "LF/RF"
+        good.time_budget = 60.0
+        r = call(good)
+        assert r.success, r.reason
+        assert list(r.contact_sequence) == ["LF/RF"] and r.final_ke < 0.1
+        assert len(r.segments) == 1 and r.nlp_count == len(r.nlp_times_s) == 1
+        seg = r.segments[0]
+        n = len(seg.coordinate_names)
+        assert n == 13 and len(seg.actuated_names) == 10
+        assert len(seg.q) == len(seg.time) * n and len(seg.u) == len(seg.time) * 10
+        assert len(seg.contact_force) == len(seg.time) * 2 * 4  # toe + heel of two feet
+        tree = json.loads(r.tree_json)
+        assert tree["success"] and tree["nodes"][0]["mode"] == "LF/RF"
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    assert planner_process.poll() is None, "node died"
+
+    # the CLI client against the same node: wrong mode name -> JSON with the reason, exit 1
+    out = subprocess.run([sys.executable, "-c",
+                          "import sys; from humfall_ros.nodes.plan_fall_client import main; "
+                          "sys.exit(main(sys.argv[1:]))", "--ke", "20", "--mode", "LF/QQ", "--json"],
+                         env=in_ros_domain, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1, out.stderr
+    d = json.loads(out.stdout)
+    assert d["success"] is False and "unknown extremity 'QQ'" in d["reason"]
+    for key in ("contact_sequence", "node_ke", "final_ke", "nlp_times_s", "total_time_s"):
+        assert key in d
+
+
+def test_client_reports_missing_service(in_ros_domain):
+    out = subprocess.run([sys.executable, "-c",
+                          "import sys; from humfall_ros.nodes.plan_fall_client import main; "
+                          "sys.exit(main(sys.argv[1:]))", "--ke", "20", "--wait", "1", "--json"],
+                         env=in_ros_domain, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2
+    d = json.loads(out.stdout)
+    assert d["success"] is False and "not available" in d["reason"]

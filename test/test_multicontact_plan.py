@@ -1,0 +1,77 @@
+"""End-to-end planning (paper 2, Algorithm 1) and the independent check of the
+returned plan with pinocchio (no casadi in the checker)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from humfall_ros.multicontact import contacts as C
+from humfall_ros.multicontact.collocation import OptConfig
+from humfall_ros.multicontact.planner import FallPlanner, PlannerConfig
+from humfall_ros.multicontact.resim import dense_check, forward_resim
+
+
+@pytest.fixture(scope="module")
+def planner():
+    return FallPlanner(OptConfig(), PlannerConfig())
+
+
+@pytest.fixture(scope="module")
+def plan10(planner):
+    return planner.plan({"kinetic_energy": 10.0, "direction": 1.0, "time_budget": 60.0})
+
+
+def test_10J_is_stopped_by_inertial_shaping_only(plan10, planner):
+    r = plan10
+    assert r["success"], r["reason"]
+    assert r["contact_sequence"] == ["LF/RF"]          # single node: no contact change
+    assert r["node_ke"][0] == pytest.approx(10.0, rel=1e-6)
+    assert r["final_ke"] < planner.opt.cfg.eps_ke
+    assert r["nlp_count"] == 1 and len(r["segments"]) == 1
+    seg = r["segments"][0]
+    assert seg.kind == "self_motion" and seg.success
+    model = planner.model
+    # the returned trajectory respects the URDF limits at the knots (eq. 6)
+    assert np.all(seg.q[:, 3:] >= model.q_min - 1e-6) and np.all(seg.q[:, 3:] <= model.q_max + 1e-6)
+    assert np.all(np.abs(seg.v[:, 3:]) <= model.v_max + 1e-6)
+    assert np.all(np.abs(seg.u) <= model.u_max + 1e-6)
+    # friction cone and unilateral forces (eq. 5)
+    for k in range(len(seg.time)):
+        for ti, ni in C.friction_groups(seg.rows):
+            fn = sum(seg.lam[k, i] for i in ni)
+            assert all(seg.lam[k, i] >= -1e-6 for i in ni)
+            assert abs(seg.lam[k, ti]) <= planner.opt.cfg.mu * fn + 1e-6
+
+
+def test_returned_plan_passes_independent_resimulation(plan10, planner):
+    model = planner.model
+    env = plan10["env"]
+    seg = plan10["segments"][0]
+    mg = model.total_mass * 9.81
+    dense = dense_check(model, seg, env)
+    # eq. 1 between the collocation points, evaluated with pinocchio's rnea
+    assert dense["dyn_residual_rel_mg"] < 0.03, dense
+    # eq. 3-4 along the splines: contacts stay put within a few mm / cm/s
+    assert dense["contact_pos_max_m"] < 0.005, dense
+    assert dense["contact_vel_max_mps"] < 0.05, dense
+    sim = forward_resim(model, seg, env)
+    # knot-to-knot re-simulation with pinocchio's constrained dynamics, driven by u(t)
+    assert sim["local_q_error_max"] < 0.06, sim
+    assert sim["local_force_error_max_mg"] < 0.2, sim
+    assert sim["local_unilateral_violation_mg"] < 0.05, sim
+    print("re-simulation:", {k: round(v, 4) for k, v in {**dense, **sim}.items()}, "M g =", round(mg, 1))
+
+
+def test_infeasible_push_fails_clearly_within_budget():
+    planner = FallPlanner(OptConfig(nlp_max_wall_time=3.0, max_iter=60), PlannerConfig())
+    budget = 4.0
+    r = planner.plan({"kinetic_energy": 400.0, "direction": 1.0, "time_budget": budget})
+    assert not r["success"]
+    assert "no solution" in r["reason"] and "deepest tree depth reached" in r["reason"]
+    assert r["total_time_s"] < budget + 3.0 + 1.0  # at most one capped NLP past the budget
+    assert r["tree"]["nodes"][0]["mode"] == "LF/RF"
+
+
+def test_invalid_request_answers_without_planning(planner):
+    r = planner.plan({"kinetic_energy": 20.0, "initial_mode": "LF/RF/XH"})
+    assert not r["success"] and r["reason"].startswith("invalid request:") and r["nlp_count"] == 0
