@@ -1,0 +1,78 @@
+"""`humfall up` as users drive it: Ctrl-C stops cleanly, a dying node fails the run loudly."""
+import json
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+
+def children(pid: int) -> dict[int, str]:
+    """Direct children of a process: pid -> command line (from /proc)."""
+    out = {}
+    for d in pathlib.Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            if ppid == pid:
+                out[int(d.name)] = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except (OSError, IndexError, ValueError):
+            continue
+    return out
+
+
+def start_up(env, runs, *extra):
+    cmd = [sys.executable, "-m", "humfall_ros.cli", "up", "--scenario", "standing_quiet", "--runs-dir", str(runs),
+           "--no-plots", *extra]
+    return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def wait_for_clock(runs: pathlib.Path, timeout: float = 60.0) -> None:
+    """Until the recorder's stats show sim time moving (the run is under way)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        for stats in runs.glob("*/recording_stats.json"):
+            try:
+                topics = json.loads(stats.read_text())["topics"]
+            except (ValueError, KeyError):
+                continue
+            if any(t["topic"] == "/clock" and t["count"] > 50 for t in topics):
+                return
+        time.sleep(0.2)
+    raise AssertionError("the run never started")
+
+
+def test_ctrl_c_stops_every_node_and_keeps_the_bag(in_ros_domain, tmp_path):
+    runs = tmp_path / "runs"
+    up = start_up(in_ros_domain, runs)
+    wait_for_clock(runs)
+    kids = children(up.pid)
+    assert len(kids) == 4  # recorder, estimator, locomotion, bridge
+    up.send_signal(signal.SIGINT)
+    out, _ = up.communicate(timeout=60)
+    assert up.returncode == 130, out
+    assert "interrupted" in out
+    for pid in kids:
+        assert not pathlib.Path(f"/proc/{pid}").exists() or \
+            pathlib.Path(f"/proc/{pid}/stat").read_text().split()[2] == "Z"
+    (run,) = runs.iterdir()
+    result = json.loads((run / "result.json").read_text())
+    stats = json.loads((run / "recording_stats.json").read_text())
+    assert stats["finalized"] is True and result["bag"]
+    from mcap_ros2.reader import read_ros2_messages
+
+    n = sum(1 for _ in read_ros2_messages(result["bag"], topics=["/joint_states"]))
+    assert n > 50
+
+
+def test_a_node_that_dies_fails_the_run_with_its_log(in_ros_domain, tmp_path):
+    runs = tmp_path / "runs"
+    up = start_up(in_ros_domain, runs, "--set", "duration=60")
+    wait_for_clock(runs)
+    (loco,) = [pid for pid, cmd in children(up.pid).items() if "humfall_ros.nodes.locomotion" in cmd]
+    os.kill(loco, signal.SIGKILL)
+    out, _ = up.communicate(timeout=60)
+    assert up.returncode == 1
+    assert "node locomotion died" in out and "locomotion.log" in out
