@@ -106,3 +106,21 @@ def test_crb_inertia_is_the_centroidal_inertia(model):
     assert h == pytest.approx(I @ v[3:6], rel=1e-9, abs=1e-9)
     # an upright humanoid is taller than wide: pitch/roll inertia exceed yaw
     assert I[0, 0] > I[2, 2] and I[1, 1] > I[2, 2]
+
+
+def test_support_polygon_matches_scipy_convex_hull():
+    from scipy.spatial import ConvexHull
+
+    rng = np.random.default_rng(3)
+    for n in range(3, 12):
+        pts = rng.uniform(-0.3, 0.3, size=(n, 2))
+        ours = support_polygon(pts)
+        ref = pts[ConvexHull(pts).vertices]
+        assert len(ours) == len(ref)
+        assert {tuple(np.round(p, 12)) for p in ours} == {tuple(np.round(p, 12)) for p in ref}
+        x, y = ours[:, 0], ours[:, 1]
+        assert 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) > 0  # counter-clockwise
+    # degenerate: collinear points give the segment's ends, a single point itself
+    seg = support_polygon([[0, 0], [0.1, 0], [0.2, 0]])
+    assert {tuple(p) for p in seg} == {(0.0, 0.0), (0.2, 0.0)}
+    assert support_polygon([[0.1, 0.2]]).tolist() == [[0.1, 0.2]]

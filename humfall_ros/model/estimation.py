@@ -14,7 +14,7 @@ import numpy as np
 import pinocchio as pin
 
 from humfall_ros.dynamics.pendulum import GRAVITY, capture_point, lean_angle
-from humfall_ros.model.humanoid import (SIDES, HumanoidModel, cop_from_wrenches, point_in_polygon_margin,
+from humfall_ros.model.humanoid import (SIDES, HumanoidModel, cop_from_wrenches, cross3, point_in_polygon_margin,
                                         quat_matrix, support_polygon)
 
 
@@ -54,16 +54,6 @@ class CentroidalEstimator:
         self._data = pin_model.createData()
 
     # --------------------------------------------------------------- helpers
-    def _base_orientation(self, q_joints, imu_quat, imu_gyro) -> tuple[np.ndarray, np.ndarray]:
-        """Waist rotation and angular velocity (world) from the chest IMU and the waist joints."""
-        m, d = self.m.model, self._data
-        q = self.m.configuration([0, 0, 0], [0, 0, 0, 1], q_joints)
-        pin.framesForwardKinematics(m, d, q)
-        R_b_imu = d.oMf[self._imu_id].rotation
-        R_imu = quat_matrix(imu_quat)
-        R_base = R_imu @ R_b_imu.T
-        return R_base, R_imu @ np.asarray(imu_gyro, float)
-
     def update(self, t: float, q_joints, v_joints, imu_quat, imu_gyro, wrenches: dict,
                base_truth: tuple | None = None) -> CentroidalEstimate:
         """One estimate. ``wrenches[side] = (force, torque)`` at the ankle in foot axes.
@@ -79,12 +69,11 @@ class CentroidalEstimator:
             pos, quat, lin, ang = (np.asarray(x, float) for x in base_truth)
             q = self.m.configuration(pos, quat, q_joints)
             v = self.m.velocity(lin, ang, quat, v_joints)
-            pin.forwardKinematics(m, d, q, v)
-            pin.updateFramePlacements(m, d)
-            touching = self._touching_corners(contacts)
         else:
-            q, v, touching = self._odometry(t, q_joints, v_joints, imu_quat, imu_gyro, contacts)
+            q, v = self._odometry(t, q_joints, v_joints, imu_quat, imu_gyro, contacts)
+        # one pass: CCRBA runs the forward kinematics the frames below need
         pin.ccrba(m, d, q, v)
+        pin.updateFramePlacements(m, d)
         com = d.com[0].copy()
         com_vel = d.hg.linear / self.m.total_mass
         ang_mom = d.hg.angular.copy()
@@ -94,8 +83,8 @@ class CentroidalEstimator:
             f, tq = wrenches[s]
             world_wrenches.append((M.translation, M.rotation @ np.asarray(f, float), M.rotation @ np.asarray(tq, float)))
         cop, fz = cop_from_wrenches(world_wrenches)
-        corner_pts = [d.oMf[fid].translation for _, fid in touching]
-        poly = support_polygon(corner_pts) if corner_pts else np.zeros((0, 2))
+        touching = self._touching({n: d.oMf[fid].translation for n, fid in self._candidates(contacts)})
+        poly = support_polygon(list(touching.values())) if touching else np.zeros((0, 2))
         if cop is None:  # airborne or unloaded: fall back to the CoM projection
             cop = np.array([com[0], com[1], 0.0])
         cp = capture_point(com, com_vel)
@@ -106,59 +95,69 @@ class CentroidalEstimator:
         self.last = est
         return est
 
-    def _touching_corners(self, contacts: dict) -> list[tuple[str, int]]:
-        """(frame name, frame id) of sole corners on the ground, after kinematics are updated."""
-        d = self._data
-        cand = [(name, fid) for s in SIDES if contacts[s]
+    def _candidates(self, contacts: dict) -> list[tuple[str, int]]:
+        """(name, frame id) of the sole corners of the feet that carry load."""
+        return [(name, fid) for s in SIDES if contacts[s]
                 for name, fid in zip(self.m.corner_frames[s], self._corner_ids[s])]
-        if not cand:
-            return []
-        zmin = min(d.oMf[fid].translation[2] for _, fid in cand)
-        return [(n, fid) for n, fid in cand if d.oMf[fid].translation[2] <= zmin + self.corner_tolerance]
+
+    def _touching(self, positions: dict) -> dict:
+        """The corners (name -> position) within ``corner_tolerance`` of the lowest one."""
+        if not positions:
+            return {}
+        zmin = min(p[2] for p in positions.values())
+        return {n: p for n, p in positions.items() if p[2] <= zmin + self.corner_tolerance}
 
     def _odometry(self, t, q_joints, v_joints, imu_quat, imu_gyro, contacts):
+        """Base pose and twist from the IMU and the corners in contact (paper-free leg odometry).
+
+        One kinematics pass with the base at the origin gives every frame relative
+        to the waist; the IMU then orients it and the contact corners place it.
+        """
         m, d = self.m.model, self._data
-        R_base, omega = self._base_orientation(q_joints, imu_quat, imu_gyro)
-        quat = pin.Quaternion(R_base).coeffs()  # x, y, z, w
-        # kinematics with the base at the origin: corner positions relative to the base
-        q = self.m.configuration([0, 0, 0], quat, q_joints)
-        v = np.zeros(m.nv)
-        v[3:6] = R_base.T @ omega
-        v[6:] = v_joints
-        pin.forwardKinematics(m, d, q, v)
+        q_rel = self.m.configuration([0, 0, 0], [0, 0, 0, 1], q_joints)
+        v_rel = np.zeros(m.nv)
+        v_rel[6:] = v_joints
+        pin.forwardKinematics(m, d, q_rel, v_rel)
         pin.updateFramePlacements(m, d)
-        touching = self._touching_corners(contacts)
+        R_imu = quat_matrix(imu_quat)
+        R_base = R_imu @ d.oMf[self._imu_id].rotation.T
+        omega = R_imu @ np.asarray(imu_gyro, float)
+        quat = pin.Quaternion(R_base).coeffs()  # x, y, z, w
+        cand = self._candidates(contacts)
+        rel = {n: R_base @ d.oMf[fid].translation for n, fid in cand}  # corner - base, world axes
+        touching = self._touching(rel)
         if touching:
-            rel = {n: d.oMf[fid].translation.copy() for n, fid in touching}
-            z = -min(p[2] for p in rel.values())
-            anchored = [n for n in rel if n in self.anchors]
+            z = -min(p[2] for p in touching.values())
+            anchored = [n for n in touching if n in self.anchors]
             if anchored:
-                self.base_xy = np.mean([self.anchors[n] - rel[n][:2] for n in anchored], axis=0)
+                self.base_xy = np.mean([self.anchors[n] - touching[n][:2] for n in anchored], axis=0)
             # corners that just touched down, or lifted, update the anchor set
-            self.anchors = {n: (self.anchors[n] if n in self.anchors else self.base_xy + rel[n][:2]) for n in rel}
-            # contact corners do not move: v_base = -(omega x r + J_rel qdot), averaged
-            vels = [pin.getFrameVelocity(m, d, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED).linear
-                    for _, fid in touching]
+            self.anchors = {n: (self.anchors[n] if n in self.anchors else self.base_xy + touching[n][:2])
+                            for n in touching}
+            # the contact corners do not move: v_base + omega x r + R v_rel = 0, averaged
+            ids = dict(cand)
+            vels = [cross3(omega, touching[n]) + R_base @ pin.getFrameVelocity(
+                m, d, ids[n], pin.ReferenceFrame.LOCAL_WORLD_ALIGNED).linear for n in touching]
             v_base = -np.mean(vels, axis=0)
             base_pos = np.array([self.base_xy[0], self.base_xy[1], z])
         else:
             # airborne: ballistic prediction from the last estimate
             self.anchors = {}
             if self.last is None:  # no history: assume the lowest sole corner is on the ground
-                zmin = min(d.oMf[fid].translation[2] for s in SIDES for fid in self._corner_ids[s])
+                zmin = min((R_base @ d.oMf[fid].translation)[2] for s in SIDES for fid in self._corner_ids[s])
                 base_pos, v_base = np.array([*self.base_xy, -zmin]), np.zeros(3)
             else:
                 dt = max(t - self.last.time, 0.0)
-                R_prev = quat_matrix(self.last.q[3:7])
-                v_prev = R_prev @ self.last.v[:3]
+                v_prev = quat_matrix(self.last.q[3:7]) @ self.last.v[:3]
                 v_base = v_prev + np.array([0, 0, -GRAVITY]) * dt
                 base_pos = self.last.q[:3] + v_prev * dt
             self.base_xy = base_pos[:2].copy()
-        q[:3] = base_pos
+        q = self.m.configuration(base_pos, quat, q_joints)
+        v = np.empty(m.nv)
         v[:3] = R_base.T @ v_base
-        pin.forwardKinematics(m, d, q, v)
-        pin.updateFramePlacements(m, d)
-        return q, v, touching
+        v[3:6] = R_base.T @ omega
+        v[6:] = v_joints
+        return q, v
 
 
 def estimate_error(est: CentroidalEstimate, truth: CentroidalEstimate) -> dict:

@@ -15,7 +15,6 @@ import math
 
 import numpy as np
 import pinocchio as pin
-from scipy.spatial import ConvexHull, QhullError
 
 from humfall_ros import paths
 from humfall_ros.dynamics.pendulum import GRAVITY
@@ -162,6 +161,11 @@ def quat_matrix(q_xyzw) -> np.ndarray:
 
 
 
+def cross3(a, b) -> np.ndarray:
+    """a x b for 3-vectors; np.cross costs ~60 us a call (axis handling), this ~2 us."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
 def cop_from_wrenches(wrenches, ground_height: float = 0.0, min_normal: float = 1.0):
     """Centre of pressure on the ground plane from world-frame wrenches.
 
@@ -176,7 +180,7 @@ def cop_from_wrenches(wrenches, ground_height: float = 0.0, min_normal: float = 
         o = np.asarray(o, float)
         f = np.asarray(f, float)
         f_tot += f
-        tau_tot += np.asarray(t, float) + np.cross(o, f)
+        tau_tot += np.asarray(t, float) + cross3(o, f)
     fz = f_tot[2]
     if fz < min_normal:
         return None, float(fz)
@@ -189,24 +193,32 @@ def cop_from_wrenches(wrenches, ground_height: float = 0.0, min_normal: float = 
 
 
 def support_polygon(points) -> np.ndarray:
-    """Convex hull (counter-clockwise, 2-D) of ground contact points; scipy's Qhull.
+    """Convex hull (counter-clockwise, 2-D) of ground contact points.
 
-    Degenerate sets (one point, a segment) come back as they are, ordered.
+    Andrew's monotone chain: the support polygon has at most 8 points (the sole
+    corners) and is needed every control tick; scipy's Qhull costs ~1 ms a call
+    here for that, this ~20 us. test_model checks it against scipy.spatial.ConvexHull.
+    Degenerate sets (one point, a segment) come back as their extreme points.
     """
-    pts = np.asarray(points, dtype=float)[:, :2]
-    if len(pts) == 0:
-        return np.zeros((0, 2))
-    if len(pts) >= 3:
-        try:
-            hull = ConvexHull(pts)
-            return pts[hull.vertices]  # 2-D hulls are counter-clockwise
-        except QhullError:
-            pass
-    # collinear or fewer than 3: the extreme points of the segment
-    d = pts - pts.mean(axis=0)
-    axis = np.linalg.svd(d, full_matrices=False)[2][0] if len(pts) > 1 else np.array([1.0, 0.0])
-    s = d @ axis
-    return pts[[int(np.argmin(s)), int(np.argmax(s))]] if len(pts) > 1 else pts
+    pts = sorted({(float(p[0]), float(p[1])) for p in points})
+    if len(pts) <= 2:
+        return np.array(pts, dtype=float).reshape(-1, 2)
+
+    def cross(o, a, b):
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    lower: list = []
+    for p in pts:
+        while len(lower) >= 2 and cross(lower[-2], lower[-1], p) <= 1e-12:
+            lower.pop()
+        lower.append(p)
+    upper: list = []
+    for p in reversed(pts):
+        while len(upper) >= 2 and cross(upper[-2], upper[-1], p) <= 1e-12:
+            upper.pop()
+        upper.append(p)
+    hull = lower[:-1] + upper[:-1]
+    return np.array(hull, dtype=float)
 
 
 def point_in_polygon_margin(point, polygon) -> float:

@@ -11,7 +11,7 @@ from sensor_msgs.msg import JointState
 
 from humfall_ros.control.standing import StandingBalance
 from humfall_ros.model.humanoid import load_model
-from humfall_ros.nodes.common import QOS_RELIABLE, Params, run_node
+from humfall_ros.nodes.common import NO_PUB_EVENTS, NO_SUB_EVENTS, QOS_RELIABLE, Params, run_node
 from humfall_ros.sim.world import STANDING_POSTURE
 
 
@@ -28,8 +28,10 @@ class Locomotion(Node):
         max_off = P.declare("ankle_max_offset", "largest ankle correction (rad)", (0.0, 0.5))
         self.model = load_model()
         self.balance = StandingBalance(self.model, STANDING_POSTURE, kp, kd, max_off)
-        self.pub = self.create_publisher(JointState, "joint_command/locomotion", QOS_RELIABLE)
-        self.create_subscription(CentroidalState, "centroidal_state", self._on_state, QOS_RELIABLE)
+        self.pub = self.create_publisher(JointState, "joint_command/locomotion", QOS_RELIABLE,
+                                         event_callbacks=NO_PUB_EVENTS)
+        self.create_subscription(CentroidalState, "centroidal_state", self._on_state, QOS_RELIABLE,
+                                 event_callbacks=NO_SUB_EVENTS)
         self.last_key = -1
         self.last_cmd: JointState | None = None
 

@@ -35,7 +35,7 @@ from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
 from humfall_ros import scenario as scenario_mod
-from humfall_ros.nodes.common import QOS_CLOCK, QOS_LATCHED, QOS_RELIABLE, Params
+from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_CLOCK, QOS_LATCHED, QOS_RELIABLE, Params
 from humfall_ros.sim.metrics import FallMetrics
 from humfall_ros.sim.world import Box, SimWorld, validate_push
 
@@ -115,11 +115,13 @@ class SimBridge(Node):
         self.joint_index = {n: i for i, n in enumerate(self.model.joint_names)}
         self._apply_scenario()
 
-        self.pub_clock = self.create_publisher(Clock, "/clock", QOS_CLOCK)
-        self.pub_js = self.create_publisher(JointState, "joint_states", QOS_RELIABLE)
-        self.pub_imu = self.create_publisher(Imu, "imu", QOS_RELIABLE)
-        self.pub_wrench = {s: self.create_publisher(WrenchStamped, t, QOS_RELIABLE) for s, t in SIDE_TOPIC.items()}
-        self.pub_odom = self.create_publisher(Odometry, "ground_truth/odom", QOS_RELIABLE)
+        self.pub_clock = self.create_publisher(Clock, "/clock", QOS_CLOCK, event_callbacks=NO_PUB_EVENTS)
+        self.pub_js = self.create_publisher(JointState, "joint_states", QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
+        self.pub_imu = self.create_publisher(Imu, "imu", QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
+        self.pub_wrench = {s: self.create_publisher(WrenchStamped, t, QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
+                           for s, t in SIDE_TOPIC.items()}
+        self.pub_odom = self.create_publisher(Odometry, "ground_truth/odom", QOS_RELIABLE,
+                                              event_callbacks=NO_PUB_EVENTS)
         self.pub_active = self.create_publisher(String, "active_controller", QOS_LATCHED)
         self.pub_rtf = self.create_publisher(Float64, "sim/real_time_factor", QOS_RELIABLE)
         self.pub_obstacles = self.create_publisher(ObstacleArray, "obstacles", QOS_LATCHED)

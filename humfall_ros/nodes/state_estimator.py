@@ -18,7 +18,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from humfall_ros.model.estimation import CentroidalEstimator
 from humfall_ros.model.humanoid import SIDES, load_model
-from humfall_ros.nodes.common import QOS_RELIABLE, Drainer, Params, run_node
+from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, Drainer, Params, run_node
 
 SIDE_TOPIC = {"l": "left_foot/wrench", "r": "right_foot/wrench"}
 
@@ -49,12 +49,15 @@ class StateEstimator(Node):
         self.last_msg: CentroidalState | None = None
         self.bad_messages = 0
         self.needed = {"js", "imu", "l", "r"} | ({"odom"} if self.use_ground_truth else set())
-        self.pub = self.create_publisher(CentroidalState, "centroidal_state", QOS_RELIABLE)
-        self.pub_com = self.create_publisher(PointStamped, "centroidal_state/com", QOS_RELIABLE)
-        self.pub_cop = self.create_publisher(PointStamped, "centroidal_state/cop", QOS_RELIABLE)
-        self.pub_cp = self.create_publisher(PointStamped, "centroidal_state/capture_point", QOS_RELIABLE)
-        self.pub_poly = self.create_publisher(PolygonStamped, "centroidal_state/support_polygon", QOS_RELIABLE)
-        self.pub_markers = self.create_publisher(MarkerArray, "centroidal_state/markers", QOS_RELIABLE)
+        def publisher(msg_type, topic):
+            return self.create_publisher(msg_type, topic, QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
+
+        self.pub = publisher(CentroidalState, "centroidal_state")
+        self.pub_com = publisher(PointStamped, "centroidal_state/com")
+        self.pub_cop = publisher(PointStamped, "centroidal_state/cop")
+        self.pub_cp = publisher(PointStamped, "centroidal_state/capture_point")
+        self.pub_poly = publisher(PolygonStamped, "centroidal_state/support_polygon")
+        self.pub_markers = publisher(MarkerArray, "centroidal_state/markers")
         sensors = Drainer(self)  # one tick's sensor messages arrive together: take them in one go
         sensors.subscribe(JointState, "joint_states", lambda m: self._add("js", m))
         sensors.subscribe(Imu, "imu", lambda m: self._add("imu", m))
