@@ -26,15 +26,14 @@ class StandingBalance:
     def reset(self) -> None:
         self.reference = None
 
-    def command(self, com, com_velocity, support_polygon) -> np.ndarray:
+    def command(self, com, com_velocity, support_polygon=None) -> np.ndarray:
         """Joint position targets (model order)."""
         com = np.asarray(com, float)
         vel = np.asarray(com_velocity, float)
         if self.reference is None:
-            poly = np.asarray(support_polygon, float)
-            # hold the CoM where it settled, bounded to the polygon's middle third
-            self.reference = com[:2].copy() if len(poly) < 3 else \
-                np.clip(com[:2], *np.sort(np.stack([poly.mean(0) - 0.03, poly.mean(0) + 0.03]), axis=0))
+            # hold the CoM where the standing posture put it over the feet: a reference
+            # elsewhere would step the stiff ankles on the first tick and jolt the robot
+            self.reference = com[:2].copy()
         err = com[:2] - self.reference
         # ankle pitch > 0 turns the toes down: the body is pushed back (+x error -> + pitch)
         d_pitch = np.clip(self.kp * err[0] + self.kd * vel[0], -self.max_offset, self.max_offset)
