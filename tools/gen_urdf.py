@@ -15,7 +15,6 @@ Joint sign conventions (all pitch axes are +y, roll +x, yaw +z):
 """
 from __future__ import annotations
 
-import math
 import pathlib
 
 ROBOT = "humfall_humanoid"

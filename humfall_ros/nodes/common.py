@@ -79,6 +79,11 @@ class Params:
         return value
 
 
+def stamp_key(stamp) -> int:
+    """A header stamp as integer nanoseconds: the tick identity in lockstep."""
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
 def finite(*values: float) -> bool:
     return all(math.isfinite(float(v)) for v in values)
 

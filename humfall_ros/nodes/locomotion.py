@@ -11,12 +11,9 @@ from sensor_msgs.msg import JointState
 
 from humfall_ros.control.standing import StandingBalance
 from humfall_ros.model.humanoid import load_model
-from humfall_ros.nodes.common import NO_PUB_EVENTS, NO_SUB_EVENTS, QOS_RELIABLE, Params, run_node
+from humfall_ros.nodes.common import NO_PUB_EVENTS, NO_SUB_EVENTS, QOS_RELIABLE, Params, run_node, stamp_key
 from humfall_ros.sim.world import STANDING_POSTURE
 
-
-def key(stamp) -> int:
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
 class Locomotion(Node):
@@ -36,7 +33,7 @@ class Locomotion(Node):
         self.last_cmd: JointState | None = None
 
     def _on_state(self, msg: CentroidalState) -> None:
-        k = key(msg.header.stamp)
+        k = stamp_key(msg.header.stamp)
         if k <= self.last_key:
             if k == self.last_key and self.last_cmd is not None:
                 self.pub.publish(self.last_cmd)  # retransmitted tick

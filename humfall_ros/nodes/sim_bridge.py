@@ -35,7 +35,7 @@ from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
 from humfall_ros import scenario as scenario_mod
-from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_CLOCK, QOS_LATCHED, QOS_RELIABLE, Params
+from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_CLOCK, QOS_LATCHED, QOS_RELIABLE, Params, stamp_key
 from humfall_ros.sim.metrics import FallMetrics
 from humfall_ros.sim.world import Box, SimWorld, validate_push
 
@@ -49,10 +49,6 @@ def stamp_of(t: float) -> TimeMsg:
 
 def seconds(stamp: TimeMsg) -> float:
     return stamp.sec + stamp.nanosec * 1e-9
-
-
-def stamp_key(stamp: TimeMsg) -> int:
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
 def _names(values) -> list[str]:

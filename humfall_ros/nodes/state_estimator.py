@@ -18,13 +18,10 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from humfall_ros.model.estimation import CentroidalEstimator
 from humfall_ros.model.humanoid import SIDES, load_model
-from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, Drainer, Params, run_node
+from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, Drainer, Params, run_node, stamp_key
 
 SIDE_TOPIC = {"l": "left_foot/wrench", "r": "right_foot/wrench"}
 
-
-def key(stamp) -> int:
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
 def to_point(v) -> Point:
@@ -67,7 +64,7 @@ class StateEstimator(Node):
             sensors.subscribe(Odometry, "ground_truth/odom", lambda m: self._add("odom", m))
 
     def _add(self, kind: str, msg) -> None:
-        k = key(msg.header.stamp)
+        k = stamp_key(msg.header.stamp)
         if k <= self.last_key:
             # a retransmitted tick: answer it again so lockstep can move on
             if k == self.last_key and kind == "js" and self.last_msg is not None:
