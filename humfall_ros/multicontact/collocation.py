@@ -54,8 +54,8 @@ class OptConfig:
     eps_cl: float = 0.025         # m, clearance of non-contact points
     mu: float = 0.35              # friction coefficient
     torque_reg: float = 1e-4      # weight of sum (u/u_max)^2 h (tie breaker)
-    max_iter: int = 200
-    tol: float = 1e-6
+    max_iter: int = 150
+    tol: float = 1e-4
     constr_viol_tol: float = 1e-5
     feasibility_tol: float = 1e-4  # our own check of the returned solution
     root_z_min: float = 0.0
@@ -63,7 +63,11 @@ class OptConfig:
     force_max_mg: float = 3.0       # contact force component cap, in units of M g
     contact_pos_tol: float = 0.002   # m, eq. 3 at the knots (drift bound)
     contact_vel_tol: float = 0.02    # m/s, eq. 4 at the knots
-    nlp_max_wall_time: float = 20.0  # s, cap of one IPOPT run (the tree also checks its budget)
+    nlp_max_wall_time: float = 20.0
+    # Objective of a transition that adds a contact: E_post + beta (E_pre - E_post).
+    # beta = 1: pre-impact energy (the paper, Sec. III-A); beta = 0: the energy
+    # the child node starts with.
+    impact_dissipation_weight: float = 0.2  # s, cap of one IPOPT run (the tree also checks its budget)
 
     @staticmethod
     def from_dict(d: dict) -> "OptConfig":
@@ -108,6 +112,7 @@ class Segment:
     seed_duration: float
     attempts: int
     max_violation: float
+    cpu_time: float = 0.0  # CPU time of this thread (the machine may be shared)
 
     @property
     def final_ke(self) -> float:
@@ -121,7 +126,7 @@ class Segment:
             "u": self.u.tolist(), "lam": self.lam.tolist(),
             "rows": [dataclasses.asdict(r) for r in self.rows], "ke": self.ke.tolist(),
             "success": self.success, "status": self.status, "iterations": self.iterations,
-            "nlp_time": self.nlp_time, "seed_duration": self.seed_duration, "attempts": self.attempts,
+            "nlp_time": self.nlp_time, "cpu_time": self.cpu_time, "seed_duration": self.seed_duration, "attempts": self.attempts,
             "max_violation": self.max_violation,
         }
 
@@ -183,7 +188,13 @@ class SegmentNLP:
         # so that every block is O(1) for IPOPT.
         self.u_scale = np.asarray(model.u_max, float)
         self.f_scale = model.total_mass * 9.81
-        w = ca.SX.sym("w", 1 + N * nk)
+        # An added contact: post-impact velocity and impulse of eq. 10 as extra
+        # variables, so the objective can be the post-impact energy.
+        self.impact_rows = (C.contact_rows(make_mode(set(key.mode) | {key.extremity}), env_shape)
+                            if key.change == "add" else [])
+        self.n_imp = (n + len(self.impact_rows)) if key.change == "add" else 0
+        self.imp_scale = model.total_mass
+        w = ca.SX.sym("w", 1 + N * nk + self.n_imp)
         T = w[0]
         h = T / (N - 1)
         knots = []
@@ -249,6 +260,21 @@ class SegmentNLP:
                 add("clear", k, p[1] if surf == "ground" else p[0])
         qN, vN = knots[-1]["q"], knots[-1]["v"]
         ke = model.f_ke(qN, vN)   # eq. 9
+        self.ke_pre = ke
+        if key.change == "add":
+            oi = 1 + N * nk
+            v_plus = w[oi:oi + n]
+            imp = self.imp_scale * w[oi + n:oi + self.n_imp]
+            imp_fns = [self._row_fn(r) for r in self.impact_rows]
+            Jt = ca.vertcat(*[J(qN) for _, J in imp_fns])
+            # eq. 10: D (v+ - v-) = J^T Lambda, J v+ = 0
+            add("impact", N - 1, (model.f_D(qN) @ (v_plus - vN) - Jt.T @ imp) / self.imp_scale)
+            add("impact_vel", N - 1, Jt @ v_plus)
+            # blend: beta = 1 is the paper's pre-impact energy, beta = 0 the
+            # energy left after the impact; in between, the energy the impact
+            # dissipates is charged at rate beta (a hard landing is not free)
+            ke_post = model.f_ke(qN, v_plus)
+            ke = ke_post + cfg.impact_dissipation_weight * (ke - ke_post)
         reg = 0
         for k in range(N):
             o = 1 + k * nk
@@ -261,7 +287,7 @@ class SegmentNLP:
             "ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
             "ipopt.max_iter": cfg.max_iter, "ipopt.tol": cfg.tol,
             "ipopt.constr_viol_tol": cfg.constr_viol_tol,
-            "ipopt.acceptable_tol": 1e-4, "ipopt.acceptable_iter": 10,
+            "ipopt.acceptable_tol": 1e-3, "ipopt.acceptable_iter": 5,
             "ipopt.mu_strategy": "adaptive",
             "ipopt.linear_solver": "mumps",
             "ipopt.max_wall_time": cfg.nlp_max_wall_time,
@@ -345,6 +371,10 @@ class SegmentNLP:
             if k == 0:
                 lbx[o:o + n] = ubx[o:o + n] = q0
                 lbx[o + n:o + 2 * n] = ubx[o + n:o + 2 * n] = v0
+        if key.change == "add":
+            oi = 1 + N * self.nk
+            for i in C.normal_row_indices(self.impact_rows):
+                lbx[oi + n + i] = 0.0  # surfaces can only push (normal impulses >= 0)
         if key.change == "remove":
             # the released contact carries no force at the end (mode sigma_j dynamics)
             lo = self.knot_slices[-1][0] + 3 * n + m
@@ -413,7 +443,15 @@ class SegmentNLP:
             w[o + 2 * n:o + 3 * n] = a[k]
             w[o + 3 * n:o + 3 * n + m] = u[k] / self.u_scale
             w[o + 3 * n + m:o + self.nk] = lam[k] / self.f_scale
+        if self.n_imp:
+            v_plus, imp = C.impact_map(self.model, q[-1], v[-1], self.impact_rows_for(q[-1]))
+            oi = 1 + len(self.knot_slices) * self.nk
+            w[oi:oi + n] = v_plus
+            w[oi + n:oi + self.n_imp] = imp / self.imp_scale
         return w
+
+    def impact_rows_for(self, q):
+        return self.impact_rows
 
     def unpack(self, w):
         n, m = self.model.n, self.model.m
@@ -581,6 +619,7 @@ class TrajectoryOptimizer:
         target = make_mode(set(mode) | {ext}) if change == "add" else (
             make_mode(set(mode) - {ext}) if change == "remove" else tuple(mode))
         t_start = time.perf_counter()
+        c_start = time.thread_time()
         best = None
         attempts = 0
         for T in cfg.seed_durations():
@@ -605,6 +644,7 @@ class TrajectoryOptimizer:
         if best is None:
             raise TimeoutError("time budget exhausted before the first NLP")
         best.nlp_time = time.perf_counter() - t_start
+        best.cpu_time = time.thread_time() - c_start
         best.attempts = attempts
         return best
 

@@ -166,7 +166,7 @@ class FallPlanner:
 
 def failure(reason: str, elapsed: float = 0.0) -> dict:
     return {"success": False, "reason": reason, "contact_sequence": [], "node_ke": [], "final_ke": float("nan"),
-            "segments": [], "nlp_times_s": [], "total_time_s": elapsed, "nlp_count": 0, "tree_nodes": 0,
+            "segments": [], "nlp_times_s": [], "nlp_cpu_s": [], "total_time_s": elapsed, "nlp_count": 0, "tree_nodes": 0,
             "deepest_depth": 0, "tree": None, "initial_ke": float("nan")}
 
 
@@ -176,6 +176,7 @@ def result_dict(model: PlanarModel, res: SearchResult, vr: ValidRequest) -> dict
         "contact_sequence": res.contact_sequence, "node_ke": res.node_ke,
         "final_ke": res.final_ke, "initial_ke": model.kinetic_energy(vr.q, vr.v),
         "segments": res.segments(), "nlp_times_s": [e["nlp_time"] for e in res.nlp_log],
+        "nlp_cpu_s": [e["cpu_time"] for e in res.nlp_log],
         "total_time_s": res.total_time, "nlp_count": len(res.nlp_log), "tree_nodes": len(res.nodes),
         "deepest_depth": res.deepest_depth, "tree": res.tree_dict(with_trajectories=False),
         "search": res, "env": vr.env, "wall_x": vr.env.wall_x,

@@ -5,7 +5,8 @@ edges hold the transition trajectory from the parent. The frontier is a
 priority queue on kinetic energy. The whole tree is kept and serialisable to
 JSON for inspection and plotting (Fig. 1 style).
 
-Two additions to the paper's algorithm, both documented in docs/multicontact.md:
+Three additions to the paper's algorithm, documented in docs/multicontact.md:
+no edge back to the parent's mode (it undoes the edge that led to the node),
 a wall-clock budget (checked before every NLP; on expiry the search stops with
 the deepest depth reached), and a symmetry cut: the planar model's left and
 right limbs are identical, so when a node's state and mode are left/right
@@ -128,7 +129,7 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         log.append({"kind": kind, "node": node.id, "mode": mode_label(node.mode),
                     "target": mode_label(target) if target is not None else mode_label(node.mode),
                     "success": seg.success, "final_ke": seg.final_ke, "nlp_time": seg.nlp_time,
-                    "iterations": seg.iterations, "attempts": seg.attempts, "status": seg.status})
+                    "cpu_time": seg.cpu_time, "iterations": seg.iterations, "attempts": seg.attempts, "status": seg.status})
 
     while frontier:
         if time.perf_counter() >= deadline:
@@ -157,9 +158,12 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
             continue
         symmetric = symmetry_cut and model.is_symmetric(d.q, d.v) and _mirror_mode(d.mode) == d.mode
         tried: set = set()
+        parent_mode = nodes[d.parent].mode if d.parent is not None else None
         for sigma_j, change, ext in adjacent_modes(d.mode):                   # line 12
             if symmetric and _mirror_mode(sigma_j) in tried:
                 continue
+            if sigma_j == parent_mode:
+                continue  # undoing the edge that led here: that mode was already tried one level up
             tried.add(sigma_j)
             if time.perf_counter() >= deadline:
                 break

@@ -1,0 +1,113 @@
+"""KE sweep of the multi-contact fall planner (paper 2, Sec. IV-B, Fig. 7) plus
+the wall case (Fig. 4). Prints one JSON object.
+
+    python benchmarks/bench_multicontact.py [--kes 10,20,...,80] [--wall 0.8 --wall-ke 40]
+                                            [--budget 90] [--plots DIR] [--resim]
+
+NLP structures are built on first use and then reused (as in the node); the
+build time is reported separately ("build_s") and included in the sweep time.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+from humfall_ros.multicontact.collocation import OptConfig  # noqa: E402
+from humfall_ros.multicontact.planner import FallPlanner, PlannerConfig  # noqa: E402
+
+PAPER = {10: "inertial shaping", 20: "inertial shaping", 30: "protective step", 40: "protective step",
+         50: "protective step", 60: "hand contact", 70: "hand contact", 80: "hand contact"}
+
+
+def strategy(seq: list[str]) -> str:
+    """Name the strategy of a contact sequence like the paper does."""
+    if not seq:
+        return "none"
+    if len(seq) == 1:
+        return "inertial shaping"
+    hands = any("LH" in m or "RH" in m for m in seq[1:])
+    steps = any(("LF" not in m or "RF" not in m) for m in seq[1:])
+    if hands and steps:
+        return "protective step + hand contact"
+    if hands:
+        return "hand contact"
+    if steps:
+        return "protective step"
+    return "other"
+
+
+def run_case(planner: FallPlanner, ke: float, wall: float, budget: float, resim: bool) -> dict:
+    r = planner.plan({"kinetic_energy": ke, "direction": 1.0, "wall_distance": wall, "time_budget": budget})
+    times = r["nlp_times_s"]
+    case = {
+        "ke": ke, "wall_distance": wall, "success": r["success"], "reason": r["reason"],
+        "contact_sequence": r["contact_sequence"], "strategy": strategy(r["contact_sequence"]),
+        "paper_strategy": PAPER.get(int(ke)) if not wall else "hand contact on the wall",
+        "node_ke": [round(x, 3) for x in r["node_ke"]],
+        "final_ke": r["final_ke"], "nlp_count": r["nlp_count"],
+        "nlp_times_s": [round(t, 3) for t in times],
+        "median_nlp_s": statistics.median(times) if times else None,
+        "nlp_cpu_s": [round(t, 3) for t in r["nlp_cpu_s"]],
+        "total_time_s": round(r["total_time_s"], 3), "tree_nodes": r["tree_nodes"],
+        "deepest_depth": r["deepest_depth"],
+    }
+    if resim and r["success"]:
+        from humfall_ros.multicontact.resim import check_segment
+        checks = [check_segment(planner.model, s, r["env"]) for s in r["segments"]]
+        keys = ("dyn_residual_rel_mg", "contact_pos_max_m", "sim_local_q_error_max",
+                "sim_local_force_error_max_mg", "sim_local_unilateral_violation_mg")
+        case["resim_worst"] = {k: round(float(max(c[k] for c in checks)), 4) for k in keys}
+    case["_result"] = r
+    return case
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--kes", default="10,20,30,40,50,60,70,80")
+    ap.add_argument("--wall", type=float, default=0.8, help="wall distance for the wall case (<= 0: skip)")
+    ap.add_argument("--wall-ke", type=float, default=40.0)
+    ap.add_argument("--budget", type=float, default=90.0, help="time budget per case (s)")
+    ap.add_argument("--plots", default="", help="directory for the figures (Fig. 1, 5-7 style)")
+    ap.add_argument("--resim", action="store_true", help="re-simulate every returned segment with pinocchio")
+    args = ap.parse_args(argv)
+    kes = [float(x) for x in args.kes.split(",") if x]
+
+    t0 = time.perf_counter()
+    planner = FallPlanner(OptConfig(), PlannerConfig())
+    cases = [run_case(planner, ke, 0.0, args.budget, args.resim) for ke in kes]
+    sweep_time = time.perf_counter() - t0
+    wall_case = run_case(planner, args.wall_ke, args.wall, args.budget, args.resim) if args.wall > 0 else None
+    all_times = [t for c in cases + ([wall_case] if wall_case else []) for t in c["nlp_times_s"]]
+    out = {
+        "machine_cpus": os.cpu_count(),
+        "sweep": [{k: v for k, v in c.items() if not k.startswith("_")} for c in cases],
+        "wall": {k: v for k, v in wall_case.items() if not k.startswith("_")} if wall_case else None,
+        "sweep_time_s": round(sweep_time, 2),
+        "sweep_all_final_ke_below_eps": all(c["success"] and c["final_ke"] < 0.1 for c in cases),
+        "nlp_count": len(all_times),
+        "median_nlp_s": round(statistics.median(all_times), 3) if all_times else None,
+        "max_nlp_s": round(max(all_times), 3) if all_times else None,
+        "median_nlp_cpu_s": round(statistics.median(
+            [t for c in cases + ([wall_case] if wall_case else []) for t in c["nlp_cpu_s"]]), 3) if all_times else None,
+        "load_average_1min_at_end": round(os.getloadavg()[0], 2),
+        "build_s": round(sum(planner.opt.build_times.values()), 2),
+        "nlp_structures": len(planner.opt.build_times),
+        "goals": {"final_ke_J": 0.1, "median_nlp_s": 2.0, "sweep_time_s": 120.0},
+    }
+    if args.plots:
+        from humfall_ros.multicontact import plots
+        results = [c["_result"] for c in cases]
+        out["plots"] = plots.write_all(planner.model, results, wall_case["_result"] if wall_case else None,
+                                       args.plots)
+    print(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,141 @@
+"""Figures in the style of paper 2: the contact transition tree (Fig. 1, 3, 4),
+stick-figure sequences of a plan (Fig. 5, 6) and kinetic energy over time for
+the sweep (Fig. 7). matplotlib with the Agg backend; no ROS."""
+from __future__ import annotations
+
+import os
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from humfall_ros.multicontact.model import PlanarModel  # noqa: E402
+
+_COLORS = {"root": "#e6c700", "terminal": "#1f5fd6", "connectable": "#2ca02c", "failed": "#d62728"}
+
+
+def _node_color(node: dict, path: list[int]) -> str:
+    if node["id"] == 0:
+        return _COLORS["root"]
+    if node["status"] == "terminal":
+        return _COLORS["terminal"]
+    if node["status"] == "expanded" or node["id"] in path:
+        return _COLORS["connectable"] if node["status"] != "expanded" else _COLORS["failed"]
+    return _COLORS["connectable"]
+
+
+def plot_tree(tree: dict, path: str, title: str = "") -> str:
+    """Contact transition tree: depth left to right, one row per node of a level.
+
+    Yellow root, blue terminal (stabilised), green connectable (reached, not
+    yet expanded), red expanded without a stabilising self-motion; the solution
+    path in orange; labels give the mode and the node's kinetic energy.
+    """
+    nodes = tree["nodes"]
+    sol = tree.get("path") or []
+    by_depth: dict[int, list] = {}
+    for n in nodes:
+        by_depth.setdefault(n["depth"], []).append(n)
+    pos = {}
+    for d, ns in by_depth.items():
+        for i, n in enumerate(ns):
+            pos[n["id"]] = (d, -(i - (len(ns) - 1) / 2.0))
+    fig, ax = plt.subplots(figsize=(2.8 + 2.4 * max(by_depth) if by_depth else 4, 1.2 + 0.9 * max(len(v) for v in by_depth.values())))
+    for n in nodes:
+        if n["parent"] is not None:
+            (x0, y0), (x1, y1) = pos[n["parent"]], pos[n["id"]]
+            on = n["id"] in sol and n["parent"] in sol
+            ax.plot([x0, x1], [y0, y1], color="orange" if on else "0.6", lw=2.5 if on else 1.0, zorder=1)
+    for n in nodes:
+        x, y = pos[n["id"]]
+        ax.scatter([x], [y], s=140, color=_node_color(n, sol), edgecolor="k", zorder=3)
+        sm = n.get("self_motion")
+        extra = f"\nself: {sm['final_ke']:.2g} J" if sm else ""
+        ax.annotate(f"{n['mode']}\n{n['ke']:.1f} J{extra}", (x, y), textcoords="offset points", xytext=(9, 4),
+                    fontsize=7)
+    ax.set_xlabel("tree depth")
+    ax.set_yticks([])
+    ax.set_xlim(-0.3, max(by_depth) + 0.9 if by_depth else 1)
+    ax.set_title(title or ("solution: " + " -> ".join(nodes[i]["mode"] for i in sol) if sol else "no solution"),
+                 fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_sticks(model: PlanarModel, segments: list, path: str, wall_x: float | None = None, title: str = "") -> str:
+    """Stick figures at every knot of each segment of a plan (Fig. 5-6 style)."""
+    k = len(segments)
+    fig, axes = plt.subplots(1, k, figsize=(3.2 * k, 3.6), squeeze=False)
+    for ax, seg in zip(axes[0], segments):
+        N = len(seg.time)
+        for i in range(N):
+            c = plt.cm.viridis(i / max(1, N - 1))
+            for a, b in model.skeleton(seg.q[i]):
+                ax.plot([a[0], b[0]], [a[1], b[1]], color=c, lw=1.4, alpha=0.35 + 0.65 * (i == N - 1))
+        ax.axhline(0.0, color="k", lw=1)
+        if wall_x is not None:
+            ax.axvline(wall_x, color="saddlebrown", lw=3)
+        lbl = seg.kind.replace("_", "-")
+        tgt = f" -> {'/'.join(seg.target_mode)}" if seg.kind == "transition" else ""
+        ax.set_title(f"{lbl} {'/'.join(seg.mode)}{tgt}\n{seg.time[-1]:.2f} s, KE {seg.ke[0]:.1f} -> {seg.ke[-1]:.2g} J",
+                     fontsize=8)
+        ax.set_aspect("equal")
+        ax.set_xlim(-0.6, 1.4)
+        ax.set_ylim(-0.05, 1.5)
+        ax.tick_params(labelsize=7)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def ke_profile(segments: list) -> tuple[np.ndarray, np.ndarray]:
+    """Concatenated (t, KE) over a plan's segments, with the impact drops."""
+    ts, ks = [], []
+    t0 = 0.0
+    for s in segments:
+        ts.append(t0 + s.time)
+        ks.append(s.ke)
+        t0 += float(s.time[-1])
+    return (np.concatenate(ts), np.concatenate(ks)) if ts else (np.zeros(0), np.zeros(0))
+
+
+def plot_ke_sweep(results: list[dict], path: str) -> str:
+    """Kinetic energy over time for every case of the sweep (Fig. 7 style)."""
+    fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    for r in results:
+        t, ke = ke_profile(r.get("segments", []))
+        if len(t):
+            lbl = f"{r['initial_ke']:.0f} J: " + " -> ".join(r["contact_sequence"])
+            ax.plot(t, ke, marker=".", lw=1.2, label=lbl)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("kinetic energy (J)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_all(model: PlanarModel, results: list[dict], wall_result: dict | None, outdir: str) -> list[str]:
+    """All figures for a sweep (and the wall case) into ``outdir``."""
+    os.makedirs(outdir, exist_ok=True)
+    files = [plot_ke_sweep(results, os.path.join(outdir, "multicontact_ke_sweep.png"))]
+    cases = list(results) + ([wall_result] if wall_result else [])
+    for r in cases:
+        tag = f"{r['initial_ke']:.0f}J" + ("_wall" if r.get("wall_x") else "")
+        if r.get("tree"):
+            files.append(plot_tree(r["tree"], os.path.join(outdir, f"multicontact_tree_{tag}.png"),
+                                   title=f"{r['initial_ke']:.0f} J" + (f", wall at {r['wall_x']:.2f} m" if r.get("wall_x") else "")
+                                   + (": " + " -> ".join(r["contact_sequence"]) if r["success"] else ": no solution")))
+        if r.get("segments"):
+            files.append(plot_sticks(model, r["segments"], os.path.join(outdir, f"multicontact_sticks_{tag}.png"),
+                                     wall_x=r.get("wall_x"), title=f"{r['initial_ke']:.0f} J"))
+    return files
