@@ -75,17 +75,23 @@ def main(argv=None) -> int:
     ap.add_argument("--budget", type=float, default=90.0, help="time budget per case (s)")
     ap.add_argument("--plots", default="", help="directory for the figures (Fig. 1, 5-7 style)")
     ap.add_argument("--resim", action="store_true", help="re-simulate every returned segment with pinocchio")
+    ap.add_argument("--opt", default="", help="OptConfig overrides, e.g. max_iter=300,max_seed_attempts=1")
     args = ap.parse_args(argv)
     kes = [float(x) for x in args.kes.split(",") if x]
 
     t0 = time.perf_counter()
-    planner = FallPlanner(OptConfig(), PlannerConfig())
+    overrides = {}
+    for kv in filter(None, args.opt.split(",")):
+        k, v = kv.split("=")
+        overrides[k] = type(getattr(OptConfig(), k))(v)
+    planner = FallPlanner(OptConfig(**overrides), PlannerConfig())
     cases = [run_case(planner, ke, 0.0, args.budget, args.resim) for ke in kes]
     sweep_time = time.perf_counter() - t0
     wall_case = run_case(planner, args.wall_ke, args.wall, args.budget, args.resim) if args.wall > 0 else None
     all_times = [t for c in cases + ([wall_case] if wall_case else []) for t in c["nlp_times_s"]]
     out = {
         "machine_cpus": os.cpu_count(),
+        "opt_config": vars(planner.opt.cfg),
         "sweep": [{k: v for k, v in c.items() if not k.startswith("_")} for c in cases],
         "wall": {k: v for k, v in wall_case.items() if not k.startswith("_")} if wall_case else None,
         "sweep_time_s": round(sweep_time, 2),

@@ -48,13 +48,13 @@ class OptConfig:
     t_min: float = 0.25           # T_min (s)
     t_max: float = 3.5            # T_max (s)
     n_seed_durations: int = 40    # N_tot: seed duration grid over [T_min, T_max]
-    max_seed_attempts: int = 2    # seeds tried per NLP call (evenly spread over the grid)
+    max_seed_attempts: int = 1    # seeds tried per NLP call (evenly spread over the grid)
     seed_first_duration: float = 0.8  # the first seed tried (T is a variable anyway)
     eps_ke: float = 0.1           # J, stationary threshold
     eps_cl: float = 0.025         # m, clearance of non-contact points
     mu: float = 0.35              # friction coefficient
     torque_reg: float = 1e-4      # weight of sum (u/u_max)^2 h (tie breaker)
-    max_iter: int = 150
+    max_iter: int = 300
     tol: float = 1e-4
     constr_viol_tol: float = 1e-5
     feasibility_tol: float = 1e-4  # our own check of the returned solution

@@ -7,9 +7,9 @@ Two checks per segment:
   evaluated with pinocchio's ``rnea`` and frame Jacobians; contact rows are
   checked for position and velocity (eq. 3-4).
 * forward re-simulation: RK4 on pinocchio's constrained dynamics (crba, rnea,
-  frame Jacobians and accelerations, a KKT solve), driven by the plan's u(t),
-  with the contact forces computed by the simulator and compared to the plan's
-  lambda(t) (see ``forward_resim``).
+  frame Jacobians and accelerations), driven by the plan's u(t) and lambda(t),
+  with the force correction the simulator needs to hold the contacts reported
+  (see ``forward_resim``).
 """
 from __future__ import annotations
 
@@ -83,15 +83,24 @@ def dense_check(model: PlanarModel, seg: Segment, env: Environment, samples_per_
             "contact_pos_max_m": worst_pos, "contact_vel_max_mps": worst_vel}
 
 
-def _constrained_accel(model: PlanarModel, pc: PinContacts, pd, rows, q, v, u, anchors, env, baumgarte):
-    """KKT forward dynamics with the segment's contacts held (Baumgarte-stabilised)."""
+def _constrained_accel(model: PlanarModel, pc: PinContacts, pd, rows, q, v, u, lam_plan, anchors, env,
+                       baumgarte):
+    """Forward dynamics with the segment's contacts held (Baumgarte-stabilised).
+
+    The contact force is the plan's lambda plus the smallest correction delta
+    that keeps the contacts in place: J M^-1 J^T delta = (required contact
+    acceleration) - (contact acceleration under the plan's lambda). With several
+    contacts the internal forces are not unique, which is why the plan's force
+    is the starting point; |delta| measures how far the plan's forces are from
+    holding the contacts (0 for a consistent plan).
+    """
     pm = pc.pm
     M = pin.crba(pm, pd, q)
     M = np.triu(M) + np.triu(M, 1).T
     b = pin.rnea(pm, pd, q, v, np.zeros(model.n))
     tau = model.B @ u
     if not rows:
-        return np.linalg.solve(M, tau - b), np.zeros(0)
+        return np.linalg.solve(M, tau - b), np.zeros(0), np.zeros(0)
     val, J = pc.rows(rows, q, env)
     pin.forwardKinematics(pm, pc.pd, q, v, np.zeros(model.n))
     dJv = np.zeros(len(rows))
@@ -100,20 +109,22 @@ def _constrained_accel(model: PlanarModel, pc: PinContacts, pd, rows, q, v, u, a
         d = C.row_direction(r)
         dJv[i] = d[0] * acc[0] + d[1] * acc[2]
     kp, kd = baumgarte
-    rhs_c = -dJv - kd * (J @ v) - kp * (val - anchors)
-    k = len(rows)
-    K = np.block([[M, -J.T], [J, np.zeros((k, k))]])
-    sol = np.linalg.lstsq(K, np.concatenate([tau - b, rhs_c]), rcond=None)[0]
-    return sol[:model.n], sol[model.n:]
+    want = -dJv - kd * (J @ v) - kp * (val - anchors)
+    a_free = np.linalg.solve(M, tau - b + J.T @ lam_plan)
+    MinvJt = np.linalg.solve(M, J.T)
+    A = J @ MinvJt
+    delta = np.linalg.lstsq(A, want - J @ a_free, rcond=1e-9)[0]
+    return a_free + MinvJt @ delta, lam_plan + delta, delta
 
 
 def forward_resim(model: PlanarModel, seg: Segment, env: Environment, dt: float = 1e-3,
                   baumgarte=(400.0, 40.0), mu: float = 0.35) -> dict:
     """Re-simulate the segment with RK4 on pinocchio's constrained dynamics.
 
-    The plan's u(t) drives the robot; the contacts of the segment's mode are
-    held by constraint forces that the simulator computes itself (KKT system),
-    which are then compared with the plan's lambda(t). Done twice:
+    The plan's u(t) and lambda(t) drive the robot; the simulator adds the
+    smallest contact-force correction that keeps the segment's contacts in
+    place (see ``_constrained_accel``) and reports it ("force error"), plus any
+    unilateral / friction violation of the resulting forces. Done twice:
 
     * per interval: restart from the plan at every knot and integrate to the
       next one; the end-state mismatch is the local integration defect of the
@@ -135,9 +146,9 @@ def forward_resim(model: PlanarModel, seg: Segment, env: Environment, dt: float 
     def f(t, x):
         q, v = x[:model.n], x[model.n:]
         _, _, _, u, lam_plan = _interp(seg, t)
-        a, lam = _constrained_accel(model, pc, pd, seg.rows, q, v, u, anchors, env, baumgarte)
+        a, lam, delta = _constrained_accel(model, pc, pd, seg.rows, q, v, u, lam_plan, anchors, env, baumgarte)
         if len(lam):
-            stats["lam_err"] = max(stats["lam_err"], float(np.abs(lam - lam_plan).max()) / mg)
+            stats["lam_err"] = max(stats["lam_err"], float(np.abs(delta).max()) / mg)
             for ti, ni in groups:
                 fn = sum(lam[i] for i in ni)
                 stats["unilateral"] = max(stats["unilateral"], max(0.0, -min(lam[i] for i in ni)) / mg)

@@ -47,6 +47,8 @@ class MulticontactPlanner(Node):
             "force_max_mg": p.declare("force_max_mg", "contact force cap (M g)", (0.1, 100.0)),
             "contact_pos_tol": p.declare("contact_pos_tol", "contact position tolerance at knots (m)", (0.0, 0.05)),
             "contact_vel_tol": p.declare("contact_vel_tol", "contact velocity tolerance at knots (m/s)", (0.0, 1.0)),
+            "impact_dissipation_weight": p.declare(
+                "impact_dissipation_weight", "transition objective E_post + w (E_pre - E_post); 1: paper", (0.0, 1.0)),
             "max_iter": p.declare("max_iter", "IPOPT iteration cap", (1, 100000)),
             "tol": p.declare("tol", "IPOPT tolerance", (1e-12, 1.0)),
             "nlp_max_wall_time": p.declare("nlp_max_wall_time", "wall-time cap of one NLP (s)", (0.1, 3600.0)),
