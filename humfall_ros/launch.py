@@ -49,6 +49,14 @@ class Proc:
     def alive(self) -> bool:
         return self.p.poll() is None
 
+    def cpu_seconds(self) -> float | None:
+        """CPU time (user + system) the node has used so far (Linux /proc), None if gone."""
+        try:
+            fields = pathlib.Path(f"/proc/{self.p.pid}/stat").read_text().rsplit(")", 1)[1].split()
+            return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        except (OSError, IndexError, ValueError):
+            return None
+
     def stop(self, timeout: float = 10.0) -> int:
         for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 3.0), (signal.SIGKILL, 3.0)):
             if not self.alive():
@@ -183,6 +191,7 @@ def up(scenario: str, controller: str | None = None, overrides: list[str] | None
                 break
             time.sleep(0.1)
     finally:
+        cpu = {p.name: p.cpu_seconds() for p in procs}
         # stop in reverse start order: the recorder last, so it records everything
         for p in reversed(procs):
             p.stop()
@@ -196,6 +205,7 @@ def up(scenario: str, controller: str | None = None, overrides: list[str] | None
         status = status or 130
         say("interrupted: stopped every node cleanly")
     result = collect_result(sc, run_dir, wall, record, plots and status == 0)
+    result["node_cpu_s"] = cpu
     (run_dir / "result.json").write_text(json.dumps(result, indent=2))
     say(summary(result))
     return status, result

@@ -8,10 +8,12 @@ line overrides the file's values as usual.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
 import sys
+import time
 from typing import Any, Callable
 
 import yaml
@@ -104,7 +106,11 @@ def run_node(factory: Callable[[], Node], args=None, use_sim_time: bool = True,
             node.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, True)])
         executor = executor_factory() if executor_factory else rclpy.executors.SingleThreadedExecutor()
         executor.add_node(node)
-        executor.spin()
+        hot = getattr(node, "hot_loop", None)
+        if isinstance(hot, HotLoop):
+            hot.spin(executor)
+        else:
+            executor.spin()
     except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
         pass
     finally:
@@ -123,48 +129,70 @@ NO_SUB_EVENTS = SubscriptionEventCallbacks(use_default_callbacks=False)
 NO_PUB_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
 
 
-class Drainer:
-    """Take every queued message of a group of subscriptions in one callback.
+class HotLoop:
+    """Spin a node whose work comes in per-tick messages, without rclpy's executor cost.
 
-    rclpy's executor takes one message per wait and rebuilds its wait set each
-    time (~0.3 ms here); a node that needs several messages per control tick
-    would spend most of the tick there. After the first message arrives, the
-    rest are usually queued already: take them directly with the subscription
-    handle's take_message (what the executor does internally). If that internal
-    API fails, the drainer switches itself off and the executor path remains.
+    rclpy's executor rebuilds a wait set of every entity of the node (parameter
+    services, /clock, QoS events...) on each spin and takes one message per
+    wait: ~0.3 ms a spin here, several times per control tick. A hot loop waits
+    only on the per-tick subscriptions, takes everything queued on them at once
+    (subscription handle's take_message, as the executor does internally) and
+    services the rest of the node (parameters, services, /clock, timers) through
+    the executor every ``service_period`` seconds. If rclpy's internals are not
+    what this expects, it falls back to plain ``executor.spin()``.
     """
 
-    def __init__(self, node: Node):
+    def __init__(self, node: Node, service_period: float = 0.02):
         self.node = node
+        self.service_period = service_period
         self.subs: list[tuple[Any, type, Callable]] = []
-        self.enabled = True
-        self._draining = False
 
     def subscribe(self, msg_type, topic: str, callback: Callable, qos=None):
-        def cb(msg):
-            callback(msg)
-            self.drain()
-        sub = self.node.create_subscription(msg_type, topic, cb, qos or QOS_RELIABLE,
+        sub = self.node.create_subscription(msg_type, topic, callback, qos or QOS_RELIABLE,
                                             event_callbacks=NO_SUB_EVENTS)
         self.subs.append((sub, msg_type, callback))
         return sub
 
-    def drain(self) -> None:
-        if not self.enabled or self._draining:
-            return
-        self._draining = True
+    def take_all(self) -> int:
+        """Run the callbacks of every queued hot message; returns how many."""
+        n = 0
+        progress = True
+        while progress:
+            progress = False
+            for sub, msg_type, callback in self.subs:
+                with sub.handle:
+                    taken = sub.handle.take_message(msg_type, sub.raw)
+                if taken is not None:
+                    progress = True
+                    n += 1
+                    callback(taken[0])
+        return n
+
+    def spin(self, executor) -> None:
         try:
-            progress = True
-            while progress:
-                progress = False
-                for sub, msg_type, callback in self.subs:
-                    with sub.handle:
-                        taken = sub.handle.take_message(msg_type, False)
-                    if taken is not None:
-                        progress = True
-                        callback(taken[0])
-        except Exception as e:  # noqa: BLE001 - rclpy internals changed: fall back to the executor
-            self.enabled = False
-            self.node.get_logger().warning(f"direct take disabled: {e}")
-        finally:
-            self._draining = False
+            from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+        except ImportError:
+            executor.spin()
+            return
+        ctx = self.node.context
+        next_service = 0.0
+        timeout_ns = int(self.service_period * 1e9)
+        try:
+            while ctx.ok():
+                with contextlib.ExitStack() as stack:
+                    for sub, _, _ in self.subs:
+                        stack.enter_context(sub.handle)
+                    stack.enter_context(ctx.handle)
+                    wait_set = _rclpy.WaitSet(len(self.subs), 0, 0, 0, 0, 0, ctx.handle)
+                    wait_set.clear_entities()
+                    for sub, _, _ in self.subs:
+                        wait_set.add_subscription(sub.handle)
+                    wait_set.wait(timeout_ns)
+                self.take_all()
+                now = time.monotonic()
+                if now >= next_service:
+                    executor.spin_once(timeout_sec=0.0)
+                    next_service = now + self.service_period
+        except (AttributeError, TypeError) as e:  # rclpy internals changed
+            self.node.get_logger().warning(f"hot loop disabled ({e}); spinning the executor")
+            executor.spin()

@@ -11,7 +11,7 @@ from sensor_msgs.msg import JointState
 
 from humfall_ros.control.standing import StandingBalance
 from humfall_ros.model.humanoid import load_model
-from humfall_ros.nodes.common import NO_PUB_EVENTS, NO_SUB_EVENTS, QOS_RELIABLE, Params, run_node, stamp_key
+from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, HotLoop, Params, run_node, stamp_key
 from humfall_ros.sim.world import STANDING_POSTURE
 
 
@@ -27,8 +27,8 @@ class Locomotion(Node):
         self.balance = StandingBalance(self.model, STANDING_POSTURE, kp, kd, max_off)
         self.pub = self.create_publisher(JointState, "joint_command/locomotion", QOS_RELIABLE,
                                          event_callbacks=NO_PUB_EVENTS)
-        self.create_subscription(CentroidalState, "centroidal_state", self._on_state, QOS_RELIABLE,
-                                 event_callbacks=NO_SUB_EVENTS)
+        self.hot_loop = HotLoop(self)
+        self.hot_loop.subscribe(CentroidalState, "centroidal_state", self._on_state)
         self.last_key = -1
         self.last_cmd: JointState | None = None
 

@@ -18,7 +18,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from humfall_ros.model.estimation import CentroidalEstimator
 from humfall_ros.model.humanoid import SIDES, load_model
-from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, Drainer, Params, run_node, stamp_key
+from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, HotLoop, Params, run_node, stamp_key
 
 SIDE_TOPIC = {"l": "left_foot/wrench", "r": "right_foot/wrench"}
 
@@ -55,7 +55,8 @@ class StateEstimator(Node):
         self.pub_cp = publisher(PointStamped, "centroidal_state/capture_point")
         self.pub_poly = publisher(PolygonStamped, "centroidal_state/support_polygon")
         self.pub_markers = publisher(MarkerArray, "centroidal_state/markers")
-        sensors = Drainer(self)  # one tick's sensor messages arrive together: take them in one go
+        # one tick's sensor messages arrive together: the hot loop takes them in one go
+        self.hot_loop = sensors = HotLoop(self)
         sensors.subscribe(JointState, "joint_states", lambda m: self._add("js", m))
         sensors.subscribe(Imu, "imu", lambda m: self._add("imu", m))
         for s, topic in SIDE_TOPIC.items():
