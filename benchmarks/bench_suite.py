@@ -42,6 +42,7 @@ def up(seconds: float, rate: float, lockstep: bool, rtf: float, runs: pathlib.Pa
     out = {"sim_s": r["sim_duration_s"], "bridge_wall_s": bridge_wall,
            "real_time_factor": round(r["sim_duration_s"] / bridge_wall, 3) if bridge_wall else None,
            "total_wall_s_incl_startup": r["wall_time_s"]}
+    out["node_cpu_s"] = r.get("node_cpu_s")
     if "recording" in r:
         out["recorded_messages"] = r["recording"].get("message_count")
     if hops is not None:

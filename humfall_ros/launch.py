@@ -205,6 +205,8 @@ def up(scenario: str, controller: str | None = None, overrides: list[str] | None
         status = status or 130
         say("interrupted: stopped every node cleanly")
     result = collect_result(sc, run_dir, wall, record, plots and status == 0)
+    if cpu.get("sim_bridge") is None and "bridge_cpu_s" in result["metrics"]:
+        cpu["sim_bridge"] = result["metrics"]["bridge_cpu_s"]  # it exits on its own at the end
     result["node_cpu_s"] = cpu
     (run_dir / "result.json").write_text(json.dumps(result, indent=2))
     say(summary(result))

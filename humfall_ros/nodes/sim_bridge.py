@@ -414,6 +414,7 @@ class SimBridge(Node):
             self.publish_sensors()  # the final state, so every consumer sees the last tick
         r = self.result()
         r["bridge_wall_time_s"] = round(wall, 3)
+        r["bridge_cpu_s"] = round(time.process_time(), 3)
         if rclpy.ok():
             self.pub_result.publish(String(data=json.dumps(r)))
         if self.metrics_file:
