@@ -61,6 +61,7 @@ class OptConfig:
     root_z_min: float = 0.0
     acc_max: float = 100.0          # rad/s^2 or m/s^2 at the knots
     force_max_mg: float = 3.0       # contact force component cap, in units of M g
+    knee_margin: float = 0.05      # rad, lower knee bound used by the NLP (URDF lower limit is 0)
     contact_pos_tol: float = 0.002   # m, eq. 3 at the knots (drift bound)
     contact_vel_tol: float = 0.02    # m/s, eq. 4 at the knots
     nlp_max_wall_time: float = 20.0
@@ -355,6 +356,12 @@ class SegmentNLP:
             lbx[o + 1] = cfg.root_z_min
             lbx[o + 2], ubx[o + 2] = -math.pi, math.pi
             lbx[o + 3:o + n], ubx[o + 3:o + n] = model.q_min, model.q_max
+            # keep knees off the stretched-leg singularity, where the re-simulation
+            # found that tiny errors need huge contact forces (the URDF's 0 stays
+            # the hard limit; this only tightens it)
+            for jn, qi in model.q_index.items():
+                if jn.endswith("_knee"):
+                    lbx[o + qi] = max(lbx[o + qi], cfg.knee_margin)
             # v
             lbx[o + n + 3:o + 2 * n], ubx[o + n + 3:o + 2 * n] = -model.v_max, model.v_max
             # u (scaled by u_max)

@@ -113,7 +113,8 @@ def _constrained_accel(model: PlanarModel, pc: PinContacts, pd, rows, q, v, u, l
     a_free = np.linalg.solve(M, tau - b + J.T @ lam_plan)
     MinvJt = np.linalg.solve(M, J.T)
     A = J @ MinvJt
-    delta = np.linalg.lstsq(A, want - J @ a_free, rcond=1e-9)[0]
+    # rcond: near-singular rows (a straight leg) would otherwise ask for absurd forces
+    delta = np.linalg.lstsq(A, want - J @ a_free, rcond=1e-6)[0]
     return a_free + MinvJt @ delta, lam_plan + delta, delta
 
 

@@ -49,6 +49,7 @@ class MulticontactPlanner(Node):
             "contact_vel_tol": p.declare("contact_vel_tol", "contact velocity tolerance at knots (m/s)", (0.0, 1.0)),
             "impact_dissipation_weight": p.declare(
                 "impact_dissipation_weight", "transition objective E_post + w (E_pre - E_post); 1: paper", (0.0, 1.0)),
+            "knee_margin": p.declare("knee_margin", "lower knee bound of the NLP (rad)", (0.0, 1.0)),
             "max_iter": p.declare("max_iter", "IPOPT iteration cap", (1, 100000)),
             "tol": p.declare("tol", "IPOPT tolerance", (1e-12, 1.0)),
             "nlp_max_wall_time": p.declare("nlp_max_wall_time", "wall-time cap of one NLP (s)", (0.1, 3600.0)),
