@@ -160,3 +160,14 @@ def test_bridge_refuses_bad_pushes_and_commands_and_keeps_running(in_ros_domain,
         bridge.terminate()
         out, _ = bridge.communicate(timeout=20)
     assert "unknown joints" in out and "1 names but 2 positions" in out and "non-finite" in out
+
+
+def test_estimator_can_run_on_ground_truth_for_comparison(run_up):
+    status, r = run_up("standing_quiet", "duration=1.0", "params.state_estimator.use_ground_truth=true")
+    assert status == 0 and r["fell"] is False
+    from mcap_ros2.reader import read_ros2_messages
+
+    coms = [m.ros_msg.com for m in read_ros2_messages(r["bag"], topics=["/centroidal_state"])]
+    assert len(coms) >= 500  # it answered every tick, with ground_truth/odom in its sync set
+    odom = [m.ros_msg.pose.pose.position for m in read_ros2_messages(r["bag"], topics=["/ground_truth/odom"])]
+    assert abs(odom[-1].z - 0.73) < 0.02 and all(0.7 < c.z < 0.8 for c in coms)
