@@ -171,3 +171,62 @@ def test_estimator_can_run_on_ground_truth_for_comparison(run_up):
     assert len(coms) >= 500  # it answered every tick, with ground_truth/odom in its sync set
     odom = [m.ros_msg.pose.pose.position for m in read_ros2_messages(r["bag"], topics=["/ground_truth/odom"])]
     assert abs(odom[-1].z - 0.73) < 0.02 and all(0.7 < c.z < 0.8 for c in coms)
+
+
+def test_bridge_mux_switches_by_priority_and_reports_it(in_ros_domain):
+    import rclpy
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import String
+
+    from humfall_ros.model.humanoid import load_model
+
+    bridge = subprocess.Popen(python_node_cmd("humfall_ros.nodes.sim_bridge", "--ros-args", "-p", "lockstep:=false",
+                                              "-p", "scenario:=standing_quiet", "-p", "command_timeout:=0.05"),
+                              env=in_ros_domain, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    rclpy.init()
+    node = rclpy.create_node("mux_probe")
+    try:
+        now = {"t": None}
+        active = []
+        node.create_subscription(Clock, "/clock", lambda m: now.update(t=m.clock), 10)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        node.create_subscription(String, "active_controller", lambda m: active.append(m.data), latched)
+        reliable = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE)
+        pubs = {s: node.create_publisher(JointState, f"joint_command/{s}", reliable) for s in ("estop", "locomotion")}
+        joints = load_model().joint_names
+
+        def run_for(seconds, sources, release=()):
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                rclpy.spin_once(node, timeout_sec=0.005)
+                if now["t"] is None:
+                    continue
+                for s in sources:
+                    cmd = JointState(name=joints, position=[0.0] * len(joints))
+                    cmd.header.stamp = now["t"]
+                    pubs[s].publish(cmd)
+                for s in release:
+                    cmd = JointState()
+                    cmd.header.stamp = now["t"]
+                    pubs[s].publish(cmd)
+
+        deadline = time.monotonic() + 30
+        while now["t"] is None and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        run_for(1.0, ["locomotion"])
+        assert active[-1] == "locomotion"
+        run_for(1.0, ["locomotion", "estop"])
+        assert active[-1] == "estop"
+        run_for(1.0, ["locomotion"], release=["estop"])
+        assert active[-1] == "locomotion"
+        run_for(1.0, [])  # nobody commands: stale after the timeout
+        assert active[-1] == "none"
+        assert bridge.poll() is None
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+        bridge.terminate()
+        bridge.wait(timeout=20)

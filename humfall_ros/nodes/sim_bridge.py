@@ -35,6 +35,7 @@ from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
 from humfall_ros import scenario as scenario_mod
+from humfall_ros.control.mux import CommandMux, JointCommand, validate_command
 from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_CLOCK, QOS_LATCHED, QOS_RELIABLE, Params, stamp_key
 from humfall_ros.sim.metrics import FallMetrics
 from humfall_ros.sim.world import Box, SimWorld, validate_push
@@ -54,22 +55,6 @@ def seconds(stamp: TimeMsg) -> float:
 def _names(values) -> list[str]:
     """A string-array parameter; [''] stands for the empty list ROS cannot type."""
     return [v for v in values if v]
-
-
-def check_command(msg: JointState, known: dict[str, int]) -> str | None:
-    """None if a joint command is usable, else why it is refused."""
-    if len(msg.position) != len(msg.name):
-        return f"{len(msg.name)} names but {len(msg.position)} positions"
-    if len(msg.velocity) not in (0, len(msg.name)):
-        return f"{len(msg.name)} names but {len(msg.velocity)} velocities"
-    unknown = [n for n in msg.name if n not in known]
-    if unknown:
-        return f"unknown joints {unknown[:3]}"
-    if len(set(msg.name)) != len(msg.name):
-        return "duplicate joint names"
-    if not all(math.isfinite(x) for x in list(msg.position) + list(msg.velocity)):
-        return "non-finite value"
-    return None
 
 
 class SimBridge(Node):
@@ -125,6 +110,7 @@ class SimBridge(Node):
 
         self.published: dict[str, int] = {}  # per topic, for the recorder's no-loss check
         self.latest: dict[str, JointState | None] = {s: None for s in self.sources}
+        self.mux = CommandMux(self.sources, self.model.joint_names, self.command_timeout)
         self.answered: set[str] = set()
         self.rejected_commands = 0
         # Commands arrive every tick: they get a node of their own with nothing else on it,
@@ -160,13 +146,15 @@ class SimBridge(Node):
 
     # ------------------------------------------------------------ callbacks
     def _on_command(self, source: str, msg: JointState) -> None:
-        reason = check_command(msg, self.joint_index)
+        reason = validate_command(msg.name, msg.position, msg.velocity, self.joint_index)
         if reason:
             self.rejected_commands += 1
             self.get_logger().warning(f"joint_command/{source} refused: {reason}",
                                       throttle_duration_sec=1.0)
             msg = JointState(header=msg.header)  # counts as a release for this tick
         self.latest[source] = msg
+        self.mux.update(source, JointCommand(seconds(msg.header.stamp), list(msg.name), list(msg.position),
+                                             list(msg.velocity)))
         if stamp_key(msg.header.stamp) == self.tick_key:
             self.answered.add(source)
 
@@ -296,27 +284,11 @@ class SimBridge(Node):
         return int(round(self.world.time * 1e9))
 
     def _mux(self) -> None:
-        t = self.world.time
-        chosen = None
-        for s in self.sources:
-            msg = self.latest[s]
-            if msg is None or not msg.name:
-                continue
-            if t - seconds(msg.header.stamp) <= self.command_timeout + 1e-9:
-                chosen = s
-                break
-        self._publish_active(chosen or "none")
-        if chosen is None:
-            return
-        msg = self.latest[chosen]
-        targets = self.world.targets.copy()
-        vels = self.world.target_velocities.copy() if msg.velocity else np.zeros_like(targets)
-        for i, n in enumerate(msg.name):
-            j = self.joint_index[n]
-            targets[j] = msg.position[i]
-            if msg.velocity:
-                vels[j] = msg.velocity[i]
-        self.world.set_joint_targets(targets, vels)
+        w = self.world
+        source, q, v = self.mux.targets(w.time, w.targets, w.target_velocities)
+        self._publish_active(source or "none")
+        if source is not None:
+            w.set_joint_targets(q, v)
 
     def _track_metrics(self) -> None:
         w = self.world
