@@ -38,7 +38,7 @@ from humfall_ros import scenario as scenario_mod
 from humfall_ros.control.mux import CommandMux, JointCommand, validate_command
 from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_CLOCK, QOS_LATCHED, QOS_RELIABLE, Params, stamp_key
 from humfall_ros.sim.metrics import FallMetrics
-from humfall_ros.sim.world import Box, SimWorld, validate_push
+from humfall_ros.sim.world import STANDING_POSTURE, Box, SimWorld, validate_push
 
 SIDE_TOPIC = {"l": "left_foot/wrench", "r": "right_foot/wrench"}
 
@@ -89,7 +89,6 @@ class SimBridge(Node):
         self.scenario = scenario_mod.load(self.scenario_name) if self.scenario_name else scenario_mod.validate({})
         posture = None
         if self.scenario["robot"]["initial_posture"]:
-            from humfall_ros.sim.world import STANDING_POSTURE
             posture = {**STANDING_POSTURE, **self.scenario["robot"]["initial_posture"]}
         self.world = SimWorld(self.physics_rate, self.control_rate, friction=friction, initial_posture=posture)
         self.model = self.world.model
@@ -109,7 +108,6 @@ class SimBridge(Node):
         self.pub_result = self.create_publisher(String, "sim/result", QOS_LATCHED)
 
         self.published: dict[str, int] = {}  # per topic, for the recorder's no-loss check
-        self.latest: dict[str, JointState | None] = {s: None for s in self.sources}
         self.mux = CommandMux(self.sources, self.model.joint_names, self.command_timeout)
         self.answered: set[str] = set()
         self.rejected_commands = 0
@@ -152,7 +150,6 @@ class SimBridge(Node):
             self.get_logger().warning(f"joint_command/{source} refused: {reason}",
                                       throttle_duration_sec=1.0)
             msg = JointState(header=msg.header)  # counts as a release for this tick
-        self.latest[source] = msg
         self.mux.update(source, JointCommand(seconds(msg.header.stamp), list(msg.name), list(msg.position),
                                              list(msg.velocity)))
         if stamp_key(msg.header.stamp) == self.tick_key:
@@ -332,8 +329,7 @@ class SimBridge(Node):
         next_service = wall0
         service_period = 0.02
         while rclpy.ok():
-            self.answered = {s for s in self.lockstep_sources
-                             if self.latest[s] is not None and stamp_key(self.latest[s].header.stamp) == self.tick_key}
+            self.answered = set()  # commands for this tick can only follow its sensors
             self.publish_sensors()
             if self.lockstep:
                 waited_since = last_send = time.monotonic()
