@@ -154,6 +154,13 @@ def test_bridge_refuses_bad_pushes_and_commands_and_keeps_running(in_ros_domain,
                 rclpy.spin_once(node, timeout_sec=0.05)
         assert bridge.poll() is None, "the bridge died on bad input"
         assert push(50.0).success  # still serving
+        from std_srvs.srv import Trigger
+
+        reset = node.create_client(Trigger, "sim/reset")
+        assert reset.wait_for_service(timeout_sec=10.0)
+        fut = reset.call_async(Trigger.Request())
+        rclpy.spin_until_future_complete(node, fut, timeout_sec=10.0)
+        assert fut.done() and fut.result().success
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
