@@ -158,9 +158,21 @@ def test_bridge_refuses_bad_pushes_and_commands_and_keeps_running(in_ros_domain,
 
         reset = node.create_client(Trigger, "sim/reset")
         assert reset.wait_for_service(timeout_sec=10.0)
+        from rosgraph_msgs.msg import Clock
+
+        clock = []
+        node.create_subscription(Clock, "/clock", lambda m: clock.append(m.clock.sec + m.clock.nanosec * 1e-9), 10)
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        before = clock[-1]
         fut = reset.call_async(Trigger.Request())
         rclpy.spin_until_future_complete(node, fut, timeout_sec=10.0)
         assert fut.done() and fut.result().success
+        clock.clear()
+        while not clock:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        assert before > 1.0 and clock[0] < before  # time restarted from zero
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
