@@ -303,16 +303,22 @@ class SimBridge(Node):
         return r
 
     def wait_for_subscribers(self, executor) -> None:
-        """Hold time at zero until the listed nodes listen (so the bag starts at t=0)."""
+        """Hold time at zero until the listed nodes listen to every per-tick topic (so the bag starts at t=0)."""
         deadline = time.monotonic() + self.wait_timeout
-        topic = self.pub_js.topic_name
+        per_tick = [self.pub_clock, self.pub_js, self.pub_imu, *self.pub_wrench.values(), self.pub_odom]
         while rclpy.ok() and self.wait_for_nodes:
-            present = {i.node_name for i in self.get_subscriptions_info_by_topic(topic)}
-            missing = [n for n in self.wait_for_nodes if n not in present]
+            missing = set()
+            for pub in per_tick:
+                subs = self.get_subscriptions_info_by_topic(pub.topic_name)
+                present = {i.node_name for i in subs}
+                missing |= {n for n in self.wait_for_nodes if n not in present}
+                if pub.get_subscription_count() < len(subs):  # discovered but not matched yet
+                    missing.add(f"(matching {pub.topic_name})")
             if not missing:
                 return
             if time.monotonic() > deadline:
-                self.get_logger().warning(f"starting without {missing}: not subscribed after {self.wait_timeout} s")
+                self.get_logger().warning(f"starting without {sorted(missing)}: not subscribed after "
+                                          f"{self.wait_timeout} s")
                 return
             executor.spin_once(timeout_sec=0.05)
 
