@@ -308,12 +308,15 @@ class SimBridge(Node):
         per_tick = [self.pub_clock, self.pub_js, self.pub_imu, *self.pub_wrench.values(), self.pub_odom]
         while rclpy.ok() and self.wait_for_nodes:
             missing = set()
+            # every topic someone publishes now (ours and the controllers'), e.g. for the recorder
+            for topic, _ in self.get_topic_names_and_types():
+                if not self.get_publishers_info_by_topic(topic):
+                    continue
+                present = {i.node_name for i in self.get_subscriptions_info_by_topic(topic)}
+                missing |= {f"{n} on {topic}" for n in self.wait_for_nodes if n not in present}
             for pub in per_tick:
-                subs = self.get_subscriptions_info_by_topic(pub.topic_name)
-                present = {i.node_name for i in subs}
-                missing |= {n for n in self.wait_for_nodes if n not in present}
-                if pub.get_subscription_count() < len(subs):  # discovered but not matched yet
-                    missing.add(f"(matching {pub.topic_name})")
+                if pub.get_subscription_count() < self.count_subscribers(pub.topic_name):
+                    missing.add(f"matching on {pub.topic_name}")  # discovered, data path not up yet
             if not missing:
                 return
             if time.monotonic() > deadline:
