@@ -44,6 +44,7 @@ def test_up_standing_push_falls_onto_the_target_and_records_everything(run_up):
     assert abs(r["fall_direction_deg"]) < 20 and r["avoidance_angle_deg"] < 20
     assert r["sim_duration_s"] == pytest.approx(2.5)
     assert r["plots"] and all(p.endswith(".png") for p in r["plots"])
+    assert any(p.endswith("fall_geometry.png") for p in r["plots"])  # from the recorded sim/result
     # no loss: what the bridge published is what the recorder wrote, per topic
     recorded = {t["topic"]: t["count"] for t in r["recording"]["topics"]}
     published = r["metrics"]["published"]

@@ -7,6 +7,9 @@ From ``centroidal_state`` (humfall_interfaces/msg/CentroidalState):
   ``centroidal_time.png`` lean angle, CoM height and CoM speed over time
 From ``joint_states`` (sensor_msgs/JointState):
   ``joint_positions.png`` every joint position over time
+From ``sim/result`` (std_msgs/String, the bridge's ground-truth metrics, JSON):
+  ``fall_geometry.png``   paper 1 Fig. 5 for the run: initial CoP P, target T, the
+                          CoM where the trunk landed, and the avoidance angle at P
 
 Time axis: the message header stamp (sim time), or the bag's log time when a
 stamp is zero, relative to the first sample. Messages that do not decode are
@@ -15,6 +18,7 @@ canvas, so it needs no display and touches no global pyplot state.
 """
 from __future__ import annotations
 
+import json
 import math
 import os
 import pathlib
@@ -26,6 +30,7 @@ from humfall_ros.recording.reader import DecodeErrors, read_messages, resolve_ba
 CENTROIDAL_TOPIC = "/centroidal_state"
 OBSTACLES_TOPIC = "/obstacles"
 JOINT_STATES_TOPIC = "/joint_states"
+RESULT_TOPIC = "/sim/result"
 POLYGON_SAMPLES = 8          # support polygons drawn along the run
 MAX_POINTS = 5000            # longer series are strided for plotting
 
@@ -48,7 +53,9 @@ def load_series(bag: pathlib.Path) -> dict[str, Any]:
     obstacles: list[Any] = []
     js_t: list[float] = []
     js_pos: dict[str, list[tuple[float, float]]] = {}
-    for raw, msg in read_messages(bag, [CENTROIDAL_TOPIC, OBSTACLES_TOPIC, JOINT_STATES_TOPIC], errors):
+    result: dict[str, Any] | None = None
+    topics = [CENTROIDAL_TOPIC, OBSTACLES_TOPIC, JOINT_STATES_TOPIC, RESULT_TOPIC]
+    for raw, msg in read_messages(bag, topics, errors):
         try:
             if raw.topic == CENTROIDAL_TOPIC:
                 cs["t"].append(_stamp_s(raw, msg))
@@ -60,14 +67,16 @@ def load_series(bag: pathlib.Path) -> dict[str, Any]:
                 cs["lean"].append(msg.lean_angle)
             elif raw.topic == OBSTACLES_TOPIC:
                 obstacles = list(msg.obstacles)
+            elif raw.topic == RESULT_TOPIC:
+                result = json.loads(msg.data)
             else:
                 t = _stamp_s(raw, msg)
                 js_t.append(t)
                 for name, pos in zip(msg.name, msg.position):
                     js_pos.setdefault(name, []).append((t, pos))
-        except (AttributeError, TypeError) as exc:  # a type that does not have the fields we expect
+        except (AttributeError, TypeError, ValueError) as exc:  # not the fields (or JSON) we expect
             errors.add(raw.topic, exc)
-    return {"centroidal": cs, "obstacles": obstacles, "joints": js_pos, "errors": errors}
+    return {"centroidal": cs, "obstacles": obstacles, "joints": js_pos, "result": result, "errors": errors}
 
 
 def _figure(rows: int = 1, size=(8, 6)):
@@ -168,6 +177,53 @@ def plot_joint_positions(joints: dict[str, list[tuple[float, float]]], path: pat
     return _save(fig, path)
 
 
+def plot_fall_geometry(result: dict, obstacles: list[Any], cs: dict[str, list], path: pathlib.Path) -> pathlib.Path:
+    """Paper 1, Fig. 5 for one run: P, T, the landing CoM and the avoidance angle at P."""
+    from matplotlib.patches import Arc, Polygon
+
+    fig, (ax,) = _figure(size=(8, 7))
+    for ob in obstacles:
+        color = "tab:red" if ob.is_target else "tab:gray"
+        ax.add_patch(Polygon(_box_corners(ob), closed=True, alpha=0.3, color=color))
+    if cs["t"]:
+        k = _stride(len(cs["t"]))
+        ax.plot([p[0] for p in cs["com"][::k]], [p[1] for p in cs["com"][::k]], "-", color="tab:blue",
+                linewidth=1.0, label="CoM (ground projection)")
+    p = result["initial_cop"]
+    land = result.get("landing_com")
+    target = next(((ob.pose.position.x, ob.pose.position.y) for ob in obstacles if ob.is_target), None)
+    ax.plot(*p, "ko", label="P: CoP when the push began")
+    headings = []
+    if land is not None:
+        ax.annotate("", xy=land[:2], xytext=p, arrowprops={"arrowstyle": "->", "color": "tab:blue", "lw": 2})
+        ax.plot(land[0], land[1], "s", color="tab:blue", label="CoM when the trunk landed")
+        headings.append(math.degrees(math.atan2(land[1] - p[1], land[0] - p[0])))
+    if target is not None:
+        ax.annotate("", xy=target, xytext=p, arrowprops={"arrowstyle": "->", "color": "tab:red", "lw": 1.5,
+                                                         "linestyle": "--"})
+        ax.plot(*target, "r*", markersize=12, label="T: target")
+        headings.append(math.degrees(math.atan2(target[1] - p[1], target[0] - p[0])))
+    alpha = result.get("avoidance_angle_deg")
+    if len(headings) == 2 and alpha is not None:
+        lo, hi = sorted(headings)
+        if hi - lo > 180:
+            lo, hi = hi, lo + 360
+        ax.add_patch(Arc(p, 0.5, 0.5, theta1=lo, theta2=hi, color="k"))
+        mid = math.radians((lo + hi) / 2)
+        ax.annotate(f"avoidance angle {alpha:.0f} deg", (p[0] + 0.3 * math.cos(mid), p[1] + 0.3 * math.sin(mid)),
+                    fontsize=9)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.autoscale_view()
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    fell = "fell" if result.get("fell") else "did not fall"
+    ax.set_title(f"fall geometry (paper 1, Fig. 5): {fell}, min target distance "
+                 f"{result.get('min_target_distance_m')} m")
+    ax.grid(True, linewidth=0.3)
+    ax.legend(fontsize=8, loc="best")
+    return _save(fig, path)
+
+
 def plot_run(bag_path: str | os.PathLike, out_dir: str | os.PathLike) -> list[pathlib.Path]:
     """Write the plots a bag has data for into ``out_dir``; returns their paths (maybe empty)."""
     bag = resolve_bag(bag_path)
@@ -181,6 +237,9 @@ def plot_run(bag_path: str | os.PathLike, out_dir: str | os.PathLike) -> list[pa
         written.append(plot_centroidal_time(cs, out / "centroidal_time.png"))
     if any(data["joints"].values()):
         written.append(plot_joint_positions(data["joints"], out / "joint_positions.png"))
+    res = data["result"]
+    if res and res.get("fell") and res.get("initial_cop"):
+        written.append(plot_fall_geometry(res, data["obstacles"], cs, out / "fall_geometry.png"))
     return written
 
 
