@@ -76,3 +76,38 @@ def test_a_node_that_dies_fails_the_run_with_its_log(in_ros_domain, tmp_path):
     out, _ = up.communicate(timeout=60)
     assert up.returncode == 1
     assert "node locomotion died" in out and "locomotion.log" in out
+
+
+def test_sim_reset_mid_run_restarts_the_whole_lockstep_suite(in_ros_domain, tmp_path):
+    import rclpy
+    from rosgraph_msgs.msg import Clock
+    from std_srvs.srv import Trigger
+
+    runs = tmp_path / "runs"
+    up = start_up(in_ros_domain, runs, "--set", "duration=2.0")
+    rclpy.init()
+    node = rclpy.create_node("reset_probe")
+    try:
+        now = {"t": 0.0}
+        node.create_subscription(Clock, "/clock", lambda m: now.update(t=m.clock.sec + m.clock.nanosec * 1e-9), 10)
+        reset = node.create_client(Trigger, "sim/reset")
+        deadline = time.monotonic() + 60
+        while now["t"] < 1.0 and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        assert now["t"] >= 1.0, "the run never got to t=1 s"
+        assert reset.wait_for_service(timeout_sec=10)
+        fut = reset.call_async(Trigger.Request())
+        rclpy.spin_until_future_complete(node, fut, timeout_sec=10)
+        assert fut.done() and fut.result().success
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    out, _ = up.communicate(timeout=120)
+    assert up.returncode == 0, out
+    (run,) = runs.iterdir()
+    r = json.loads((run / "result.json").read_text())
+    # the estimator and the controller followed the restarted clock: no tick waited for them
+    assert r["metrics"]["stalled_ticks"] == 0
+    assert r["sim_duration_s"] == 2.0 and r["fell"] is False
+    ticks = r["metrics"]["published"]["/joint_states"]
+    assert ticks >= 1000 + 500  # ~1 s before the reset and the whole 2 s after it

@@ -50,3 +50,11 @@ def test_good_command_passes():
     assert validate_command(["c", "a"], [0.1, 0.2], [], set(JOINTS)) is None
     with pytest.raises(ValueError):
         CommandMux(["a", "a"], JOINTS, 0.05)
+
+
+def test_commands_from_the_future_are_not_live_and_clear_forgets(mux):
+    mux.update("safe_fall", JointCommand(1e9, JOINTS, [1, 1, 1]))  # a stamp from before a reset
+    mux.update("locomotion", JointCommand(0.5, JOINTS, [0, 0, 0]))
+    assert mux.active(0.5) == "locomotion"
+    mux.clear()
+    assert mux.active(0.5) is None

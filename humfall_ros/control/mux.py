@@ -1,7 +1,8 @@
 """Joint command arbitration, like twist_mux: the highest-priority live source wins.
 
-A source is live while its latest command is non-empty and no older than
-``timeout`` (sim seconds). An empty command (no joint names) is a release: the
+A source is live while its latest command is non-empty, no older than
+``timeout`` (sim seconds) and not from the future (a command stamped after the
+current time belongs to a timeline that a reset ended). An empty command (no joint names) is a release: the
 source yields without waiting for the timeout. Commands may name a subset of
 the joints; the others keep their previous targets.
 """
@@ -33,10 +34,15 @@ class CommandMux:
     def update(self, source: str, cmd: JointCommand) -> None:
         self.latest[source] = cmd
 
+    def clear(self) -> None:
+        """Forget every command (the world was reset: they were for the old timeline)."""
+        self.latest = {s: None for s in self.sources}
+
     def active(self, t: float) -> str | None:
         for s in self.sources:
             cmd = self.latest[s]
-            if cmd is not None and cmd.names and t - cmd.stamp <= self.timeout + 1e-9:
+            # live: computed for a tick that has happened, at most `timeout` ago
+            if cmd is not None and cmd.names and -1e-9 <= t - cmd.stamp <= self.timeout + 1e-9:
                 return s
         return None
 

@@ -45,13 +45,18 @@ class CentroidalEstimator:
         self.contact_force = contact_force        # N: a foot with less is in the air
         self.corner_tolerance = corner_tolerance  # m: corners this close to the lowest one touch
         self.edge_margin = edge_margin            # m: CoP this close to the hull boundary is "on the edge"
-        self.anchors: dict[str, np.ndarray] = {}  # corner frame -> anchored world xy
-        self.base_xy = np.asarray(initial_xy, float).copy()
-        self.last: CentroidalEstimate | None = None
+        self.initial_xy = np.asarray(initial_xy, float).copy()
+        self.reset()
         pin_model = model.model
         self._corner_ids = {s: [model.frame_ids[c] for c in model.corner_frames[s]] for s in SIDES}
         self._imu_id = model.frame_ids[model.imu_frame]
         self._data = pin_model.createData()
+
+    def reset(self) -> None:
+        """Forget the odometry (a new run: the robot stands at ``initial_xy`` again)."""
+        self.anchors: dict[str, np.ndarray] = {}  # corner frame -> anchored world xy
+        self.base_xy = self.initial_xy.copy()
+        self.last: CentroidalEstimate | None = None
 
     # --------------------------------------------------------------- helpers
     def update(self, t: float, q_joints, v_joints, imu_quat, imu_gyro, wrenches: dict,

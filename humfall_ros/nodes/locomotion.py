@@ -34,10 +34,13 @@ class Locomotion(Node):
 
     def _on_state(self, msg: CentroidalState) -> None:
         k = stamp_key(msg.header.stamp)
-        if k <= self.last_key:
-            if k == self.last_key and self.last_cmd is not None:
+        if k == self.last_key:
+            if self.last_cmd is not None:
                 self.pub.publish(self.last_cmd)  # retransmitted tick
             return
+        if k < self.last_key:  # time went back (sim/reset): hold the new stance
+            self.get_logger().info(f"sim time went back to {k * 1e-9:.3f} s: balance reset")
+            self.balance.reset()
         self.last_key = k
         try:
             q = self.balance.command([msg.com.x, msg.com.y, msg.com.z],

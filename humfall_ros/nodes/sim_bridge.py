@@ -194,6 +194,8 @@ class SimBridge(Node):
 
     def _on_reset(self, req, resp):
         self.world.reset()
+        self.mux.clear()
+        self.answered = set()
         self._apply_scenario()
         self._publish_obstacles()
         resp.success, resp.message = True, "world reset"

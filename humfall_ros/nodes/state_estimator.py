@@ -66,11 +66,17 @@ class StateEstimator(Node):
 
     def _add(self, kind: str, msg) -> None:
         k = stamp_key(msg.header.stamp)
-        if k <= self.last_key:
+        if k == self.last_key:
             # a retransmitted tick: answer it again so lockstep can move on
-            if k == self.last_key and kind == "js" and self.last_msg is not None:
+            if kind == "js" and self.last_msg is not None:
                 self.pub.publish(self.last_msg)
             return
+        if k < self.last_key:
+            # time went back (sim/reset): what we knew belongs to the old run
+            self.get_logger().info(f"sim time went back to {k * 1e-9:.3f} s: estimator reset")
+            self.estimator.reset()
+            self.pending.clear()
+            self.last_key, self.last_msg = -1, None
         slot = self.pending.setdefault(k, {})
         slot[kind] = msg
         if self.needed <= slot.keys():
