@@ -123,7 +123,44 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[tuple[str,
     unknown = set(extra) - {n for n, _ in nodes}
     if unknown:
         raise RunError(f"params for nodes that are not in this run: {sorted(unknown)}")
+    for n, p in nodes:
+        check_node_params(n, extra.get(n, {}), owned=set(p))
     return [(n, {**p, **extra.get(n, {})}) for n, p in nodes]
+
+
+def check_node_params(node: str, params: dict, owned: set[str]) -> None:
+    """Refuse parameters a node does not have, of the wrong type, or that the launcher sets.
+
+    rclpy silently ignores overrides of undeclared parameters and kills the node
+    on a wrong type after the whole suite has started; checking against the
+    node's config file (where every parameter has its default) catches both first.
+    """
+    from humfall_ros.nodes.common import load_node_defaults
+
+    defaults = load_node_defaults(node)
+    for key, value in params.items():
+        where = f"params.{node}.{key}"
+        if key in owned:
+            raise RunError(f"{where} is set by the launcher from the scenario (use the scenario's own keys)")
+        if key not in defaults:
+            raise RunError(f"{where}: {node} has no parameter {key!r} (known: {', '.join(sorted(defaults))})")
+        if not _same_param_type(defaults[key], value):
+            raise RunError(f"{where}: expected {type(defaults[key]).__name__} like {defaults[key]!r}, got {value!r}")
+
+
+def _same_param_type(default, value) -> bool:
+    def kind(v):
+        if isinstance(v, bool):
+            return "bool"
+        if isinstance(v, (int, float)):
+            return "number"
+        if isinstance(v, str):
+            return "string"
+        if isinstance(v, list):
+            return "list of " + (kind(v[0]) if v else "?")
+        return type(v).__name__
+    a, b = kind(default), kind(value)
+    return a == b or (a.startswith("list") and b == "list of ?")
 
 
 def child_env(run_dir: pathlib.Path) -> dict:
@@ -151,6 +188,7 @@ def up(scenario: str, controller: str | None = None, overrides: list[str] | None
     sc = scenario_mod.load(scenario, overrides)
     if controller:
         sc = scenario_mod.apply_override(sc, f"controller={controller}")
+    plan_nodes(sc, pathlib.Path(runs_dir), record)  # refuse bad node parameters before any folder exists
     run_dir = make_run_dir(pathlib.Path(runs_dir), sc["name"])
     (run_dir / "scenario.yaml").write_text(scenario_mod.dump(sc))
     log_dir = run_dir / "logs"

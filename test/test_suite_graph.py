@@ -107,10 +107,14 @@ def test_scenario_errors_are_refused_before_anything_starts(in_ros_domain, tmp_p
     p = subprocess.run(cmd + ["--scenario", "small_push", "--set", "push.0.strength=3"], env=env,
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 2 and "no such key push.0.strength" in p.stderr
-    p = subprocess.run(cmd + ["--scenario", "small_push", "--set", "params.nobody.x=1"], env=env,
-                       capture_output=True, text=True, timeout=60)
-    assert p.returncode == 2 and "not in this run" in p.stderr
-    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").glob("*/metrics.json"))
+    for override, why in (("params.nobody.x=1", "not in this run"),
+                          ("params.locomotion.ankle_kpp=0.5", "locomotion has no parameter 'ankle_kpp'"),
+                          ("params.locomotion.ankle_kp=abc", "expected float"),
+                          ("params.sim_bridge.end_time=0", "set by the launcher")):
+        p = subprocess.run(cmd + ["--scenario", "small_push", "--set", override], env=env,
+                           capture_output=True, text=True, timeout=60)
+        assert p.returncode == 2 and why in p.stderr, (override, p.stderr)
+    assert not (tmp_path / "runs").exists()  # refused before any run folder or process
 
 
 def test_bridge_refuses_bad_pushes_and_commands_and_keeps_running(in_ros_domain, tmp_path):
