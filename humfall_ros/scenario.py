@@ -70,6 +70,9 @@ SCHEMA = {
 }
 
 CONTROLLERS = ("none", "stepping", "stepping_inertia")
+# the bridge's parameter ranges (config/sim_bridge.yaml descriptors)
+SIM_RANGES = {"physics_rate": (100.0, 10000.0), "control_rate": (10.0, 2000.0),
+              "real_time_factor": (0.0, 100.0), "friction": (0.05, 3.0)}
 
 
 def _type_name(t) -> str:
@@ -105,6 +108,11 @@ def _check(value, typ, path: str):
             raise ScenarioError(f"{path}: expected a mapping, got {type(value).__name__}")
         return {str(k): _check(v, typ[1], f"{path}.{k}") for k, v in value.items()}
     if typ is NUM:
+        if isinstance(value, str):
+            try:  # YAML 1.1 reads 1e7 (no dot) as a string
+                value = float(value)
+            except ValueError:
+                pass
         if isinstance(value, bool) or not isinstance(value, NUM):
             raise ScenarioError(f"{path}: expected a number, got {value!r}")
         if not math.isfinite(float(value)):
@@ -144,12 +152,31 @@ def validate(data: dict) -> dict:
     if sim["physics_rate"] <= 0 or sim["control_rate"] <= 0 or \
             abs(sim["physics_rate"] / sim["control_rate"] - round(sim["physics_rate"] / sim["control_rate"])) > 1e-9:
         raise ScenarioError("sim: physics_rate must be a positive integer multiple of control_rate")
+    for key, (lo, hi) in SIM_RANGES.items():
+        if not lo <= sim[key] <= hi:
+            raise ScenarioError(f"sim.{key}: {sim[key]} is outside [{lo}, {hi}]")
+    # robot facts come from the URDF: links that can be pushed, joints of the posture
+    from humfall_ros.model.humanoid import load_model
+    from humfall_ros.sim.world import validate_push
+
+    model = load_model()
     for i, p in enumerate(sc["push"]):
-        if p["duration"] <= 0:
-            raise ScenarioError(f"push.{i}.duration must be > 0")
+        reason = validate_push(p["force"], p["point"], p["duration"])
+        if reason:
+            raise ScenarioError(f"push.{i}: {reason}")
+        if p["link"] not in model.link_names:
+            raise ScenarioError(f"push.{i}.link: no link {p['link']!r} (links: {', '.join(model.link_names)})")
+        if p["time"] < 0:
+            raise ScenarioError(f"push.{i}.time must be >= 0")
+    unknown = set(sc["robot"]["initial_posture"]) - set(model.joint_names)
+    if unknown:
+        raise ScenarioError(f"robot.initial_posture: unknown joints {sorted(unknown)}")
     names = [o["name"] for o in sc["obstacles"]]
     if len(set(names)) != len(names):
         raise ScenarioError("obstacles: names must be unique")
+    for i, o in enumerate(sc["obstacles"]):
+        if min(o["size"]) <= 0 or max(o["size"]) > 50:
+            raise ScenarioError(f"obstacles.{i}.size: each extent must be in (0, 50] m")
     return sc
 
 

@@ -35,6 +35,13 @@ def test_overrides_apply_and_revalidate():
     ("duration=.nan", "non-finite"),
     ("controller=flying", "is not one of"),
     ("noequals", "expected dotted.key=value"),
+    ("push.0.force=[6000, 0, 0]", "exceeds"),
+    ("push.0.link=tail", "no link 'tail'"),
+    ("push.0.duration=0", "duration"),
+    ("robot.initial_posture.warp=0.3", "unknown joints"),
+    ("sim.real_time_factor=-3", "outside"),
+    ("sim.friction=-1", "outside"),
+    ("sim.physics_rate=1e7", "outside"),
 ])
 def test_bad_overrides_are_refused(override, message):
     with pytest.raises(scenario.ScenarioError, match=message):
@@ -52,3 +59,14 @@ def test_bad_files_are_refused(tmp_path):
     with pytest.raises(scenario.ScenarioError, match="no scenario"):
         scenario.load("does_not_exist")
     assert paths.scenario_path("standing_push").is_file()
+
+
+def test_obstacle_sizes_must_be_positive(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("obstacles:\n  - name: a\n    size: [-1, 0, 0]\n")
+    with pytest.raises(scenario.ScenarioError, match="obstacles.0.size"):
+        scenario.load(str(bad))
+
+
+def test_numbers_in_exponent_form_are_numbers():
+    assert scenario.load("standing_push", ["sim.physics_rate=2e3"])["sim"]["physics_rate"] == 2000.0

@@ -47,6 +47,7 @@ class HumanoidModel:
             lower=np.array(m.lowerPositionLimit[7:]), upper=np.array(m.upperPositionLimit[7:]),
             velocity=np.array(m.velocityLimit[6:]), effort=np.array(m.effortLimit[6:]))
         self.frame_ids = {f.name: i for i, f in enumerate(m.frames)}
+        self.link_names = [f.name for f in m.frames if f.type == pin.FrameType.BODY]
         self.sole_frame = {s: f"{s}_sole" for s in SIDES}
         self.foot_link = {s: f"{s}_foot" for s in SIDES}
         self.hand_frame = {s: f"{s}_hand" for s in SIDES}

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 import signal
+import sys
 import time
 
 import numpy as np
@@ -410,7 +411,11 @@ def main(args=None) -> int:
     node = None
     signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
     try:
-        node = SimBridge()
+        try:
+            node = SimBridge()
+        except (scenario_mod.ScenarioError, ValueError) as e:  # a configuration error: say it, no traceback
+            print(f"sim_bridge: {e}", file=sys.stderr)
+            return 2
         executor = rclpy.executors.SingleThreadedExecutor()
         executor.add_node(node)
         command_executor = rclpy.executors.SingleThreadedExecutor()
