@@ -43,6 +43,9 @@ def up(seconds: float, rate: float, lockstep: bool, rtf: float, runs: pathlib.Pa
            "real_time_factor": round(r["sim_duration_s"] / bridge_wall, 3) if bridge_wall else None,
            "total_wall_s_incl_startup": r["wall_time_s"]}
     out["node_cpu_s"] = r.get("node_cpu_s")
+    # free-run: ticks where the controller's command was late (the robot held its last targets)
+    out["uncontrolled_ticks"] = r["metrics"].get("uncontrolled_ticks")
+    out["ticks"] = r["metrics"].get("ticks")
     if "recording" in r:
         out["recorded_messages"] = r["recording"].get("message_count")
     if hops is not None:

@@ -231,14 +231,17 @@ def up(scenario: str, controller: str | None = None, overrides: list[str] | None
     finally:
         cpu = {p.name: p.cpu_seconds() for p in procs}
         # stop in reverse start order: the recorder last, so it records everything
-        for p in reversed(procs):
-            p.stop()
+        exits = {p.name: p.stop() for p in reversed(procs)}
         signal.signal(signal.SIGINT, old)
     wall = time.monotonic() - t0
     if failure is not None:
         status = 1
         say(f"\nnode {failure.name} died (exit {failure.p.returncode}); last lines of {failure.log_path}:")
         say(failure.tail())
+    unclean = {n: c for n, c in exits.items() if c != 0 and (failure is None or n != failure.name)}
+    if unclean and failure is None:
+        status = 1
+        say(f"\nnodes did not shut down cleanly: {unclean} (negative: killed by that signal); logs in {log_dir}")
     if interrupted:
         status = status or 130
         say("interrupted: stopped every node cleanly")
@@ -246,6 +249,12 @@ def up(scenario: str, controller: str | None = None, overrides: list[str] | None
     if cpu.get("sim_bridge") is None and "bridge_cpu_s" in result["metrics"]:
         cpu["sim_bridge"] = result["metrics"]["bridge_cpu_s"]  # it exits on its own at the end
     result["node_cpu_s"] = cpu
+    result["node_exit_codes"] = exits
+    if record:
+        result["bag_finalized"] = bool(result.get("recording", {}).get("finalized"))
+        if not result["bag_finalized"]:
+            status = status or 1
+            say(f"the bag was not closed cleanly; `humfall bag recover {result['bag']}` makes a finalized copy")
     (run_dir / "result.json").write_text(json.dumps(result, indent=2))
     say(summary(result))
     return status, result

@@ -124,3 +124,20 @@ def test_support_polygon_matches_scipy_convex_hull():
     seg = support_polygon([[0, 0], [0.1, 0], [0.2, 0]])
     assert {tuple(p) for p in seg} == {(0.0, 0.0), (0.2, 0.0)}
     assert support_polygon([[0.1, 0.2]]).tolist() == [[0.1, 0.2]]
+
+
+def test_cop_from_wrenches_with_shear_and_ankle_torques():
+    # point forces with shear, each measured as a wrench at an ankle 0.1 m above the ground:
+    # the CoP must be the normal-force-weighted mean of the points of application
+    rng = np.random.default_rng(7)
+    wrenches, points, normals = [], [], []
+    for _ in range(3):
+        p = np.array([*rng.uniform(-0.2, 0.2, 2), 0.0])
+        f = np.array([*rng.uniform(-50, 50, 2), rng.uniform(100, 300)])
+        ankle = p + np.array([*rng.uniform(-0.05, 0.05, 2), 0.1])
+        wrenches.append((ankle, f, np.cross(p - ankle, f)))
+        points.append(p)
+        normals.append(f[2])
+    cop, fz = cop_from_wrenches(wrenches)
+    assert fz == pytest.approx(sum(normals))
+    assert cop[:2] == pytest.approx(np.average(points, axis=0, weights=normals)[:2], abs=1e-12)

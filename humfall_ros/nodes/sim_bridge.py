@@ -112,6 +112,7 @@ class SimBridge(Node):
         self.mux = CommandMux(self.sources, self.model.joint_names, self.command_timeout)
         self.answered: set[str] = set()
         self.rejected_commands = 0
+        self.uncontrolled_ticks = 0
         # Commands arrive every tick: they get a node of their own with nothing else on it,
         # so the hot loop waits on 3 subscriptions instead of every service, parameter
         # service and QoS event of the bridge (rclpy builds the wait set each spin).
@@ -210,6 +211,9 @@ class SimBridge(Node):
                 resp.success, resp.message = False, f"obstacle {i} ({o.name!r}): sizes must be finite, in (0, 50] m"
                 return resp
             q = o.pose.orientation
+            if not all(math.isfinite(c) for c in (q.x, q.y, q.z, q.w)):
+                resp.success, resp.message = False, f"obstacle {i} ({o.name!r}): orientation must be finite"
+                return resp
             yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z)) if q.w or q.z else 0.0
             boxes.append(Box(o.name or f"box{i}", tuple(vals[:3]), tuple(vals[3:]), yaw, o.is_target))
         if len({b.name for b in boxes}) != len(boxes):
@@ -289,6 +293,8 @@ class SimBridge(Node):
         self._publish_active(source or "none")
         if source is not None:
             w.set_joint_targets(q, v)
+        else:
+            self.uncontrolled_ticks += 1  # e.g. free-run with controllers that cannot keep up
 
     def _track_metrics(self) -> None:
         w = self.world
@@ -302,7 +308,8 @@ class SimBridge(Node):
     def result(self) -> dict:
         r = self.metrics.result()
         r.update(sim_duration_s=round(self.world.time, 6), rejected_commands=self.rejected_commands,
-                 stalled_ticks=self.stalled_ticks, published=dict(self.published))
+                 stalled_ticks=self.stalled_ticks, uncontrolled_ticks=self.uncontrolled_ticks,
+                 ticks=int(round(self.world.time * self.control_rate)), published=dict(self.published))
         return r
 
     def wait_for_subscribers(self, executor) -> None:
@@ -401,6 +408,9 @@ class SimBridge(Node):
             with open(self.metrics_file, "w") as f:
                 json.dump(r, f, indent=2)
         self.get_logger().info(f"run ended at t={self.world.time:.3f} s: fell={r['fell']}")
+        if self.uncontrolled_ticks and self.sources:
+            self.get_logger().warning(f"{self.uncontrolled_ticks} of {r['ticks']} ticks had no live joint command "
+                                      f"(controllers late or absent); the robot held its last targets")
 
     def close(self) -> None:
         self.world.close()

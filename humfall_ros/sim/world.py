@@ -120,6 +120,7 @@ class SimWorld:
         self.step_count = 0
         self.pushes = []
         self._prev_imu_velocity = None
+        self._imu_reading = None
         self._ground_contacts = None
         self.set_obstacles(self.obstacles if obstacles is None else obstacles)
 
@@ -222,7 +223,13 @@ class SimWorld:
         return (np.array([s[0] for s in st]), np.array([s[1] for s in st]), np.array([s[3] for s in st]))
 
     def imu(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(orientation xyzw, angular velocity in IMU frame, proper acceleration in IMU frame)."""
+        """(orientation xyzw, angular velocity in IMU frame, proper acceleration in IMU frame).
+
+        Computed once per control tick (the acceleration is a finite difference over
+        the tick), so asking again, e.g. to retransmit a tick, gives the same reading.
+        """
+        if self._imu_reading is not None and self._imu_reading[0] == self.step_count:
+            return self._imu_reading[1]
         s = pb.getLinkState(self.robot, self.imu_link, computeLinkVelocity=1, physicsClientId=self.client)
         orn = np.array(s[5])
         R = quat_matrix(orn)
@@ -232,7 +239,9 @@ class SimWorld:
         acc = np.zeros(3) if self._prev_imu_velocity is None else (v - self._prev_imu_velocity) / ctrl_dt
         self._prev_imu_velocity = v
         proper = acc + np.array([0, 0, GRAVITY])
-        return orn, R.T @ w, R.T @ proper
+        reading = (orn, R.T @ w, R.T @ proper)
+        self._imu_reading = (self.step_count, reading)
+        return reading
 
     def foot_wrench(self, side: str) -> tuple[np.ndarray, np.ndarray]:
         """Ground reaction on a foot as (force, torque) at the ankle frame, foot-frame axes.
