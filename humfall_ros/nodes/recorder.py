@@ -21,8 +21,10 @@ QoS
     decided from real publishers.
 
 Times (decision; also stored in the bag's ``humfall_recorder`` metadata record)
-    ``log_time`` is the receive time on the recorder's ROS clock. With
-    ``clock: sim`` (default) that is sim time from ``/clock``: a bag's time axis
+    ``log_time`` is the receive time on the recorder's clock. With
+    ``clock: sim`` (default) that is the sim time of the last ``/clock`` message
+    the recorder itself took (within a few ticks of the message's own stamp; the
+    node clock is only updated between drains and strayed by tens of ms): a bag's time axis
     is then the simulation's, the same as the message header stamps, and rates in
     ``humfall bag info`` are per simulated second whether the run was lockstep or
     free-run. Messages received before the first ``/clock`` message get log time 0,
@@ -48,6 +50,7 @@ import datetime
 import importlib
 import pathlib
 import re
+import struct
 import time
 from typing import Any
 
@@ -133,6 +136,8 @@ class Recorder(Node):
             "scenario": self.scenario, "started": datetime.datetime.now().isoformat(timespec="seconds"),
         })
         self._subs: dict[str, Any] = {}
+        self._clock_cid: int | None = None      # channel of /clock, whose messages set the log time
+        self._sim_now_ns: int | None = None
         self._failed: dict[str, str] = {}       # topic -> reason (retried never; see _discover)
         self._warned_types: set[str] = set()
         self._last_error_log = 0.0
@@ -182,6 +187,9 @@ class Recorder(Node):
             return
         self.writer.channels[cid].qos = qos_dict(qos)
 
+        if topic == "/clock":
+            self._clock_cid = cid
+
         def on_message(data: bytes, info: dict, cid: int = cid, topic: str = topic) -> None:
             self._record(cid, data, info)
             self._drain(topic, cid)
@@ -205,7 +213,13 @@ class Recorder(Node):
             return
         try:
             if self.clock_mode == "sim":
-                log_time = self.get_clock().now().nanoseconds
+                if cid == self._clock_cid and len(data) >= 12:
+                    # rosgraph_msgs/Clock in CDR: 4-byte encapsulation, int32 sec, uint32 nanosec
+                    sec, nanosec = struct.unpack_from("<iI" if data[1] == 1 else ">iI", data, 4)
+                    self._sim_now_ns = sec * 1_000_000_000 + nanosec
+                # the last /clock this recorder took, not the node clock: that one is only
+                # updated between drains and could run ahead of or behind the messages
+                log_time = self._sim_now_ns if self._sim_now_ns is not None else self.get_clock().now().nanoseconds
             else:
                 log_time = int(info.get("received_timestamp") or time.time_ns())
             publish_time = int(info.get("source_timestamp") or log_time)
