@@ -20,6 +20,10 @@ export MPLBACKEND := Agg
 .PHONY: setup demo test bench interfaces install clean
 
 $(PY):
+	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' || { \
+	  echo "humfall_ros needs CPython 3.11: ROS 2 Jazzy's wheels on PyPI are cp311 (make PYTHON=python3.11 ...)"; exit 1; }
+	@$(PYTHON) -c 'import venv, ensurepip' 2>/dev/null || { \
+	  echo "$(PYTHON) has no venv/ensurepip module (Debian: apt install python3-venv)"; exit 1; }
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 

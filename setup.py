@@ -17,7 +17,6 @@ setup(
         (f"share/{PACKAGE}/config/scenarios", glob("config/scenarios/*.yaml")),
         (f"share/{PACKAGE}/urdf", glob("urdf/*.urdf")),
     ],
-    package_data={PACKAGE: ["data/*"]},
     install_requires=["setuptools"],
     zip_safe=True,
     maintainer="humfall_ros developers",
