@@ -31,15 +31,15 @@ $(VENV)/.deps-stamp: requirements.txt | $(PY)
 	$(PY) -m pip install -q -r requirements.txt
 	touch $@
 
-INTERFACE_SRC := $(wildcard interfaces/humfall_interfaces/msg/*.msg interfaces/humfall_interfaces/srv/*.srv) \
-	interfaces/humfall_interfaces/CMakeLists.txt interfaces/humfall_interfaces/package.xml
+INTERFACE_SRC := $(wildcard interfaces/*/msg/*.msg interfaces/*/srv/*.srv interfaces/*/CMakeLists.txt \
+	interfaces/*/package.xml interfaces/cmake/*.cmake) tools/build_interface.sh
 
+# tf2_msgs is not among the ROS wheels on PyPI: build our vendored copy of TFMessage
+# unless a real one is importable (on a ROS install colcon ignores the copy).
 $(VENV)/.interfaces-stamp: $(VENV)/.deps-stamp $(INTERFACE_SRC)
-	rm -rf build/interfaces && mkdir -p build/interfaces
-	cd build/interfaces && source $(VENV_ABS)/bin/activate && \
-	  cmake $(CURDIR)/interfaces/humfall_interfaces -DCMAKE_INSTALL_PREFIX=$(VENV_ABS) \
-	    -DCMAKE_PREFIX_PATH=$(VENV_ABS) -DPython3_EXECUTABLE=$(PY) -DBUILD_TESTING=OFF >cmake.log && \
-	  $(MAKE) -j2 >build.log && $(MAKE) install >install.log
+	@$(PY) -c 'import tf2_msgs.msg' 2>/dev/null && [ ! -f $(VENV)/.tf2-vendored ] || \
+	  { tools/build_interface.sh tf2_msgs $(VENV) && touch $(VENV)/.tf2-vendored; }
+	tools/build_interface.sh humfall_interfaces $(VENV)
 	touch $@
 
 interfaces: $(VENV)/.interfaces-stamp

@@ -51,6 +51,9 @@ def test_up_standing_push_falls_onto_the_target_and_records_everything(run_up):
     recorded = {t["topic"]: t["count"] for t in r["recording"]["topics"]}
     published = r["metrics"]["published"]
     assert published["/joint_states"] >= int(2.5 * 500) + 1  # ticks 0..N (+ start-up retransmits)
+    # the robot for RViz/Foxglove: URDF once, fixed joints once, moving joints at 50 Hz
+    assert recorded["/robot_description"] == 1 and recorded["/tf_static"] == 1
+    assert recorded["/tf"] >= int(2.5 * 50)
     for topic, n in published.items():
         assert recorded.get(topic) == n, topic
     # the estimator answered every tick (0 .. N-1) the controller needed

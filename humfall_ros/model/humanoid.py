@@ -67,6 +67,29 @@ class HumanoidModel:
         self.ankle_height = float(-c[:, 2].mean())
 
     # ------------------------------------------------------------------ basics
+    @functools.cached_property
+    def urdf_joints(self) -> list[tuple[str, str, str, bool]]:
+        """(joint, parent link, child link, is_fixed) for every URDF joint: the TF tree."""
+        import xml.etree.ElementTree as ET
+
+        root = ET.parse(self.urdf_path).getroot()
+        return [(j.get("name"), j.find("parent").get("link"), j.find("child").get("link"), j.get("type") == "fixed")
+                for j in root.findall("joint")]
+
+    @property
+    def root_link(self) -> str:
+        return self.model.frames[2].name  # after universe and the free-flyer joint frame
+
+    def link_transforms(self, fixed: bool) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+        """(parent, child, translation, quaternion xyzw) per URDF joint of that kind, after forward()."""
+        out = []
+        for _, parent, child, is_fixed in self.urdf_joints:
+            if is_fixed != fixed:
+                continue
+            T = self.data.oMf[self.frame_ids[parent]].actInv(self.data.oMf[self.frame_ids[child]])
+            out.append((parent, child, T.translation.copy(), pin.Quaternion(T.rotation).coeffs().copy()))
+        return out
+
     def neutral(self) -> np.ndarray:
         return pin.neutral(self.model)
 

@@ -24,7 +24,7 @@ import numpy as np
 import rclpy
 import rclpy.executors
 from builtin_interfaces.msg import Time as TimeMsg
-from geometry_msgs.msg import WrenchStamped
+from geometry_msgs.msg import TransformStamped, WrenchStamped
 from humfall_interfaces.msg import Obstacle, ObstacleArray
 from humfall_interfaces.srv import Push, SetObstacles
 from nav_msgs.msg import Odometry
@@ -34,6 +34,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
+from tf2_msgs.msg import TFMessage
 
 from humfall_ros import scenario as scenario_mod
 from humfall_ros.control.mux import CommandMux, JointCommand, validate_command
@@ -83,6 +84,7 @@ class SimBridge(Node):
         self.metrics_file = P.declare("metrics_file", "where to write ground-truth run metrics (JSON)")
         self.scenario_name = P.declare("scenario", "scenario name or file for obstacles, pushes and posture")
         friction = P.declare("friction", "ground and foot friction coefficient", (0.05, 3.0))
+        tf_rate = P.declare("tf_rate", "rate of /tf (ground-truth link poses) in Hz; 0: none", (0.0, 2000.0))
         unknown = set(self.lockstep_sources) - set(self.sources)
         if unknown:
             raise ValueError(f"lockstep_sources {sorted(unknown)} are not command_sources")
@@ -107,6 +109,13 @@ class SimBridge(Node):
         self.pub_rtf = self.create_publisher(Float64, "sim/real_time_factor", QOS_RELIABLE)
         self.pub_obstacles = self.create_publisher(ObstacleArray, "obstacles", QOS_LATCHED)
         self.pub_result = self.create_publisher(String, "sim/result", QOS_LATCHED)
+        # the robot for RViz / Foxglove: URDF text, fixed joints once, moving joints at tf_rate
+        self.pub_description = self.create_publisher(String, "/robot_description", QOS_LATCHED)
+        self.pub_tf_static = self.create_publisher(TFMessage, "/tf_static", QOS_LATCHED)
+        self.pub_tf = self.create_publisher(TFMessage, "/tf", QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
+        self.tf_every = max(1, int(round(self.control_rate / tf_rate))) if tf_rate > 0 else 0
+        with open(self.model.urdf_path) as f:
+            self.pub_description.publish(String(data=f.read()))
 
         self.published: dict[str, int] = {}  # per topic, for the recorder's no-loss check
         self.mux = CommandMux(self.sources, self.model.joint_names, self.command_timeout)
@@ -130,6 +139,7 @@ class SimBridge(Node):
         self.done = False
         self._publish_active("none")
         self._publish_obstacles()
+        self._publish_tf(static=True)
 
     # ------------------------------------------------------------ scenario
     def _apply_scenario(self) -> None:
@@ -248,6 +258,26 @@ class SimBridge(Node):
         pub.publish(msg)
         self.published[pub.topic_name] = self.published.get(pub.topic_name, 0) + 1
 
+    def _publish_tf(self, static: bool = False) -> None:
+        """Ground-truth link poses as TF: odom -> waist and parent -> child per URDF joint."""
+        w = self.world
+        q, _ = w.pinocchio_state()
+        self.model.forward(q)
+        st = stamp_of(w.time)
+        msg = TFMessage()
+        links = self.model.link_transforms(fixed=static)
+        if not static:
+            pos, orn = q[:3], q[3:7]
+            links = [("odom", self.model.root_link, pos, orn), *links]
+        for parent, child, p, quat in links:
+            t = TransformStamped()
+            t.header.stamp, t.header.frame_id, t.child_frame_id = st, parent, child
+            t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = (float(x) for x in p)
+            r = t.transform.rotation
+            r.x, r.y, r.z, r.w = (float(x) for x in quat)
+            msg.transforms.append(t)
+        self._pub(self.pub_tf_static if static else self.pub_tf, msg)
+
     def publish_sensors(self) -> None:
         w = self.world
         st = stamp_of(w.time)
@@ -281,6 +311,8 @@ class SimBridge(Node):
         od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.linear.z = lin.tolist()
         od.twist.twist.angular.x, od.twist.twist.angular.y, od.twist.twist.angular.z = ang.tolist()
         self._pub(self.pub_odom, od)
+        if self.tf_every and w.step_count % (self.tf_every * w.substeps) == 0:
+            self._publish_tf()
 
     # ------------------------------------------------------------ stepping
     @property
