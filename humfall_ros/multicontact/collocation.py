@@ -48,12 +48,20 @@ class OptConfig:
     t_min: float = 0.25           # T_min (s)
     t_max: float = 3.5            # T_max (s)
     n_seed_durations: int = 40    # N_tot: seed duration grid over [T_min, T_max]
-    max_seed_attempts: int = 1    # seeds tried per NLP call (evenly spread over the grid)
+    max_seed_attempts: int = 3    # seeds tried per NLP call (first one, then the retry list)
     seed_first_duration: float = 0.8  # the first seed tried (T is a variable anyway)
+    # seeds tried, in this order, after the first when it fails or ends above
+    # the starting energy (snapped to the N_tot grid over [T_min, T_max])
+    seed_retry_durations: tuple = (0.5, 1.2, 0.25, 2.0)
+    # a converged contact-adding transition whose objective ends above the
+    # kinetic energy it started with is a poor local optimum (another seed of
+    # the same NLP often lands softly): try the next seed too, keep the best
+    retry_if_energy_rises: bool = True
     eps_ke: float = 0.1           # J, stationary threshold
     eps_cl: float = 0.025         # m, clearance of non-contact points
     mu: float = 0.35              # friction coefficient
     torque_reg: float = 1e-4      # weight of sum (u/u_max)^2 h (tie breaker)
+    force_reg: float = 0.0        # weight of sum (lambda/(M g))^2 h: picks one of the non-unique internal forces
     max_iter: int = 300
     tol: float = 1e-4
     constr_viol_tol: float = 1e-5
@@ -62,6 +70,8 @@ class OptConfig:
     acc_max: float = 100.0          # rad/s^2 or m/s^2 at the knots
     force_max_mg: float = 3.0       # contact force component cap, in units of M g
     knee_margin: float = 0.05      # rad, lower knee bound used by the NLP (URDF lower limit is 0)
+    post_impact_velocity_limits: bool = False  # eq. 6 velocity limits on the post-impact joint velocities too
+    elbow_margin: float = 0.0      # rad, upper elbow bound -elbow_margin (URDF: 0, the straight arm); 0.1 measured worse
     contact_pos_tol: float = 0.002   # m, eq. 3 at the knots (drift bound)
     contact_vel_tol: float = 0.02    # m/s, eq. 4 at the knots
     nlp_max_wall_time: float = 20.0
@@ -76,17 +86,20 @@ class OptConfig:
         return OptConfig(**{k: v for k, v in d.items() if k in names})
 
     def seed_durations(self) -> list[float]:
-        """Seeds tried by increasing duration (Sec. III-D), capped for speed.
+        """Seed durations in the order they are tried (Sec. III-D).
 
-        The paper sweeps the whole grid; here T is a decision variable, so a
-        few well-spread seeds starting near ``seed_first_duration`` suffice.
+        The paper sweeps the whole N_tot grid by increasing duration until a
+        seed converges. T is a decision variable here, so a handful suffices:
+        ``seed_first_duration`` first, then ``seed_retry_durations``, each
+        snapped to the grid, duplicates dropped, at most ``max_seed_attempts``.
         """
         grid = np.linspace(self.t_min, self.t_max, max(2, self.n_seed_durations))
-        start = int(np.argmin(np.abs(grid - self.seed_first_duration)))
-        rest = grid[start:]
-        k = max(1, self.max_seed_attempts)
-        idx = np.unique(np.round(np.linspace(0, len(rest) - 1, k)).astype(int)) if k > 1 else [0]
-        return [float(rest[i]) for i in idx]
+        out: list[float] = []
+        for d in (self.seed_first_duration, *self.seed_retry_durations):
+            g = float(grid[int(np.argmin(np.abs(grid - d)))])
+            if g not in out:
+                out.append(g)
+        return out[:max(1, self.max_seed_attempts)]
 
 
 @dataclasses.dataclass
@@ -114,6 +127,8 @@ class Segment:
     attempts: int
     max_violation: float
     cpu_time: float = 0.0  # CPU time of this thread (the machine may be shared)
+    objective: float = float("nan")   # eq. 9 value (blended for an added contact)
+    attempt_log: list = dataclasses.field(default_factory=list)  # one dict per seed tried
 
     @property
     def final_ke(self) -> float:
@@ -128,7 +143,7 @@ class Segment:
             "rows": [dataclasses.asdict(r) for r in self.rows], "ke": self.ke.tolist(),
             "success": self.success, "status": self.status, "iterations": self.iterations,
             "nlp_time": self.nlp_time, "cpu_time": self.cpu_time, "seed_duration": self.seed_duration, "attempts": self.attempts,
-            "max_violation": self.max_violation,
+            "max_violation": self.max_violation, "objective": self.objective, "attempt_log": self.attempt_log,
         }
 
 
@@ -277,10 +292,12 @@ class SegmentNLP:
             ke_post = model.f_ke(qN, v_plus)
             ke = ke_post + cfg.impact_dissipation_weight * (ke - ke_post)
         reg = 0
+        freg = 0
         for k in range(N):
             o = 1 + k * nk
             reg += ca.sumsqr(w[o + 3 * n:o + 3 * n + m])
-        f = ke + cfg.torque_reg * reg * h
+            freg += ca.sumsqr(w[o + 3 * n + m:o + nk])
+        f = ke + cfg.torque_reg * reg * h + (cfg.force_reg * freg * h if cfg.force_reg > 0 else 0)
         G = ca.vertcat(*g)
         self.ng = G.shape[0]
         self.nw = w.shape[0]
@@ -362,6 +379,11 @@ class SegmentNLP:
             for jn, qi in model.q_index.items():
                 if jn.endswith("_knee"):
                     lbx[o + qi] = max(lbx[o + qi], cfg.knee_margin)
+                # optional, same idea for the arms (a hand landing on a straight
+                # arm: contact Jacobian sigma_min ~ 0.006); measured: 0.1 rad
+                # makes the hand landings keep far more energy, so off
+                if jn.endswith("_elbow") and cfg.elbow_margin > 0:
+                    ubx[o + qi] = min(ubx[o + qi], -cfg.elbow_margin)
             # v
             lbx[o + n + 3:o + 2 * n], ubx[o + n + 3:o + 2 * n] = -model.v_max, model.v_max
             # u (scaled by u_max)
@@ -382,6 +404,12 @@ class SegmentNLP:
             oi = 1 + N * self.nk
             for i in C.normal_row_indices(self.impact_rows):
                 lbx[oi + n + i] = 0.0  # surfaces can only push (normal impulses >= 0)
+            # the post-impact state starts the child's segment: its joint
+            # velocities obey eq. 6 too (without this the impact map of eq. 10
+            # left the child up to 2.6 v_max, and the child's NLPs could not
+            # converge from a start outside their own bounds)
+            if cfg.post_impact_velocity_limits:
+                lbx[oi + 3:oi + n], ubx[oi + 3:oi + n] = -model.v_max, model.v_max
         if key.change == "remove":
             # the released contact carries no force at the end (mode sigma_j dynamics)
             lo = self.knot_slices[-1][0] + 3 * n + m
@@ -627,12 +655,15 @@ class TrajectoryOptimizer:
             make_mode(set(mode) - {ext}) if change == "remove" else tuple(mode))
         t_start = time.perf_counter()
         c_start = time.thread_time()
+        ke0 = model.kinetic_energy(q0, v0)
         best = None
         attempts = 0
+        log = []
         for T in cfg.seed_durations():
             if deadline is not None and time.perf_counter() >= deadline:
                 break
             attempts += 1
+            t_a = time.perf_counter()
             nlp, (t, q, v, a, u, lam), _ = self.seed(q0, v0, mode, change, ext, env, T)
             lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env)
             w0 = np.clip(nlp.pack(T, q, v, a, u, lam), lbx, ubx)
@@ -644,15 +675,23 @@ class TrajectoryOptimizer:
             ok = stats["return_status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level") \
                 and viol <= cfg.feasibility_tol
             seg = self._segment(nlp, w, mode, target, change, ext, ok, stats, T, viol)
-            if best is None or (ok and not best.success) or (ok == best.success and seg.final_ke < best.final_ke):
+            seg.objective = float(nlp.f_ke_end(w))
+            log.append({"seed_T": round(T, 4), "status": seg.status, "iterations": seg.iterations,
+                        "time": round(time.perf_counter() - t_a, 3), "objective": round(seg.objective, 4),
+                        "final_ke": round(seg.final_ke, 4), "T": round(float(seg.time[-1]), 4),
+                        "violation": viol, "success": bool(ok)})
+            if best is None or (ok and not best.success) or (ok == best.success and seg.objective < best.objective):
                 best = seg
-            if ok:
+            # stop at the first converged seed (Sec. III-D), unless it ends with
+            # more energy than it started with (a poor local optimum)
+            if best.success and not (cfg.retry_if_energy_rises and change == "add" and best.objective > ke0):
                 break
         if best is None:
             raise TimeoutError("time budget exhausted before the first NLP")
         best.nlp_time = time.perf_counter() - t_start
         best.cpu_time = time.thread_time() - c_start
         best.attempts = attempts
+        best.attempt_log = log
         return best
 
     def _segment(self, nlp, w, mode, target, change, ext, ok, stats, T_seed, viol) -> Segment:

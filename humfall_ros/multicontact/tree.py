@@ -129,7 +129,8 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         log.append({"kind": kind, "node": node.id, "mode": mode_label(node.mode),
                     "target": mode_label(target) if target is not None else mode_label(node.mode),
                     "success": seg.success, "final_ke": seg.final_ke, "nlp_time": seg.nlp_time,
-                    "cpu_time": seg.cpu_time, "iterations": seg.iterations, "attempts": seg.attempts, "status": seg.status})
+                    "cpu_time": seg.cpu_time, "iterations": seg.iterations, "attempts": seg.attempts, "status": seg.status,
+                    "objective": seg.objective, "attempt_log": seg.attempt_log})
 
     while frontier:
         if time.perf_counter() >= deadline:
@@ -162,8 +163,11 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         for sigma_j, change, ext in adjacent_modes(d.mode):                   # line 12
             if symmetric and _mirror_mode(sigma_j) in tried:
                 continue
-            if sigma_j == parent_mode:
-                continue  # undoing the edge that led here: that mode was already tried one level up
+            if sigma_j == parent_mode and change == "remove":
+                # removing the contact the parent edge just added undoes that
+                # edge; landing a limb the parent edge released is a step
+                # (the limb lands somewhere else) and is kept
+                continue
             tried.add(sigma_j)
             if time.perf_counter() >= deadline:
                 break
