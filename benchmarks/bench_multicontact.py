@@ -57,6 +57,15 @@ def run_case(planner: FallPlanner, ke: float, wall: float, budget: float, resim:
         "total_time_s": round(r["total_time_s"], 3), "tree_nodes": r["tree_nodes"],
         "deepest_depth": r["deepest_depth"],
     }
+    if r["success"]:
+        # eq. 6 at the start of each child segment: the impact map (eq. 10) may
+        # throw joints past their velocity limits (not bounded in the NLP, see docs)
+        import numpy as np
+        nodes = r["tree"]["nodes"]
+        vmax = planner.model.v_max
+        case["max_node_joint_velocity_over_limit"] = round(max(
+            float(np.max(np.abs(np.asarray(nodes[i]["v"])[3:]) / vmax)) for i in r["search"].path), 3)
+        case["seed_attempts"] = sum(e["attempts"] for e in r["tree"]["nlp_log"])
     if resim and r["success"]:
         from humfall_ros.multicontact.resim import check_segment
         checks = [check_segment(planner.model, s, r["env"]) for s in r["segments"]]

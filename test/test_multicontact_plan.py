@@ -75,3 +75,27 @@ def test_infeasible_push_fails_clearly_within_budget():
 def test_invalid_request_answers_without_planning(planner):
     r = planner.plan({"kinetic_energy": 20.0, "initial_mode": "LF/RF/XH"})
     assert not r["success"] and r["reason"].startswith("invalid request:") and r["nlp_count"] == 0
+
+
+def test_seed_durations_first_then_retry_list_on_the_grid():
+    cfg = OptConfig(seed_first_duration=0.8, seed_retry_durations=(0.5, 1.2, 0.25, 2.0), max_seed_attempts=3)
+    grid = np.linspace(cfg.t_min, cfg.t_max, cfg.n_seed_durations)
+    d = cfg.seed_durations()
+    assert len(d) == 3 and d[0] == pytest.approx(0.8333, abs=1e-3)
+    assert all(np.min(np.abs(grid - x)) < 1e-12 for x in d)      # on the N_tot grid (Sec. III-D)
+    assert len(set(d)) == len(d)
+    assert OptConfig(max_seed_attempts=1).seed_durations() == d[:1]
+
+
+def test_50J_finds_a_plan_with_seed_retries(planner):
+    """50 J had no plan with one seed per NLP; the retry of the hand landing
+    (it ended above its start energy) finds a soft landing."""
+    r = planner.plan({"kinetic_energy": 50.0, "direction": 1.0, "time_budget": 90.0})
+    assert r["success"], r["reason"]
+    assert r["final_ke"] < planner.opt.cfg.eps_ke
+    assert len(r["contact_sequence"]) >= 2 and r["contact_sequence"][0] == "LF/RF"
+    log = r["tree"]["nlp_log"]
+    assert all(len(e["attempt_log"]) == e["attempts"] >= 1 for e in log)
+    assert any(e["attempts"] > 1 for e in log)
+    for e in log:   # every attempt reports IPOPT's return status
+        assert all(isinstance(a["status"], str) and a["iterations"] >= 0 for a in e["attempt_log"])
