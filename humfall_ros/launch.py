@@ -123,13 +123,14 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[tuple[str,
     unknown = set(extra) - {n for n, _ in nodes}
     if unknown:
         raise RunError(f"params for nodes that are not in this run: {sorted(unknown)}")
-    for n, p in nodes:
-        check_node_params(n, extra.get(n, {}), owned=set(p))
-    return [(n, {**p, **extra.get(n, {})}) for n, p in nodes]
+    return [(n, {**p, **check_node_params(n, extra.get(n, {}), owned=set(p))}) for n, p in nodes]
 
 
-def check_node_params(node: str, params: dict, owned: set[str]) -> None:
+def check_node_params(node: str, params: dict, owned: set[str]) -> dict:
     """Refuse parameters a node does not have, of the wrong type, or that the launcher sets.
+
+    Returns them typed like the node declares them (``50`` for a double becomes 50.0:
+    ROS refuses an INTEGER for a DOUBLE parameter and the node would die on it).
 
     rclpy silently ignores overrides of undeclared parameters and kills the node
     on a wrong type after the whole suite has started; checking against the
@@ -138,6 +139,7 @@ def check_node_params(node: str, params: dict, owned: set[str]) -> None:
     from humfall_ros.nodes.common import load_node_defaults
 
     defaults = load_node_defaults(node)
+    typed = {}
     for key, value in params.items():
         where = f"params.{node}.{key}"
         if key in owned:
@@ -146,6 +148,10 @@ def check_node_params(node: str, params: dict, owned: set[str]) -> None:
             raise RunError(f"{where}: {node} has no parameter {key!r} (known: {', '.join(sorted(defaults))})")
         if not _same_param_type(defaults[key], value):
             raise RunError(f"{where}: expected {type(defaults[key]).__name__} like {defaults[key]!r}, got {value!r}")
+        if isinstance(defaults[key], float) and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        typed[key] = value
+    return typed
 
 
 def _same_param_type(default, value) -> bool:

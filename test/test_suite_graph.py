@@ -194,7 +194,9 @@ def test_bridge_refuses_bad_pushes_and_commands_and_keeps_running(in_ros_domain,
 
 
 def test_estimator_can_run_on_ground_truth_for_comparison(run_up):
-    status, r = run_up("standing_quiet", "duration=1.0", "params.state_estimator.use_ground_truth=true")
+    # viz_rate=25 is an integer for a double parameter: the launcher must type it, not kill the node
+    status, r = run_up("standing_quiet", "duration=1.0", "params.state_estimator.use_ground_truth=true",
+                       "params.state_estimator.viz_rate=25")
     assert status == 0 and r["fell"] is False
     from mcap_ros2.reader import read_ros2_messages
 
