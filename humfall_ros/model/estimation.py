@@ -86,7 +86,8 @@ class CentroidalEstimator:
         for s in SIDES:
             M = d.oMf[self.m.frame_ids[self.m.foot_link[s]]]
             f, tq = wrenches[s]
-            world_wrenches.append((M.translation, M.rotation @ np.asarray(f, float), M.rotation @ np.asarray(tq, float)))
+            R = M.rotation
+            world_wrenches.append((M.translation, R @ np.asarray(f, float), R @ np.asarray(tq, float)))
         cop, fz = cop_from_wrenches(world_wrenches)
         touching = self._touching({n: d.oMf[fid].translation for n, fid in self._candidates(contacts)})
         poly = support_polygon(list(touching.values())) if touching else np.zeros((0, 2))

@@ -9,7 +9,6 @@ line overrides the file's values as usual.
 from __future__ import annotations
 
 import contextlib
-import math
 import os
 import signal
 import sys
@@ -84,10 +83,6 @@ class Params:
 def stamp_key(stamp) -> int:
     """A header stamp as integer nanoseconds: the tick identity in lockstep."""
     return stamp.sec * 1_000_000_000 + stamp.nanosec
-
-
-def finite(*values: float) -> bool:
-    return all(math.isfinite(float(v)) for v in values)
 
 
 def run_node(factory: Callable[[], Node], args=None, use_sim_time: bool = True,

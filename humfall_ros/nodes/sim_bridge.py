@@ -39,7 +39,7 @@ from tf2_msgs.msg import TFMessage
 from humfall_ros import scenario as scenario_mod
 from humfall_ros.control.mux import CommandMux, JointCommand, validate_command
 from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_CLOCK, QOS_LATCHED, QOS_RELIABLE, Params, stamp_key
-from humfall_ros.sim.metrics import FallMetrics
+from humfall_ros.sim.ground_truth import GroundTruth
 from humfall_ros.sim.world import STANDING_POSTURE, Box, SimWorld, validate_push
 
 SIDE_TOPIC = {"l": "left_foot/wrench", "r": "right_foot/wrench"}
@@ -143,16 +143,7 @@ class SimBridge(Node):
 
     # ------------------------------------------------------------ scenario
     def _apply_scenario(self) -> None:
-        sc = self.scenario
-        boxes = [Box(o["name"], tuple(o["position"]), tuple(o["size"]), o["yaw"], o["is_target"])
-                 for o in sc["obstacles"]]
-        self.world.set_obstacles(boxes)
-        for p in sc["push"]:
-            self.world.add_push(p["force"], p["point"], p["duration"], p["link"], start=p["time"])
-        target = next((b for b in boxes if b.is_target), None)
-        self.target = target
-        self.metrics = FallMetrics(None if target is None else target.position[:2])
-        self.first_push_time = min((p["time"] for p in sc["push"]), default=0.0)
+        self.truth = GroundTruth(self.world, self.scenario)
 
     # ------------------------------------------------------------ callbacks
     def _on_command(self, source: str, msg: JointState) -> None:
@@ -199,7 +190,7 @@ class SimBridge(Node):
             self.get_logger().warning(f"sim/push refused: {reason}")
             return resp
         self.world.add_push(force, point, req.duration, link)
-        self.metrics.set_reference_cop(self.world.ground_truth_cop())
+        self.truth.metrics.set_reference_cop(self.world.ground_truth_cop())
         resp.success, resp.message = True, f"pushing {link} with {np.round(force, 1).tolist()} N for {req.duration} s"
         self.get_logger().info(resp.message)
         return resp
@@ -230,8 +221,7 @@ class SimBridge(Node):
             resp.success, resp.message = False, "obstacle names must be unique"
             return resp
         self.world.set_obstacles(boxes)
-        self.target = next((b for b in boxes if b.is_target), None)
-        self.metrics.target_xy = None if self.target is None else np.array(self.target.position[:2])
+        self.truth.set_target(boxes)
         self._publish_obstacles()
         resp.success, resp.message = True, f"{len(boxes)} obstacles set"
         return resp
@@ -328,17 +318,8 @@ class SimBridge(Node):
         else:
             self.uncontrolled_ticks += 1  # e.g. free-run with controllers that cannot keep up
 
-    def _track_metrics(self) -> None:
-        w = self.world
-        if self.metrics.initial_cop is None and w.time >= self.first_push_time - 1e-9:
-            self.metrics.set_reference_cop(w.ground_truth_cop())
-        q, _ = w.pinocchio_state()
-        com = self.model.com(q)
-        dist = w.distance_to(self.target.name) if self.target is not None else None
-        self.metrics.update(w.time, com, w.trunk_tilt(), w.base_state()[0][2], dist, w.non_foot_contact())
-
     def result(self) -> dict:
-        r = self.metrics.result()
+        r = self.truth.metrics.result()
         r.update(sim_duration_s=round(self.world.time, 6), rejected_commands=self.rejected_commands,
                  stalled_ticks=self.stalled_ticks, uncontrolled_ticks=self.uncontrolled_ticks,
                  ticks=int(round(self.world.time * self.control_rate)), published=dict(self.published))
@@ -412,7 +393,7 @@ class SimBridge(Node):
                 break
             self._mux()
             self.world.step_control()
-            self._track_metrics()
+            self.truth.track()
             if self.end_time > 0 and self.world.time >= self.end_time - 1e-9:
                 break
             if not self.lockstep and self.rtf_target > 0:

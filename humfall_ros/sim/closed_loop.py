@@ -12,8 +12,8 @@ import numpy as np
 from humfall_ros.control.standing import StandingBalance
 from humfall_ros.model.estimation import CentroidalEstimator, estimate_error
 from humfall_ros.model.humanoid import SIDES
-from humfall_ros.sim.metrics import FallMetrics
-from humfall_ros.sim.world import STANDING_POSTURE, Box, SimWorld
+from humfall_ros.sim.ground_truth import GroundTruth
+from humfall_ros.sim.world import STANDING_POSTURE, SimWorld
 
 
 @dataclasses.dataclass
@@ -31,14 +31,7 @@ def run_scenario(sc: dict, duration: float | None = None, trunk_tilt_limit_deg: 
     posture = {**STANDING_POSTURE, **sc["robot"]["initial_posture"]}
     world = SimWorld(s["physics_rate"], s["control_rate"], friction=s["friction"], initial_posture=posture)
     try:
-        boxes = [Box(o["name"], tuple(o["position"]), tuple(o["size"]), o["yaw"], o["is_target"])
-                 for o in sc["obstacles"]]
-        world.set_obstacles(boxes)
-        for p in sc["push"]:
-            world.add_push(p["force"], p["point"], p["duration"], p["link"], start=p["time"])
-        target = next((b for b in boxes if b.is_target), None)
-        metrics = FallMetrics(None if target is None else target.position[:2])
-        first_push = min((p["time"] for p in sc["push"]), default=0.0)
+        ground_truth = GroundTruth(world, sc)
         est = CentroidalEstimator(world.model)
         truth = CentroidalEstimator(world.model)
         balance = StandingBalance(world.model, posture, kp, kd)
@@ -59,12 +52,8 @@ def run_scenario(sc: dict, duration: float | None = None, trunk_tilt_limit_deg: 
                     errors[k] = max(errors.get(k, 0.0), v)
             world.set_joint_targets(balance.command(e.com, e.com_velocity, e.support_polygon))
             world.step_control()
-            if metrics.initial_cop is None and world.time >= first_push - 1e-9:
-                metrics.set_reference_cop(world.ground_truth_cop())
-            q, _ = world.pinocchio_state()
-            metrics.update(world.time, world.model.com(q), world.trunk_tilt(), world.base_state()[0][2],
-                           world.distance_to(target.name) if target else None, world.non_foot_contact())
-        r = metrics.result()
+            ground_truth.track()
+        r = ground_truth.metrics.result()
         return LoopResult(r, np.array(joints), errors, r["max_trunk_tilt_deg"])
     finally:
         world.close()
