@@ -36,7 +36,7 @@ import casadi as ca
 import numpy as np
 
 from humfall_ros.multicontact import contacts as C
-from humfall_ros.multicontact.model import EXTREMITIES, FEET, PlanarModel
+from humfall_ros.multicontact.model import EXTREMITIES, PlanarModel
 from humfall_ros.multicontact.modes import Environment, Mode, make_mode, mode_label
 
 
