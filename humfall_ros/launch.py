@@ -120,6 +120,12 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[tuple[str,
         "lockstep_sources": [LOCKSTEP_SOURCE[n] for n in control_nodes if n in LOCKSTEP_SOURCE] or [""],
         "wait_for_nodes": ["recorder"] if record else [""],
     }))
+    from humfall_ros.nodes.common import load_node_defaults
+
+    est = {**load_node_defaults("state_estimator"), **extra.get("state_estimator", {})}
+    if est.get("use_ground_truth") is True:
+        # the estimator then waits for ground_truth/odom every tick
+        nodes[-1][1]["ground_truth_rate"] = float(s["control_rate"])
     unknown = set(extra) - {n for n, _ in nodes}
     if unknown:
         raise RunError(f"params for nodes that are not in this run: {sorted(unknown)}")

@@ -137,7 +137,7 @@ class HotLoop:
     what this expects, it falls back to plain ``executor.spin()``.
     """
 
-    def __init__(self, node: Node, service_period: float = 0.02):
+    def __init__(self, node: Node, service_period: float = 0.05):
         self.node = node
         self.service_period = service_period
         self.subs: list[tuple[Any, type, Callable]] = []

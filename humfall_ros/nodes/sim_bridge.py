@@ -85,6 +85,10 @@ class SimBridge(Node):
         self.scenario_name = P.declare("scenario", "scenario name or file for obstacles, pushes and posture")
         friction = P.declare("friction", "ground and foot friction coefficient", (0.05, 3.0))
         tf_rate = P.declare("tf_rate", "rate of /tf (ground-truth link poses) in Hz; 0: none", (0.0, 2000.0))
+        gt_rate = P.declare("ground_truth_rate", "rate of ground_truth/odom in Hz (at most control_rate; the "
+                            "estimator's use_ground_truth mode needs control_rate)", (1.0, 10000.0))
+        self.service_period = 1.0 / P.declare("service_rate", "how often (Hz, wall) services and parameters are "
+                                              "served between ticks", (1.0, 1000.0))
         unknown = set(self.lockstep_sources) - set(self.sources)
         if unknown:
             raise ValueError(f"lockstep_sources {sorted(unknown)} are not command_sources")
@@ -114,6 +118,8 @@ class SimBridge(Node):
         self.pub_tf_static = self.create_publisher(TFMessage, "/tf_static", QOS_LATCHED)
         self.pub_tf = self.create_publisher(TFMessage, "/tf", QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
         self.tf_every = max(1, int(round(self.control_rate / tf_rate))) if tf_rate > 0 else 0
+        self.odom_every = max(1, int(round(self.control_rate / gt_rate)))
+        self._tick_msgs()
         with open(self.model.urdf_path) as f:
             self.pub_description.publish(String(data=f.read()))
 
@@ -140,6 +146,21 @@ class SimBridge(Node):
         self._publish_active("none")
         self._publish_obstacles()
         self._publish_tf(static=True)
+
+    def _tick_msgs(self) -> None:
+        """Per-tick messages built once and refilled each tick (publish copies them at once):
+        constructing ~8 rosidl messages per tick cost the bridge about a tenth of its CPU."""
+        self._js = JointState(name=list(self.model.joint_names))
+        self._imu = Imu()
+        self._imu.header.frame_id = "imu_link"
+        self._wrench = {}
+        for side in self.pub_wrench:
+            m = WrenchStamped()
+            m.header.frame_id = self.model.foot_link[side]
+            self._wrench[side] = m
+        self._odom = Odometry()
+        self._odom.header.frame_id, self._odom.child_frame_id = "odom", "waist"
+        self._tf_msgs: dict[bool, TFMessage] = {}
 
     # ------------------------------------------------------------ scenario
     def _apply_scenario(self) -> None:
@@ -254,18 +275,20 @@ class SimBridge(Node):
         q, _ = w.pinocchio_state()
         self.model.forward(q)
         st = stamp_of(w.time)
-        msg = TFMessage()
         links = self.model.link_transforms(fixed=static)
         if not static:
-            pos, orn = q[:3], q[3:7]
-            links = [("odom", self.model.root_link, pos, orn), *links]
-        for parent, child, p, quat in links:
-            t = TransformStamped()
-            t.header.stamp, t.header.frame_id, t.child_frame_id = st, parent, child
-            t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = (float(x) for x in p)
-            r = t.transform.rotation
-            r.x, r.y, r.z, r.w = (float(x) for x in quat)
-            msg.transforms.append(t)
+            links = [("odom", self.model.root_link, q[:3], q[3:7]), *links]
+        msg = self._tf_msgs.get(static)
+        if msg is None:  # the frames never change: build the transforms once, refill the numbers
+            msg = self._tf_msgs[static] = TFMessage(transforms=[
+                TransformStamped(child_frame_id=child) for _, child, _, _ in links])
+            for t, (parent, _, _, _) in zip(msg.transforms, links):
+                t.header.frame_id = parent
+        for t, (_, _, p, quat) in zip(msg.transforms, links):
+            t.header.stamp = st
+            tr, r = t.transform.translation, t.transform.rotation
+            tr.x, tr.y, tr.z = float(p[0]), float(p[1]), float(p[2])
+            r.x, r.y, r.z, r.w = float(quat[0]), float(quat[1]), float(quat[2]), float(quat[3])
         self._pub(self.pub_tf_static if static else self.pub_tf, msg)
 
     def publish_sensors(self) -> None:
@@ -273,35 +296,40 @@ class SimBridge(Node):
         st = stamp_of(w.time)
         self._pub(self.pub_clock, Clock(clock=st))
         q, v, tau = w.joint_states()
-        js = JointState(name=self.model.joint_names, position=q.tolist(), velocity=v.tolist(), effort=tau.tolist())
+        js = self._js
         js.header.stamp = st
+        js.position, js.velocity, js.effort = q.tolist(), v.tolist(), tau.tolist()
         self._pub(self.pub_js, js)
         orn, gyro, acc = w.imu()
-        imu = Imu()
-        imu.header.stamp, imu.header.frame_id = st, "imu_link"
-        imu.orientation.x, imu.orientation.y, imu.orientation.z, imu.orientation.w = orn.tolist()
-        imu.angular_velocity.x, imu.angular_velocity.y, imu.angular_velocity.z = gyro.tolist()
-        imu.linear_acceleration.x, imu.linear_acceleration.y, imu.linear_acceleration.z = acc.tolist()
+        imu = self._imu
+        imu.header.stamp = st
+        o, g, a = imu.orientation, imu.angular_velocity, imu.linear_acceleration
+        o.x, o.y, o.z, o.w = orn.tolist()
+        g.x, g.y, g.z = gyro.tolist()
+        a.x, a.y, a.z = acc.tolist()
         self._pub(self.pub_imu, imu)
         for side, pub in self.pub_wrench.items():
             f, t = w.foot_wrench(side)
-            m = WrenchStamped()
-            m.header.stamp, m.header.frame_id = st, self.model.foot_link[side]
+            m = self._wrench[side]
+            m.header.stamp = st
             m.wrench.force.x, m.wrench.force.y, m.wrench.force.z = f.tolist()
             m.wrench.torque.x, m.wrench.torque.y, m.wrench.torque.z = t.tolist()
             self._pub(pub, m)
-        pos, orn_b, lin, ang = w.base_state()
-        od = Odometry()
-        od.header.stamp, od.header.frame_id, od.child_frame_id = st, "odom", "waist"
-        p = od.pose.pose
-        p.position.x, p.position.y, p.position.z = pos.tolist()
-        p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = orn_b.tolist()
-        # REP 105 puts the odom twist in the child frame; we keep it in the world frame
-        # (frame_id) because that is what the estimator comparison needs; documented.
-        od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.linear.z = lin.tolist()
-        od.twist.twist.angular.x, od.twist.twist.angular.y, od.twist.twist.angular.z = ang.tolist()
-        self._pub(self.pub_odom, od)
-        if self.tf_every and w.step_count % (self.tf_every * w.substeps) == 0:
+        tick = w.step_count // w.substeps
+        if tick % self.odom_every == 0:
+            pos, orn_b, lin, ang = w.base_state()
+            od = self._odom
+            od.header.stamp = st
+            p = od.pose.pose
+            p.position.x, p.position.y, p.position.z = pos.tolist()
+            p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = orn_b.tolist()
+            # REP 105 puts the odom twist in the child frame; we keep it in the world frame
+            # (frame_id) because that is what the estimator comparison needs; documented.
+            tw = od.twist.twist
+            tw.linear.x, tw.linear.y, tw.linear.z = lin.tolist()
+            tw.angular.x, tw.angular.y, tw.angular.z = ang.tolist()
+            self._pub(self.pub_odom, od)
+        if self.tf_every and tick % self.tf_every == 0:
             self._publish_tf()
 
     # ------------------------------------------------------------ stepping
@@ -359,7 +387,7 @@ class SimBridge(Node):
         wall0, sim0 = time.monotonic(), self.world.time
         rtf_wall, rtf_sim = wall0, sim0
         next_service = wall0
-        service_period = 0.02
+        service_period = self.service_period
         while rclpy.ok():
             self.answered = set()  # commands for this tick can only follow its sensors
             self.publish_sensors()

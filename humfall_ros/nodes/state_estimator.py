@@ -28,6 +28,12 @@ def to_point(v) -> Point:
     return Point(x=float(v[0]), y=float(v[1]), z=float(v[2]) if len(v) > 2 else 0.0)
 
 
+def fill_xyz(target, v) -> None:
+    """Set a Point's or Vector3's x, y, z in place from a 2- or 3-vector."""
+    target.x, target.y = float(v[0]), float(v[1])
+    target.z = float(v[2]) if len(v) > 2 else 0.0
+
+
 class StateEstimator(Node):
     def __init__(self):
         super().__init__("state_estimator")
@@ -44,6 +50,8 @@ class StateEstimator(Node):
         self.pending: dict[int, dict] = {}
         self.last_key = -1
         self.last_msg: CentroidalState | None = None
+        self.msg = CentroidalState()
+        self.msg.header.frame_id = "odom"
         self.bad_messages = 0
         self.needed = {"js", "imu", "l", "r"} | ({"odom"} if self.use_ground_truth else set())
         def publisher(msg_type, topic):
@@ -117,14 +125,13 @@ class StateEstimator(Node):
             truth = ([p.x, p.y, p.z], [oq.x, oq.y, oq.z, oq.w], [tl.x, tl.y, tl.z], [ta.x, ta.y, ta.z])
         t = k * 1e-9
         e = self.estimator.update(t, qj, vj, quat, gyro, wrenches, base_truth=truth)
-        msg = CentroidalState()
+        msg = self.msg  # refilled each tick (publish copies it): cheaper than a new message
         msg.header.stamp = js.header.stamp
-        msg.header.frame_id = "odom"
-        msg.com = to_point(e.com)
-        msg.com_velocity.x, msg.com_velocity.y, msg.com_velocity.z = (float(x) for x in e.com_velocity)
-        msg.cop = to_point(e.cop)
-        msg.capture_point = to_point(e.capture_point)
-        msg.angular_momentum.x, msg.angular_momentum.y, msg.angular_momentum.z = (float(x) for x in e.angular_momentum)
+        fill_xyz(msg.com, e.com)
+        fill_xyz(msg.com_velocity, e.com_velocity)
+        fill_xyz(msg.cop, e.cop)
+        fill_xyz(msg.capture_point, e.capture_point)
+        fill_xyz(msg.angular_momentum, e.angular_momentum)
         msg.support_polygon = [to_point(p) for p in e.support_polygon]
         msg.lean_angle = float(e.lean_angle)
         msg.lean_direction = float(e.lean_direction)
