@@ -123,7 +123,7 @@ class SimBridge(Node):
         with open(self.model.urdf_path) as f:
             self.pub_description.publish(String(data=f.read()))
 
-        self.published: dict[str, int] = {}  # per topic, for the recorder's no-loss check
+        self._published: dict = {}  # publisher -> messages sent
         self.mux = CommandMux(self.sources, self.model.joint_names, self.command_timeout)
         self.answered: set[str] = set()
         self.rejected_commands = 0
@@ -267,7 +267,12 @@ class SimBridge(Node):
 
     def _pub(self, pub, msg) -> None:
         pub.publish(msg)
-        self.published[pub.topic_name] = self.published.get(pub.topic_name, 0) + 1
+        self._published[pub] = self._published.get(pub, 0) + 1  # topic names resolved at the end
+
+    @property
+    def published(self) -> dict[str, int]:
+        """Messages published per topic, for the recorder's no-loss check."""
+        return {pub.topic_name: n for pub, n in self._published.items()}
 
     def _publish_tf(self, static: bool = False) -> None:
         """Ground-truth link poses as TF: odom -> waist and parent -> child per URDF joint."""

@@ -122,6 +122,7 @@ class SimWorld:
         self._prev_imu_velocity = None
         self._imu_reading = None
         self._ground_contacts = None
+        self._readings: dict = {}
         self.set_obstacles(self.obstacles if obstacles is None else obstacles)
 
     def standing_base_height(self, q_joints) -> float:
@@ -200,6 +201,7 @@ class SimWorld:
                                           pb.WORLD_FRAME, physicsClientId=c)
             pb.stepSimulation(physicsClientId=c)
             self._ground_contacts = None
+            self._readings = {}
             self.step_count += 1
             self.time = self.step_count * self.dt
         self.pushes = [p for p in self.pushes if self.time < p.start + p.duration]
@@ -219,8 +221,13 @@ class SimWorld:
         return s[4], s[5]
 
     def joint_states(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        st = pb.getJointStates(self.robot, self._jidx, physicsClientId=self.client)
-        return (np.array([s[0] for s in st]), np.array([s[1] for s in st]), np.array([s[3] for s in st]))
+        """(positions, velocities, applied torques) in model order; cached per physics step."""
+        r = self._readings.get("joints")
+        if r is None:
+            st = pb.getJointStates(self.robot, self._jidx, physicsClientId=self.client)
+            r = self._readings["joints"] = (np.array([s[0] for s in st]), np.array([s[1] for s in st]),
+                                            np.array([s[3] for s in st]))
+        return r
 
     def imu(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(orientation xyzw, angular velocity in IMU frame, proper acceleration in IMU frame).
@@ -293,10 +300,13 @@ class SimWorld:
 
     def base_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Ground truth: waist frame position, orientation xyzw, linear and angular velocity (world)."""
-        pos, orn = pb.getBasePositionAndOrientation(self.robot, physicsClientId=self.client)
-        lin, ang = pb.getBaseVelocity(self.robot, physicsClientId=self.client)
-        # pybullet's base frame is the inertial frame; the waist's inertial origin is its URDF origin
-        return np.array(pos), np.array(orn), np.array(lin), np.array(ang)
+        r = self._readings.get("base")
+        if r is None:  # cached per physics step: the bridge and the metrics both ask each tick
+            pos, orn = pb.getBasePositionAndOrientation(self.robot, physicsClientId=self.client)
+            lin, ang = pb.getBaseVelocity(self.robot, physicsClientId=self.client)
+            # pybullet's base frame is the inertial frame; the waist's inertial origin is its URDF origin
+            r = self._readings["base"] = (np.array(pos), np.array(orn), np.array(lin), np.array(ang))
+        return r
 
     def pinocchio_state(self) -> tuple[np.ndarray, np.ndarray]:
         """Ground-truth (q, v) in the model's convention."""
