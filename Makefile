@@ -17,7 +17,7 @@ export RMW_IMPLEMENTATION := rmw_fastrtps_cpp
 export AMENT_PREFIX_PATH := $(VENV_ABS)
 export MPLBACKEND := Agg
 
-.PHONY: setup demo test bench interfaces install clean
+.PHONY: setup demo test bench interfaces install clean lock
 
 $(PY):
 	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' || { \
@@ -27,8 +27,8 @@ $(PY):
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 
-$(VENV)/.deps-stamp: requirements.txt | $(PY)
-	$(PY) -m pip install -q -r requirements.txt
+$(VENV)/.deps-stamp: requirements.txt constraints.txt | $(PY)
+	$(PY) -m pip install -q -r requirements.txt -c constraints.txt
 	touch $@
 
 INTERFACE_SRC := $(wildcard interfaces/*/msg/*.msg interfaces/*/srv/*.srv interfaces/*/CMakeLists.txt \
@@ -57,6 +57,13 @@ test: setup
 
 bench: setup
 	$(PY) benchmarks/run_all.py
+
+# Re-resolve the newest versions in a scratch venv and write them to constraints.txt.
+lock:
+	rm -rf build/lock-venv && $(PYTHON) -m venv build/lock-venv
+	build/lock-venv/bin/pip install -q --upgrade pip && build/lock-venv/bin/pip install -q -r requirements.txt
+	{ head -2 constraints.txt; build/lock-venv/bin/pip freeze | grep -viE '^(tf2-msgs|humfall)'; } > constraints.tmp
+	mv constraints.tmp constraints.txt && rm -rf build/lock-venv
 
 clean:
 	rm -rf build $(VENV) *.egg-info
