@@ -1,16 +1,18 @@
 """Whole-suite speed: real-time factor in lockstep and free-run, and per-hop latency.
 
 Starts `humfall up` (every node its own process, recorder included) on
-standing_quiet in a private ROS domain on localhost, once in lockstep and once
-free-running as fast as it can (and once at a 1.0 target), and reads the
-sim/wall times from result.json. During the lockstep run a probe node in this
-process timestamps, per control tick, the arrival of joint_states (bridge out),
-centroidal_state (estimator out) and joint_command/locomotion (controller out),
-and of the next tick's joint_states (bridge stepped): the three hops of
-sim -> estimator -> controller -> sim. The probe's own delivery delay is in
-every timestamp alike, so differences are the hops. Prints one JSON object.
+standing_quiet in a private ROS domain on localhost: free-running as fast as it
+can (``--repeats`` times, since the figure moves with the machine's load), once
+at a 1.0 target and once in lockstep. Reads the sim/wall times and each node's
+CPU from result.json; a 1 s run gives the start-up CPU to subtract, so the
+per-node figure is CPU per simulated second. During the lockstep run a probe
+node in this process timestamps, per control tick, the arrival of joint_states
+(bridge out), centroidal_state (estimator out), joint_command/locomotion
+(controller out) and the next tick's joint_states (bridge stepped): the three
+hops of sim -> estimator -> controller -> sim. The probe's own delivery delay
+is in every timestamp alike, so differences are the hops. Prints one JSON object.
 
-    python benchmarks/bench_suite.py [--seconds 10] [--control-rate 500]
+    python benchmarks/bench_suite.py [--seconds 10] [--control-rate 500] [--repeats 3]
 """
 from __future__ import annotations
 
@@ -22,6 +24,8 @@ import subprocess
 import sys
 import tempfile
 import time
+
+import numpy as np
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -54,7 +58,6 @@ def up(seconds: float, rate: float, lockstep: bool, rtf: float, runs: pathlib.Pa
 
 
 def run_probe(proc) -> dict:
-    import numpy as np
     import rclpy
     from humfall_interfaces.msg import CentroidalState
     from sensor_msgs.msg import JointState
@@ -101,6 +104,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--control-rate", type=float, default=500.0)
+    ap.add_argument("--repeats", type=int, default=3, help="free-run repeats (the RTF varies with the machine's load)")
     a = ap.parse_args()
     env = dict(os.environ)
     env["ROS_DOMAIN_ID"] = str(60 + os.getpid() % 30)
@@ -109,13 +113,26 @@ def main() -> int:
     os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp())
     with tempfile.TemporaryDirectory() as tmp:
         runs = pathlib.Path(tmp) / "runs"
+        load_before = os.getloadavg()[0]
+        free = [up(a.seconds, a.control_rate, False, 0.0, runs, env) for _ in range(a.repeats)]
+        # a 1 s run measures each node's start-up CPU (imports, model, discovery), so the
+        # per-node figure below is the CPU of running the sim, per simulated second
+        short = up(1.0, a.control_rate, False, 0.0, runs, env)
+        rtfs = sorted(r["real_time_factor"] for r in free)
+        per_sim_s = {n: round(float(np.median([(r["node_cpu_s"][n] - short["node_cpu_s"][n]) / (a.seconds - 1.0)
+                                               for r in free])), 3) for n in short["node_cpu_s"]}
         res = {
             "benchmark": "suite",
             "cpu_count": os.cpu_count(),
+            "load_average_1min_before": round(load_before, 2),
             "control_rate_hz": a.control_rate,
-            "lockstep": up(a.seconds, a.control_rate, True, 1.0, runs, env, probe=True),
-            "free_run_max": up(a.seconds, a.control_rate, False, 0.0, runs, env),
+            "free_run_max": {"real_time_factor_median": rtfs[len(rtfs) // 2], "real_time_factor_min": rtfs[0],
+                             "real_time_factor_max": rtfs[-1],
+                             "uncontrolled_ticks": [r["uncontrolled_ticks"] for r in free],
+                             "ticks": free[0]["ticks"], "runs": free},
+            "cpu_cores_per_sim_second": {**per_sim_s, "total": round(sum(per_sim_s.values()), 3)},
             "free_run_target_1": up(a.seconds, a.control_rate, False, 1.0, runs, env),
+            "lockstep": up(a.seconds, a.control_rate, True, 1.0, runs, env, probe=True),
         }
     print(json.dumps(res, indent=2))
     return 0

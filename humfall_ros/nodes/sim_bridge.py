@@ -277,7 +277,7 @@ class SimBridge(Node):
     def _publish_tf(self, static: bool = False) -> None:
         """Ground-truth link poses as TF: odom -> waist and parent -> child per URDF joint."""
         w = self.world
-        q, _ = w.pinocchio_state()
+        q = w.pinocchio_configuration()
         self.model.forward(q)
         st = stamp_of(w.time)
         links = self.model.link_transforms(fixed=static)

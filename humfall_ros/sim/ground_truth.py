@@ -35,7 +35,7 @@ class GroundTruth:
         w = self.world
         if self.metrics.initial_cop is None and w.time >= self.first_push_time - 1e-9:
             self.metrics.set_reference_cop(w.ground_truth_cop())
-        q, _ = w.pinocchio_state()
+        q = w.pinocchio_configuration()
         dist = w.distance_to(self.target.name) if self.target is not None else None
         self.metrics.update(w.time, w.model.com(q), w.trunk_tilt(), w.base_state()[0][2], dist,
                             w.non_foot_contact())

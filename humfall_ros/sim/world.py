@@ -314,6 +314,11 @@ class SimWorld:
         qj, vj, _ = self.joint_states()
         return self.model.configuration(pos, orn, qj), self.model.velocity(lin, ang, orn, vj)
 
+    def pinocchio_configuration(self) -> np.ndarray:
+        """Ground-truth q in the model's convention (no velocity: cheaper, for per-tick metrics)."""
+        pos, orn, _, _ = self.base_state()
+        return self.model.configuration(pos, orn, self.joint_states()[0])
+
     def robot_link_positions(self) -> np.ndarray:
         """URDF-frame positions of all robot links (n x 3), for fall geometry."""
         pts = [self._link_frame(-1)[0]]
