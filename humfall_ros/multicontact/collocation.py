@@ -70,10 +70,10 @@ class OptConfig:
     constr_viol_tol: float = 1e-5
     feasibility_tol: float = 1e-4  # our own check of the returned solution
     root_z_min: float = 0.0
-    acc_max: float = 100.0          # rad/s^2 or m/s^2 at the knots
+    acc_max: float = 300.0          # rad/s^2 or m/s^2 at the knots (100: post-impact children could not stop)
     force_max_mg: float = 3.0       # contact force component cap, in units of M g
     knee_margin: float = 0.05      # rad, lower knee bound used by the NLP (URDF lower limit is 0)
-    post_impact_velocity_limits: bool = False  # eq. 6 velocity limits on the post-impact joint velocities too
+    post_impact_velocity_limits: bool = True  # eq. 6 velocity limits on the post-impact joint velocities too
     elbow_margin: float = 0.0      # rad, upper elbow bound -elbow_margin (URDF: 0, the straight arm); 0.1 measured worse
     contact_pos_tol: float = 0.002   # m, eq. 3 at the knots (drift bound)
     contact_vel_tol: float = 0.02    # m/s, eq. 4 at the knots
@@ -81,7 +81,7 @@ class OptConfig:
     # Objective of a transition that adds a contact: E_post + beta (E_pre - E_post).
     # beta = 1: pre-impact energy (the paper, Sec. III-A); beta = 0: the energy
     # the child node starts with.
-    impact_dissipation_weight: float = 0.2  # s, cap of one IPOPT run (the tree also checks its budget)
+    impact_dissipation_weight: float = 0.0
 
     @staticmethod
     def from_dict(d: dict) -> "OptConfig":

@@ -54,6 +54,8 @@ class MulticontactPlanner(Node):
             "impact_dissipation_weight": p.declare(
                 "impact_dissipation_weight", "transition objective E_post + w (E_pre - E_post); 1: paper", (0.0, 1.0)),
             "knee_margin": p.declare("knee_margin", "lower knee bound of the NLP (rad)", (0.0, 1.0)),
+            "post_impact_velocity_limits": p.declare(
+                "post_impact_velocity_limits", "eq. 6 joint velocity limits on the post-impact state (eq. 10)"),
             "max_iter": p.declare("max_iter", "IPOPT iteration cap", (1, 100000)),
             "tol": p.declare("tol", "IPOPT tolerance", (1e-12, 1.0)),
             "nlp_max_wall_time": p.declare("nlp_max_wall_time", "wall-time cap of one NLP (s)", (0.1, 3600.0)),
