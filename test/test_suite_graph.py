@@ -54,6 +54,8 @@ def test_up_standing_push_falls_onto_the_target_and_records_everything(run_up):
     # the robot for RViz/Foxglove: URDF once, fixed joints once, moving joints at 50 Hz
     assert recorded["/robot_description"] == 1 and recorded["/tf_static"] == 1
     assert recorded["/tf"] >= int(2.5 * 50)
+    # ground truth at its own (lower) rate by default: every 5th tick at 100 Hz
+    assert int(2.5 * 100) <= published["/ground_truth/odom"] <= published["/joint_states"] // 4
     for topic, n in published.items():
         assert recorded.get(topic) == n, topic
     # the estimator answered every tick (0 .. N-1) the controller needed
@@ -204,6 +206,7 @@ def test_estimator_can_run_on_ground_truth_for_comparison(run_up):
     assert len(coms) >= 500  # it answered every tick, with ground_truth/odom in its sync set
     odom = [m.ros_msg.pose.pose.position for m in read_ros2_messages(r["bag"], topics=["/ground_truth/odom"])]
     assert abs(odom[-1].z - 0.73) < 0.02 and all(0.7 < c.z < 0.8 for c in coms)
+    assert len(odom) >= 500  # the launcher raised ground_truth_rate to the control rate for it
 
 
 def test_bridge_mux_switches_by_priority_and_reports_it(in_ros_domain):
