@@ -312,6 +312,12 @@ def summary(r: dict) -> str:
              f"  min distance to target: {f(r['min_target_distance_m'], ' m')}",
              f"  sim {f(r['sim_duration_s'], ' s')} in {f(r['wall_time_s'], ' s')} wall",
              f"  bag: {r['bag']}"]
+    m = r.get("metrics") or {}
+    if m.get("bridge_wall_time_s") and r.get("sim_duration_s"):
+        rtf = r["sim_duration_s"] / m["bridge_wall_time_s"]
+        late = m.get("uncontrolled_ticks")
+        lines.insert(-1, f"  real-time factor {rtf:.2f}" + (f"; {late} of {m.get('ticks')} ticks without a live "
+                                                             "controller command" if late else ""))
     if r.get("plots"):
         lines.append(f"  plots: {', '.join(pathlib.Path(p).name for p in r['plots'])}")
     return "\n".join(lines)
