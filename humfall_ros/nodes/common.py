@@ -85,6 +85,15 @@ def stamp_key(stamp) -> int:
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
+def shutting_down() -> bool:
+    """True once SIGINT/SIGTERM has shut the context down.
+
+    A take or publish that was under way at that moment raises a plain RuntimeError
+    or RCLError (not ExternalShutdownException): that is a clean stop, not a crash.
+    """
+    return not rclpy.ok()
+
+
 def run_node(factory: Callable[[], Node], args=None, use_sim_time: bool = True,
              executor_factory: Callable[[], Any] | None = None) -> int:
     """Standard main(): init, spin, clean shutdown on SIGINT/SIGTERM, try/finally."""
@@ -108,6 +117,9 @@ def run_node(factory: Callable[[], Node], args=None, use_sim_time: bool = True,
             executor.spin()
     except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
         pass
+    except Exception:  # noqa: BLE001
+        if not shutting_down():
+            raise
     finally:
         if node is not None:
             close = getattr(node, "close", None)
@@ -137,9 +149,13 @@ class HotLoop:
     what this expects, it falls back to plain ``executor.spin()``.
     """
 
-    def __init__(self, node: Node, service_period: float = 0.05):
+    def __init__(self, node: Node, service_period: float = 0.05, on_batch: Callable[[], None] | None = None):
         self.node = node
         self.service_period = service_period
+        # called after each batch of taken messages: a node that fell behind (free-run on a
+        # busy machine) can then answer only the newest tick instead of every stale one
+        self.on_batch = on_batch
+        self.batching = False  # True while spin() runs its own loop (and so calls on_batch)
         self.subs: list[tuple[Any, type, Callable]] = []
 
     def subscribe(self, msg_type, topic: str, callback: Callable, qos=None):
@@ -171,6 +187,7 @@ class HotLoop:
             return
         ctx = self.node.context
         next_service = 0.0
+        self.batching = True
         timeout_ns = int(self.service_period * 1e9)
         try:
             while ctx.ok():
@@ -183,11 +200,15 @@ class HotLoop:
                     for sub, _, _ in self.subs:
                         wait_set.add_subscription(sub.handle)
                     wait_set.wait(timeout_ns)
-                self.take_all()
+                taken = self.take_all()
                 now = time.monotonic()
                 if now >= next_service:
-                    executor.spin_once(timeout_sec=0.0)
+                    executor.spin_once(timeout_sec=0.0)  # may run a hot callback too
                     next_service = now + self.service_period
+                    taken += 1
+                if taken and self.on_batch is not None:
+                    self.on_batch()
         except (AttributeError, TypeError) as e:  # rclpy internals changed
             self.node.get_logger().warning(f"hot loop disabled ({e}); spinning the executor")
+            self.batching = False
             executor.spin()

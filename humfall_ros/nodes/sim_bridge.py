@@ -38,7 +38,8 @@ from tf2_msgs.msg import TFMessage
 
 from humfall_ros import scenario as scenario_mod
 from humfall_ros.control.mux import CommandMux, JointCommand, validate_command
-from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_CLOCK, QOS_LATCHED, QOS_RELIABLE, Params, stamp_key
+from humfall_ros.nodes.common import (NO_PUB_EVENTS, QOS_CLOCK, QOS_LATCHED, QOS_RELIABLE, Params, shutting_down,
+                                      stamp_key)
 from humfall_ros.sim.ground_truth import GroundTruth
 from humfall_ros.sim.world import STANDING_POSTURE, Box, SimWorld, validate_push
 
@@ -393,10 +394,13 @@ class SimBridge(Node):
         rtf_wall, rtf_sim = wall0, sim0
         next_service = wall0
         service_period = self.service_period
+        first_tick = True
         while rclpy.ok():
             self.answered = set()  # commands for this tick can only follow its sensors
             self.publish_sensors()
-            if self.lockstep:
+            # free-run too waits for the first tick's commands: controllers that are still
+            # warming up (first pinocchio call, matching) would otherwise miss the start
+            if self.lockstep or first_tick:
                 waited_since = last_send = time.monotonic()
                 while rclpy.ok() and not set(self.lockstep_sources) <= self.answered:
                     self.take_commands()
@@ -414,6 +418,9 @@ class SimBridge(Node):
                                                 f"{self.stall_timeout:.0f} s; stepping without it")
                         self.stalled_ticks += 1
                         break
+                if first_tick:  # time (and the real-time factor) starts once the loop is closed
+                    first_tick = False
+                    wall0 = rtf_wall = time.monotonic()
             else:
                 self.take_commands()
                 if not self._can_take:
@@ -443,13 +450,11 @@ class SimBridge(Node):
         if self.done:
             return
         self.done = True
-        if rclpy.ok():
-            self.publish_sensors()  # the final state, so every consumer sees the last tick
+        self._unless_shut_down(self.publish_sensors)  # the final state, so every consumer sees the last tick
         r = self.result()
         r["bridge_wall_time_s"] = round(wall, 3)
         r["bridge_cpu_s"] = round(time.process_time(), 3)
-        if rclpy.ok():
-            self.pub_result.publish(String(data=json.dumps(r)))
+        self._unless_shut_down(lambda: self.pub_result.publish(String(data=json.dumps(r))))
         if self.metrics_file:
             with open(self.metrics_file, "w") as f:
                 json.dump(r, f, indent=2)
@@ -457,6 +462,17 @@ class SimBridge(Node):
         if self.uncontrolled_ticks and self.sources:
             self.get_logger().warning(f"{self.uncontrolled_ticks} of {r['ticks']} ticks had no live joint command "
                                       f"(controllers late or absent); the robot held its last targets")
+
+    @staticmethod
+    def _unless_shut_down(publish) -> None:
+        """Publish while the context is up; SIGINT may shut it down at any moment (even mid-call)."""
+        if not rclpy.ok():
+            return
+        try:
+            publish()
+        except Exception:  # noqa: BLE001
+            if not shutting_down():
+                raise
 
     def close(self) -> None:
         self.world.close()
@@ -483,6 +499,9 @@ def main(args=None) -> int:
             executor.spin_once(timeout_sec=0.05)
     except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
         pass
+    except Exception:  # noqa: BLE001 - a take/publish cut short by shutdown is a clean stop
+        if not shutting_down():
+            raise
     finally:
         if node is not None:
             if not node.done and getattr(node, "stalled_ticks", None) is not None and node.metrics_file:

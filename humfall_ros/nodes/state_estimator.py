@@ -21,6 +21,7 @@ from humfall_ros.model.humanoid import SIDES, load_model
 from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, HotLoop, Params, run_node, stamp_key
 
 SIDE_TOPIC = {"l": "left_foot/wrench", "r": "right_foot/wrench"}
+MAX_PENDING_TICKS = 100  # incomplete ticks kept while waiting for their last sensor message
 
 
 
@@ -64,7 +65,7 @@ class StateEstimator(Node):
         self.pub_poly = publisher(PolygonStamped, "centroidal_state/support_polygon")
         self.pub_markers = publisher(MarkerArray, "centroidal_state/markers")
         # one tick's sensor messages arrive together: the hot loop takes them in one go
-        self.hot_loop = sensors = HotLoop(self)
+        self.hot_loop = sensors = HotLoop(self, on_batch=self._on_batch)
         sensors.subscribe(JointState, "joint_states", lambda m: self._add("js", m))
         sensors.subscribe(Imu, "imu", lambda m: self._add("imu", m))
         for s, topic in SIDE_TOPIC.items():
@@ -85,17 +86,33 @@ class StateEstimator(Node):
             self.estimator.reset()
             self.pending.clear()
             self.last_key, self.last_msg = -1, None
-        slot = self.pending.setdefault(k, {})
-        slot[kind] = msg
-        if self.needed <= slot.keys():
-            for old in [x for x in self.pending if x <= k]:
-                del self.pending[old]
-            try:
-                self._estimate(k, slot)
-            except Exception as e:  # noqa: BLE001 - a bad message must never kill the estimator
-                self.bad_messages += 1
-                self.get_logger().error(f"estimate failed at stamp {k}: {e}", throttle_duration_sec=1.0)
-            self.last_key = k
+        self.pending.setdefault(k, {})[kind] = msg
+        if not self.hot_loop.batching:  # callbacks from a plain executor: answer at once
+            self._on_batch()
+
+    def _on_batch(self) -> None:
+        """Estimate the newest tick whose sensor messages are all here.
+
+        In lockstep that is the only one. In free-run on a busy machine several may
+        have queued up: the older ones are stale, and answering each would only put
+        the controller further behind, so they are dropped (as are incomplete ones).
+        """
+        complete = [k for k, slot in self.pending.items() if self.needed <= slot.keys()]
+        if not complete:
+            if len(self.pending) > MAX_PENDING_TICKS:  # a sensor topic went quiet: do not grow forever
+                for old in sorted(self.pending)[:-MAX_PENDING_TICKS]:
+                    del self.pending[old]
+            return
+        k = max(complete)
+        slot = self.pending[k]
+        for old in [x for x in self.pending if x <= k]:
+            del self.pending[old]
+        try:
+            self._estimate(k, slot)
+        except Exception as e:  # noqa: BLE001 - a bad message must never kill the estimator
+            self.bad_messages += 1
+            self.get_logger().error(f"estimate failed at stamp {k}: {e}", throttle_duration_sec=1.0)
+        self.last_key = k
 
     def _estimate(self, k: int, slot: dict) -> None:
         js: JointState = slot["js"]
