@@ -2,6 +2,7 @@
 
 Each test runs in its own ROS_DOMAIN_ID on localhost (conftest.in_ros_domain).
 """
+import json
 import math
 import pathlib
 import subprocess
@@ -11,6 +12,7 @@ import time
 import pytest
 
 from humfall_ros import launch
+from humfall_ros.nodes.common import stamp_key
 
 from conftest import python_node_cmd
 
@@ -266,3 +268,25 @@ def test_bridge_mux_switches_by_priority_and_reports_it(in_ros_domain):
         rclpy.try_shutdown()
         bridge.terminate()
         bridge.wait(timeout=20)
+
+
+def test_free_run_closes_the_loop_from_the_first_tick(run_up):
+    status, r = run_up("standing_quiet", "duration=1.0", "sim.lockstep=false", "sim.real_time_factor=1.0")
+    assert status == 0 and r["fell"] is False and r["metrics"]["ticks"] == 500
+    from mcap_ros2.reader import read_ros2_messages
+
+    stamps = [stamp_key(m.ros_msg.header.stamp) for m in read_ros2_messages(r["bag"],
+                                                                           topics=["/joint_command/locomotion"])]
+    assert stamps and min(stamps) == 0  # time started only once the controller had answered tick 0
+
+
+def test_free_run_bridge_alone_starts_without_its_controllers(ros_env, tmp_path):
+    metrics = tmp_path / "metrics.json"
+    bridge = subprocess.run(python_node_cmd("humfall_ros.nodes.sim_bridge", "--ros-args", "-p", "lockstep:=false",
+                                            "-p", "start_timeout:=0.5", "-p", "end_time:=0.2",
+                                            "-p", f"metrics_file:={metrics}"),
+                            env=ros_env, capture_output=True, text=True, timeout=120)
+    assert bridge.returncode == 0, bridge.stderr[-2000:]
+    assert "starting without it" in bridge.stderr
+    r = json.loads(metrics.read_text())
+    assert r["sim_duration_s"] == pytest.approx(0.2) and r["uncontrolled_ticks"] == r["ticks"] == 100

@@ -10,7 +10,8 @@ until every source in ``lockstep_sources`` has sent its command stamped t_k
 Results then depend only on the commands, never on CPU load. If nothing moves
 for ``retransmit_period`` wall seconds (start-up discovery), the tick's sensors
 are sent again; downstream nodes answer a repeated stamp with their last output.
-Free-run: steps at ``real_time_factor`` x real time with the freshest commands.
+Free-run: steps at ``real_time_factor`` x real time with the freshest commands,
+once the lockstep sources have answered the first tick (or ``start_timeout`` passed).
 """
 from __future__ import annotations
 
@@ -78,6 +79,8 @@ class SimBridge(Node):
                                            "the tick's sensors are sent again", (0.05, 60.0))
         self.stall_timeout = P.declare("stall_timeout", "wall seconds to wait for a lockstep command before "
                                        "stepping without it (logged)", (1.0, 3600.0))
+        self.start_timeout = P.declare("start_timeout", "free-run: wall seconds to wait for the lockstep sources' "
+                                       "command of the first tick before time starts without them", (0.0, 600.0))
         self.end_time = P.declare("end_time", "sim time at which the run ends (0: never)", (0.0, 36000.0))
         self.wait_for_nodes = _names(P.declare("wait_for_nodes", "nodes (e.g. the recorder) that must subscribe to "
                                              "joint_states before time starts"))
@@ -412,6 +415,11 @@ class SimBridge(Node):
                         self.publish_sensors()
                         last_send = now
                         executor.spin_once(timeout_sec=0.0)
+                    if not self.lockstep and now - waited_since > self.start_timeout:
+                        missing = sorted(set(self.lockstep_sources) - self.answered)
+                        self.get_logger().warning(f"free-run: no first command from {missing} after "
+                                                  f"{self.start_timeout:.0f} s; starting without it")
+                        break
                     if now - waited_since > self.stall_timeout:
                         missing = sorted(set(self.lockstep_sources) - self.answered)
                         self.get_logger().error(f"t={self.world.time:.3f}: no command from {missing} after "
