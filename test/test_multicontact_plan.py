@@ -2,13 +2,15 @@
 returned plan with pinocchio (no casadi in the checker)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from humfall_ros.multicontact import contacts as C
 from humfall_ros.multicontact.collocation import OptConfig
 from humfall_ros.multicontact.planner import FallPlanner, PlannerConfig
-from humfall_ros.multicontact.resim import dense_check, forward_resim
+from humfall_ros.multicontact.resim import dense_check, forward_resim, plan_check
 
 
 @pytest.fixture(scope="module")
@@ -59,13 +61,14 @@ def test_returned_plan_passes_independent_resimulation(plan10, planner):
     assert sim["local_q_error_max"] < 0.06, sim
     assert sim["local_force_error_max_mg"] < 0.2, sim
     assert sim["local_unilateral_violation_mg"] < 0.05, sim
-    print("re-simulation:", {k: round(v, 4) for k, v in {**dense, **sim}.items()}, "M g =", round(mg, 1))
+    print("re-simulation:", {k: (round(v, 4) if isinstance(v, float) else v) for k, v in {**dense, **sim}.items()},
+          "M g =", round(mg, 1))
 
 
 def test_infeasible_push_fails_clearly_within_budget():
     planner = FallPlanner(OptConfig(nlp_max_wall_time=3.0, max_iter=60), PlannerConfig())
     budget = 4.0
-    r = planner.plan({"kinetic_energy": 400.0, "direction": 1.0, "time_budget": budget})
+    r = planner.plan({"kinetic_energy": 160.0, "direction": 1.0, "time_budget": budget})
     assert not r["success"]
     assert "no solution" in r["reason"] and "deepest tree depth reached" in r["reason"]
     assert r["total_time_s"] < budget + 3.0 + 1.0  # at most one capped NLP past the budget
@@ -87,15 +90,38 @@ def test_seed_durations_first_then_retry_list_on_the_grid():
     assert OptConfig(max_seed_attempts=1).seed_durations() == d[:1]
 
 
-def test_50J_finds_a_plan_with_seed_retries(planner):
-    """50 J had no plan with one seed per NLP; the retry of the hand landing
-    (it ended above its start energy) finds a soft landing."""
-    r = planner.plan({"kinetic_energy": 50.0, "direction": 1.0, "time_budget": 90.0})
+def test_60J_hand_landing_keeps_post_impact_joint_speeds_within_limits(planner):
+    """60 J had no plan while the impact map (eq. 10) could throw the landing arm
+    to 2.6 v_max; with eq. 6 applied to the post-impact state the hand landing
+    is a plan, every node on the path starts within the joint speed limits, and
+    the plan passed the re-simulation acceptance check."""
+    r = planner.plan({"kinetic_energy": 60.0, "direction": 1.0, "time_budget": 90.0})
     assert r["success"], r["reason"]
     assert r["final_ke"] < planner.opt.cfg.eps_ke
-    assert len(r["contact_sequence"]) >= 2 and r["contact_sequence"][0] == "LF/RF"
+    seq = r["contact_sequence"]
+    assert seq[0] == "LF/RF" and len(seq) >= 2
+    assert any("LH" in m.split("/") or "RH" in m.split("/") for m in seq[1:])   # hand contact
+    vmax = planner.model.v_max
+    nodes = r["tree"]["nodes"]
+    path = r["tree"]["path"]
+    for i in path:
+        assert np.all(np.abs(np.asarray(nodes[i]["v"])[3:]) <= vmax + 1e-6), (i, nodes[i]["v"])
+    # an added contact: the child starts from the impact map's state, which the
+    # tree recomputes independently of the NLP's own post-impact variables
+    added = [i for i in path[1:] if nodes[i]["pre_impact_ke"] is not None]
+    assert added and all(nodes[i]["pre_impact_ke"] >= nodes[i]["ke"] - 1e-6 for i in added)
     log = r["tree"]["nlp_log"]
+    assert log[-1]["plan_check"] == "passed"
     assert all(len(e["attempt_log"]) == e["attempts"] >= 1 for e in log)
-    assert any(e["attempts"] > 1 for e in log)
     for e in log:   # every attempt reports IPOPT's return status
         assert all(isinstance(a["status"], str) and a["iterations"] >= 0 for a in e["attempt_log"])
+
+
+def test_plan_check_rejects_a_plan_the_dynamics_do_not_reproduce(plan10, planner):
+    model = planner.model
+    env = plan10["env"]
+    seg = plan10["segments"][0]
+    assert plan_check(model, [seg], env, 0.1, 1.0) is None
+    bad = dataclasses.replace(seg, u=-seg.u)     # same knots, wrong torques
+    reason = plan_check(model, [bad], env, 0.1, 1.0)
+    assert reason is not None and "re-simulation" in reason

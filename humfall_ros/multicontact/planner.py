@@ -21,6 +21,7 @@ from humfall_ros.multicontact.collocation import OptConfig, TrajectoryOptimizer
 from humfall_ros.multicontact.initial_state import nominal_configuration, velocity_for_energy
 from humfall_ros.multicontact.model import EXTREMITIES, FEET, PlanarModel, load_model
 from humfall_ros.multicontact.modes import Environment, mode_label, parse_mode
+from humfall_ros.multicontact.resim import plan_check
 from humfall_ros.multicontact.tree import SearchResult, search
 
 
@@ -34,6 +35,10 @@ class PlannerConfig:
     velocity_tolerance: float = 0.01   # m/s, |J v| of a contact in the given state
     penetration_tolerance: float = 0.001  # m
     symmetry_cut: bool = True
+    # a stabilising plan is accepted only if the knot-to-knot re-simulation
+    # (resim.plan_check) stays within these; <= 0 disables the check
+    check_q_error_max: float = 0.1         # rad or m
+    check_force_error_max_mg: float = 1.0  # contact force correction, units of M g
     stance: dict = dataclasses.field(default_factory=dict)
 
     @staticmethod
@@ -157,8 +162,13 @@ class FallPlanner:
             vr = validate(self.model, req, self.cfg)
         except InvalidRequest as e:
             return failure(f"invalid request: {e}", time.perf_counter() - t0)
+        check = None
+        if self.cfg.check_q_error_max > 0:
+            def check(segments, env=vr.env):
+                return plan_check(self.model, segments, env, self.cfg.check_q_error_max,
+                                  self.cfg.check_force_error_max_mg)
         res = search(self.opt, vr.q, vr.v, vr.mode, vr.env, max_depth=self.cfg.max_depth,
-                     time_budget=vr.time_budget, symmetry_cut=self.cfg.symmetry_cut)
+                     time_budget=vr.time_budget, symmetry_cut=self.cfg.symmetry_cut, check_plan=check)
         out = result_dict(self.model, res, vr)
         out["total_time_s"] = time.perf_counter() - t0
         return out
@@ -166,7 +176,7 @@ class FallPlanner:
 
 def failure(reason: str, elapsed: float = 0.0) -> dict:
     return {"success": False, "reason": reason, "contact_sequence": [], "node_ke": [], "final_ke": float("nan"),
-            "segments": [], "nlp_times_s": [], "nlp_cpu_s": [], "total_time_s": elapsed, "nlp_count": 0, "tree_nodes": 0,
+            "segments": [], "nlp_times_s": [], "nlp_cpu_s": [], "nlp_build_s": [], "total_time_s": elapsed, "nlp_count": 0, "tree_nodes": 0,
             "deepest_depth": 0, "tree": None, "initial_ke": float("nan")}
 
 
@@ -177,6 +187,7 @@ def result_dict(model: PlanarModel, res: SearchResult, vr: ValidRequest) -> dict
         "final_ke": res.final_ke, "initial_ke": model.kinetic_energy(vr.q, vr.v),
         "segments": res.segments(), "nlp_times_s": [e["nlp_time"] for e in res.nlp_log],
         "nlp_cpu_s": [e["cpu_time"] for e in res.nlp_log],
+        "nlp_build_s": [e["build_time"] for e in res.nlp_log],
         "total_time_s": res.total_time, "nlp_count": len(res.nlp_log), "tree_nodes": len(res.nodes),
         "deepest_depth": res.deepest_depth, "tree": res.tree_dict(with_trajectories=False),
         "search": res, "env": vr.env, "wall_x": vr.env.wall_x,

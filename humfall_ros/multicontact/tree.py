@@ -42,12 +42,13 @@ class TreeNode:
     edge: Segment | None = None          # transition from the parent
     self_motion: Segment | None = None
     status: str = "frontier"             # frontier | expanded | terminal | unexpanded
+    rejected: str | None = None          # why a stabilising self-motion was not accepted (re-simulation)
     children: list = dataclasses.field(default_factory=list)
 
     def to_dict(self, with_trajectories: bool = True) -> dict:
         d = {"id": self.id, "parent": self.parent, "depth": self.depth, "mode": mode_label(self.mode),
              "ke": self.ke, "pre_impact_ke": self.pre_impact_ke, "min_normal_impulse": self.min_normal_impulse,
-             "status": self.status, "children": list(self.children),
+             "status": self.status, "children": list(self.children), "rejected": self.rejected,
              "q": self.q.tolist(), "v": self.v.tolist()}
         for name, seg in (("edge", self.edge), ("self_motion", self.self_motion)):
             if seg is None:
@@ -56,6 +57,7 @@ class TreeNode:
                 d[name] = seg.to_dict()
             else:
                 d[name] = {"success": seg.success, "final_ke": seg.final_ke, "nlp_time": seg.nlp_time,
+                    "build_time": seg.build_time,
                            "duration": float(seg.time[-1]), "status": seg.status}
         return d
 
@@ -103,9 +105,13 @@ def _mirror_mode(mode: Mode) -> Mode:
 
 def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
            eps_ke: float | None = None, max_depth: int = 4, time_budget: float = 60.0,
-           symmetry_cut: bool = True) -> SearchResult:
+           symmetry_cut: bool = True, check_plan=None) -> SearchResult:
     """Algorithm 1: grow the tree by least kinetic energy until a node's
-    self-motion ends with E_K < eps_KE, the frontier empties or the budget ends."""
+    self-motion ends with E_K < eps_KE, the frontier empties or the budget ends.
+
+    ``check_plan(segments) -> reason | None``, when given, must accept the
+    path's segments before a node is declared terminal; a rejected node is
+    expanded like any other (its reason is kept in the node and the log)."""
     model = opt.model
     eps_ke = opt.cfg.eps_ke if eps_ke is None else eps_ke
     t0 = time.perf_counter()
@@ -129,6 +135,7 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         log.append({"kind": kind, "node": node.id, "mode": mode_label(node.mode),
                     "target": mode_label(target) if target is not None else mode_label(node.mode),
                     "success": seg.success, "final_ke": seg.final_ke, "nlp_time": seg.nlp_time,
+                    "build_time": seg.build_time,
                     "cpu_time": seg.cpu_time, "iterations": seg.iterations, "attempts": seg.attempts, "status": seg.status,
                     "objective": seg.objective, "attempt_log": seg.attempt_log})
 
@@ -146,14 +153,21 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         d.self_motion = y
         record("self_motion", d, y)
         if y.success and y.final_ke < eps_ke:                                  # lines 6-10
-            d.status = "terminal"
             path = []
             i = d.id
             while i is not None:
                 path.append(i)
                 i = nodes[i].parent
-            return result(True, f"stabilised at depth {d.depth}: final kinetic energy "
-                                f"{y.final_ke:.3g} J < {eps_ke:g} J", path[::-1])
+            path = path[::-1]
+            rejected = None
+            if check_plan is not None:
+                rejected = check_plan([nodes[i].edge for i in path[1:]] + [y])
+                log[-1]["plan_check"] = rejected or "passed"
+            if rejected is None:
+                d.status = "terminal"
+                return result(True, f"stabilised at depth {d.depth}: final kinetic energy "
+                                    f"{y.final_ke:.3g} J < {eps_ke:g} J", path)
+            d.rejected = rejected
         d.status = "expanded"
         if d.depth >= max_depth:
             continue

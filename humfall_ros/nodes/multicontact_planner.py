@@ -43,7 +43,9 @@ class MulticontactPlanner(Node):
             "seed_retry_durations": tuple(float(x) for x in p.declare("seed_retry_durations",
                                                     "seed durations tried after the first, in order (s)")),
             "retry_if_energy_rises": p.declare("retry_if_energy_rises",
-                                               "retry a converged contact-adding transition ending above its start KE"),
+                                               "retry a converged contact-adding transition keeping too much KE"),
+            "retry_energy_fraction": p.declare("retry_energy_fraction",
+                                               "retry threshold: objective above this fraction of the start KE", (0.0, 10.0)),
             "eps_ke": p.declare("eps_ke", "stationary kinetic energy eps_KE (J)", (1e-6, 100.0)),
             "eps_cl": p.declare("eps_cl", "clearance of non-contact points eps_cl (m)", (0.0, 0.5)),
             "mu": p.declare("mu", "friction coefficient", (0.0, 2.0)),
@@ -66,6 +68,12 @@ class MulticontactPlanner(Node):
             "max_time_budget": p.declare("max_time_budget", "largest budget a request may ask (s)", (0.1, 36000.0)),
             "max_kinetic_energy": p.declare("max_kinetic_energy", "largest initial kinetic energy (J)", (0.0, 1e5)),
             "symmetry_cut": p.declare("symmetry_cut", "skip mirror-image neighbours of symmetric nodes"),
+            "check_q_error_max": p.declare("check_q_error_max",
+                                           "re-simulation acceptance: knot-to-knot error (rad or m; <= 0: off)",
+                                           (-1.0, 100.0)),
+            "check_force_error_max_mg": p.declare("check_force_error_max_mg",
+                                                  "re-simulation acceptance: contact force correction (M g)",
+                                                  (0.0, 1000.0)),
         }
         stance = {k: p.declare(f"stance_{k}", f"nominal stance {k} (rad)", (-3.2, 3.2))
                   for k in ("hip_pitch", "knee", "shoulder_pitch", "elbow")}
