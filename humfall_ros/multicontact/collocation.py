@@ -16,8 +16,13 @@ Constraints: eq. 3 (contact rows at zero distance for the mode, clearance
 eps_cl for everything else, a ramp from the initial distance for points that
 start closer), eq. 4 (contact velocities zero), eq. 5 (friction cone, linear in
 the planar case), eq. 6 (joint, velocity and torque limits from the URDF).
-Objective eq. 9: kinetic energy at the last knot (pre-impact for an added
-contact, as in Sec. III-A), plus a tiny torque regulariser that only breaks ties.
+Objective eq. 9: kinetic energy at the last knot, plus a tiny torque
+regulariser that only breaks ties. For an added contact the impact map (eq. 10)
+is part of the NLP (post-impact velocity and impulse are variables) and the
+objective blends pre- and post-impact energy (``impact_dissipation_weight``;
+Sec. III-A uses the pre-impact one, our default the post-impact one), with
+eq. 6 applied to the post-impact velocities too: they start the child's
+segments (docs/multicontact.md has the measurements behind both choices).
 
 Speed: each NLP structure (kind, mode, target, environment shape, Nd) is built
 once as a casadi SX graph and an IPOPT instance with exact Hessians, and cached.

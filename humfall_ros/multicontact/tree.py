@@ -5,13 +5,15 @@ edges hold the transition trajectory from the parent. The frontier is a
 priority queue on kinetic energy. The whole tree is kept and serialisable to
 JSON for inspection and plotting (Fig. 1 style).
 
-Three additions to the paper's algorithm, documented in docs/multicontact.md:
-no edge back to the parent's mode (it undoes the edge that led to the node),
-a wall-clock budget (checked before every NLP; on expiry the search stops with
-the deepest depth reached), and a symmetry cut: the planar model's left and
-right limbs are identical, so when a node's state and mode are left/right
+Four additions to the paper's algorithm, documented in docs/multicontact.md:
+no edge that removes the contact the parent edge just added (it undoes that
+edge), a wall-clock budget (checked before every NLP; on expiry the search
+stops with the deepest depth reached), a symmetry cut (the planar model's left
+and right limbs are identical, so when a node's state and mode are left/right
 symmetric, a neighbour that is the mirror image of one already tried is
-skipped (same NLP up to relabelling).
+skipped: same NLP up to relabelling), and an optional acceptance check of a
+stabilising path (``check_plan``, the planner passes the knot-to-knot
+re-simulation) before a node is declared terminal.
 """
 from __future__ import annotations
 
@@ -206,4 +208,7 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
             d.children.append(child.id)
             deepest = max(deepest, child.depth)
             heapq.heappush(frontier, (child.ke, next(counter), child.id))     # line 20
+    if time.perf_counter() >= deadline:   # the last NLPs were cut by the budget: not a complete search
+        return result(False, f"no solution within the time budget of {time_budget:.1f} s "
+                             f"(deepest tree depth reached: {deepest})", [])
     return result(False, f"no solution found: tree exhausted (deepest tree depth reached: {deepest})", [])
