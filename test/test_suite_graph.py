@@ -290,3 +290,15 @@ def test_free_run_bridge_alone_starts_without_its_controllers(ros_env, tmp_path)
     assert "starting without it" in bridge.stderr
     r = json.loads(metrics.read_text())
     assert r["sim_duration_s"] == pytest.approx(0.2) and r["uncontrolled_ticks"] == r["ticks"] == 100
+
+
+def test_sensor_noise_reaches_the_graph_and_the_robot_still_stands(run_up):
+    status, r = run_up("standing_quiet", "duration=0.5", "params.sim_bridge.noise_joint_position=0.002",
+                       "params.sim_bridge.noise_seed=3")
+    assert status == 0 and r["fell"] is False
+    import numpy as np
+    from mcap_ros2.reader import read_ros2_messages
+
+    q = np.array([m.ros_msg.position for m in read_ros2_messages(r["bag"], topics=["/joint_states"])])
+    # tick-to-tick jitter of a standing robot: ~1e-5 rad exact, ~sqrt(2) * 2e-3 with the noise
+    assert 0.002 < np.std(np.diff(q, axis=0)) < 0.005

@@ -39,9 +39,17 @@ from tf2_msgs.msg import TFMessage
 
 from humfall_ros import scenario as scenario_mod
 from humfall_ros.control.mux import CommandMux, JointCommand, validate_command
-from humfall_ros.nodes.common import (NO_PUB_EVENTS, QOS_CLOCK, QOS_LATCHED, QOS_RELIABLE, Params, shutting_down,
-                                      stamp_key)
+from humfall_ros.nodes.common import (
+    NO_PUB_EVENTS,
+    QOS_CLOCK,
+    QOS_LATCHED,
+    QOS_RELIABLE,
+    Params,
+    shutting_down,
+    stamp_key,
+)
 from humfall_ros.sim.ground_truth import GroundTruth
+from humfall_ros.sim.sensors import SensorNoise, Sensors
 from humfall_ros.sim.world import STANDING_POSTURE, Box, SimWorld, validate_push
 
 SIDE_TOPIC = {"l": "left_foot/wrench", "r": "right_foot/wrench"}
@@ -93,6 +101,12 @@ class SimBridge(Node):
                             "estimator's use_ground_truth mode needs control_rate)", (1.0, 10000.0))
         self.service_period = 1.0 / P.declare("service_rate", "how often (Hz, wall) services and parameters are "
                                               "served between ticks", (1.0, 1000.0))
+        noise = {f: P.declare(f"noise_{f}", f"std of the Gaussian noise on {what} (0: exact)", (0.0, 100.0))
+                 for f, what in (("joint_position", "joint positions, rad"), ("joint_velocity", "joint velocities, "
+                                 "rad/s"), ("imu_orientation", "the IMU attitude, rad"), ("gyro", "the gyro, rad/s"),
+                                 ("accelerometer", "the accelerometer, m/s^2"), ("force", "ankle forces, N"),
+                                 ("torque", "ankle torques, N m"))}
+        noise_seed = P.declare("noise_seed", "seed of the sensor noise (same seed, same noise)", (0, 2**31 - 1))
         unknown = set(self.lockstep_sources) - set(self.sources)
         if unknown:
             raise ValueError(f"lockstep_sources {sorted(unknown)} are not command_sources")
@@ -103,6 +117,7 @@ class SimBridge(Node):
             posture = {**STANDING_POSTURE, **self.scenario["robot"]["initial_posture"]}
         self.world = SimWorld(self.physics_rate, self.control_rate, friction=friction, initial_posture=posture)
         self.model = self.world.model
+        self.sensors = Sensors(self.world, SensorNoise(**noise, seed=noise_seed))
         self.joint_index = {n: i for i, n in enumerate(self.model.joint_names)}
         self._apply_scenario()
 
@@ -222,6 +237,7 @@ class SimBridge(Node):
 
     def _on_reset(self, req, resp):
         self.world.reset()
+        self.sensors.reset()
         self.mux.clear()
         self.answered = set()
         self._apply_scenario()
@@ -304,12 +320,13 @@ class SimBridge(Node):
         w = self.world
         st = stamp_of(w.time)
         self._pub(self.pub_clock, Clock(clock=st))
-        q, v, tau = w.joint_states()
+        r = self.sensors.read()
         js = self._js
         js.header.stamp = st
-        js.position, js.velocity, js.effort = q.tolist(), v.tolist(), tau.tolist()
+        js.position, js.velocity, js.effort = (r.joint_position.tolist(), r.joint_velocity.tolist(),
+                                               r.joint_effort.tolist())
         self._pub(self.pub_js, js)
-        orn, gyro, acc = w.imu()
+        orn, gyro, acc = r.imu_orientation, r.gyro, r.accelerometer
         imu = self._imu
         imu.header.stamp = st
         o, g, a = imu.orientation, imu.angular_velocity, imu.linear_acceleration
@@ -318,7 +335,7 @@ class SimBridge(Node):
         a.x, a.y, a.z = acc.tolist()
         self._pub(self.pub_imu, imu)
         for side, pub in self.pub_wrench.items():
-            f, t = w.foot_wrench(side)
+            f, t = r.wrenches[side]
             m = self._wrench[side]
             m.header.stamp = st
             m.wrench.force.x, m.wrench.force.y, m.wrench.force.z = f.tolist()
