@@ -34,6 +34,7 @@ class CentroidalEstimate:
     normal_force: float
     contacts: dict                    # side -> bool
     cop_on_edge: bool
+    feet_center: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))  # mid-point of the ankles
 
 
 class CentroidalEstimator:
@@ -83,8 +84,10 @@ class CentroidalEstimator:
         com_vel = d.hg.linear / self.m.total_mass
         ang_mom = d.hg.angular.copy()
         world_wrenches = []
+        feet_center = np.zeros(3)
         for s in SIDES:
             M = d.oMf[self.m.frame_ids[self.m.foot_link[s]]]
+            feet_center += M.translation / len(SIDES)
             f, tq = wrenches[s]
             R = M.rotation
             world_wrenches.append((M.translation, R @ np.asarray(f, float), R @ np.asarray(tq, float)))
@@ -97,7 +100,7 @@ class CentroidalEstimator:
         lean, heading = lean_angle(com, cop)
         on_edge = len(poly) > 0 and point_in_polygon_margin(cop, poly) < self.edge_margin
         est = CentroidalEstimate(t, q, v, com, com_vel, ang_mom, cop, cp, poly, lean, heading, fz, contacts,
-                                 bool(on_edge))
+                                 bool(on_edge), feet_center)
         self.last = est
         return est
 
@@ -167,10 +170,19 @@ class CentroidalEstimator:
 
 
 def estimate_error(est: CentroidalEstimate, truth: CentroidalEstimate) -> dict:
-    """CoM and capture-point errors (m) between two estimates of the same instant."""
+    """CoM and capture-point errors (m) between two estimates of the same instant.
+
+    In the world frame, and relative to the feet (mid-point of the ankles): leg
+    odometry drifts in the world like any odometry, but balance decisions compare
+    the CoM and capture point with the support polygon, which drifts with them.
+    """
+    rel = est.feet_center - truth.feet_center
     return {"com_error": float(np.linalg.norm(est.com - truth.com)),
             "capture_point_error": float(np.linalg.norm(est.capture_point[:2] - truth.capture_point[:2])),
-            "com_velocity_error": float(np.linalg.norm(est.com_velocity - truth.com_velocity))}
+            "com_velocity_error": float(np.linalg.norm(est.com_velocity - truth.com_velocity)),
+            "com_error_feet_relative": float(np.linalg.norm(est.com - truth.com - rel)),
+            "capture_point_error_feet_relative": float(np.linalg.norm(est.capture_point[:2] - truth.capture_point[:2]
+                                                                      - rel[:2]))}
 
 
 __all__ = ["CentroidalEstimate", "CentroidalEstimator", "estimate_error"]
