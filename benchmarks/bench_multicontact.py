@@ -170,7 +170,7 @@ def main(argv=None) -> int:
         "sweep_and_wall_time_s": round(total_time, 2),
         "sweep_time_s": round(sweep_time, 2),
         "sweep_all_final_ke_below_eps": all(c["success"] and c["final_ke"] < 0.1 for c in cases),
-        "wall_ends_with_hand_on_wall": bool(wall_case and wall_case["success"] and any(
+        "wall_ends_with_hand_on_wall": None if wall_case is None else bool(wall_case["success"] and any(
             h in wall_case["contact_sequence"][-1].split("/") for h in ("LH", "RH"))),
         "nlp_count": len(all_times),
         "median_nlp_s": round(statistics.median(all_times), 3) if all_times else None,
