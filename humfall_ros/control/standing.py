@@ -26,10 +26,18 @@ class StandingBalance:
     def reset(self) -> None:
         self.reference = None
 
-    def command(self, com, com_velocity, support_polygon=None) -> np.ndarray:
-        """Joint position targets (model order)."""
+    def command(self, com, com_velocity, support_polygon=None, feet_center=None) -> np.ndarray:
+        """Joint position targets (model order).
+
+        With ``feet_center`` (mid-point of the ankles, same frame as ``com``), the CoM is
+        held relative to the feet, not at a fixed world point: an estimator's odometry
+        drifts in the world, and chasing that drift leant a noisy-sensor robot 1.5 deg
+        (0.06 deg relative to the feet).
+        """
         com = np.asarray(com, float)
         vel = np.asarray(com_velocity, float)
+        if feet_center is not None:
+            com = com - np.array([feet_center[0], feet_center[1], 0.0])
         if self.reference is None:
             # hold the CoM where the standing posture put it over the feet: a reference
             # elsewhere would step the stiff ankles on the first tick and jolt the robot

@@ -45,7 +45,8 @@ class Locomotion(Node):
         try:
             q = self.balance.command([msg.com.x, msg.com.y, msg.com.z],
                                      [msg.com_velocity.x, msg.com_velocity.y, msg.com_velocity.z],
-                                     [[p.x, p.y] for p in msg.support_polygon])
+                                     [[p.x, p.y] for p in msg.support_polygon],
+                                     [msg.feet_center.x, msg.feet_center.y])
             cmd = JointState(name=self.model.joint_names, position=q.tolist())
         except Exception as e:  # noqa: BLE001 - never die on a bad state; release this tick
             self.get_logger().error(f"standing command failed: {e}", throttle_duration_sec=1.0)

@@ -150,6 +150,7 @@ class StateEstimator(Node):
         fill_xyz(msg.capture_point, e.capture_point)
         fill_xyz(msg.angular_momentum, e.angular_momentum)
         msg.support_polygon = [to_point(p) for p in e.support_polygon]
+        fill_xyz(msg.feet_center, e.feet_center)
         msg.lean_angle = float(e.lean_angle)
         msg.lean_direction = float(e.lean_direction)
         msg.normal_force = float(e.normal_force)

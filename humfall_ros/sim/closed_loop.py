@@ -52,7 +52,7 @@ def run_scenario(sc: dict, duration: float | None = None, trunk_tilt_limit_deg: 
                                  base_truth=world.base_state())
                 for k, v in estimate_error(e, g).items():
                     errors[k] = max(errors.get(k, 0.0), v)
-            world.set_joint_targets(balance.command(e.com, e.com_velocity, e.support_polygon))
+            world.set_joint_targets(balance.command(e.com, e.com_velocity, e.support_polygon, e.feet_center))
             world.step_control()
             ground_truth.track()
         r = ground_truth.metrics.result()
