@@ -75,7 +75,7 @@ def noisy_estimator_errors() -> dict:
     from humfall_ros.sim.closed_loop import run_scenario
     from humfall_ros.sim.sensors import TYPICAL_NOISE
 
-    out = {"noise": {k: v for k, v in TYPICAL_NOISE.__dict__.items() if k != "seed"}}
+    out = {"noise": {k: v for k, v in dataclasses.asdict(TYPICAL_NOISE).items() if k != "seed"}}
     for name, duration in (("standing_quiet", 5.0), ("standing_push", 2.0)):
         r = run_scenario(scenario.load(name), duration=duration, noise=dataclasses.replace(TYPICAL_NOISE, seed=1))
         out[name] = {"sim_s": duration, "fell": r.metrics["fell"], "max_trunk_tilt_deg": round(r.max_trunk_tilt_deg, 3),

@@ -1,4 +1,6 @@
 """Sensor readings with optional, seeded noise (humfall_ros.sim.sensors)."""
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -26,7 +28,7 @@ def test_noise_has_the_asked_spread_and_is_repeatable_by_seed(world):
     exact = Sensors(world).read()
     samples = []
     for seed in (7, 7, 8):
-        s = Sensors(world, SensorNoise(**{**noise.__dict__, "seed": seed}))
+        s = Sensors(world, dataclasses.replace(noise, seed=seed))
         draws = []
         for _ in range(200):
             s._readings = None  # a new sample of the same physical state

@@ -120,8 +120,8 @@ class SimWorld:
         self.step_count = 0
         self.pushes = []
         self._prev_imu_velocity = None
-        self._imu_reading = None
-        self._ground_contacts = None
+        # readings of the current physics step (contacts, joints, base, IMU), asked for
+        # several times a tick by the bridge, the metrics and retransmissions
         self._readings: dict = {}
         self.set_obstacles(self.obstacles if obstacles is None else obstacles)
 
@@ -200,7 +200,6 @@ class SimWorld:
                     pb.applyExternalForce(self.robot, lid, p.force.tolist(), world_point.tolist(),
                                           pb.WORLD_FRAME, physicsClientId=c)
             pb.stepSimulation(physicsClientId=c)
-            self._ground_contacts = None
             self._readings = {}
             self.step_count += 1
             self.time = self.step_count * self.dt
@@ -209,9 +208,10 @@ class SimWorld:
     # ---------------------------------------------------------------- sensors
     def ground_contacts(self) -> tuple:
         """Robot-ground contact points of the current step (cached: PyBullet's query is slow)."""
-        if self._ground_contacts is None:
-            self._ground_contacts = pb.getContactPoints(self.robot, self.ground, physicsClientId=self.client)
-        return self._ground_contacts
+        r = self._readings.get("contacts")
+        if r is None:
+            r = self._readings["contacts"] = pb.getContactPoints(self.robot, self.ground, physicsClientId=self.client)
+        return r
 
     def _link_frame(self, lid: int):
         c = self.client
@@ -235,8 +235,8 @@ class SimWorld:
         Computed once per control tick (the acceleration is a finite difference over
         the tick), so asking again, e.g. to retransmit a tick, gives the same reading.
         """
-        if self._imu_reading is not None and self._imu_reading[0] == self.step_count:
-            return self._imu_reading[1]
+        if "imu" in self._readings:
+            return self._readings["imu"]
         s = pb.getLinkState(self.robot, self.imu_link, computeLinkVelocity=1, physicsClientId=self.client)
         orn = np.array(s[5])
         R = quat_matrix(orn)
@@ -246,8 +246,7 @@ class SimWorld:
         acc = np.zeros(3) if self._prev_imu_velocity is None else (v - self._prev_imu_velocity) / ctrl_dt
         self._prev_imu_velocity = v
         proper = acc + np.array([0, 0, GRAVITY])
-        reading = (orn, R.T @ w, R.T @ proper)
-        self._imu_reading = (self.step_count, reading)
+        reading = self._readings["imu"] = (orn, R.T @ w, R.T @ proper)
         return reading
 
     def foot_wrench(self, side: str) -> tuple[np.ndarray, np.ndarray]:
