@@ -44,7 +44,8 @@ def main() -> int:
 
     domain = str(60 + os.getpid() % 30)
     env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               RMW_IMPLEMENTATION="rmw_fastrtps_cpp", PYTHONPATH=f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+               RMW_IMPLEMENTATION="rmw_fastrtps_cpp",
+               PYTHONPATH=f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
     env.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="bench_roslog_"))
     os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE",
                                            "RMW_IMPLEMENTATION", "ROS_LOG_DIR")})

@@ -68,7 +68,8 @@ class OptConfig:
     retry_energy_fraction: float = 0.5
     # an IPOPT run that hits max_iter is restarted this many times from its
     # last iterate and multipliers before the next seed is tried
-    warm_restarts: int = 0   # measured: helps stalled landings, but doubles the time spent on infeasible nodes (60/70 J)
+    # measured: warm restarts help stalled landings, but double the time spent on infeasible nodes (60/70 J)
+    warm_restarts: int = 0
     eps_ke: float = 0.1           # J, stationary threshold
     eps_cl: float = 0.025         # m, clearance of non-contact points
     mu: float = 0.35              # friction coefficient
@@ -83,7 +84,8 @@ class OptConfig:
     force_max_mg: float = 3.0       # contact force component cap, in units of M g
     knee_margin: float = 0.05      # rad, lower knee bound used by the NLP (URDF lower limit is 0)
     post_impact_velocity_limits: bool = True  # eq. 6 velocity limits on the post-impact joint velocities too
-    elbow_margin: float = 0.0      # rad, upper elbow bound -elbow_margin (URDF: 0, the straight arm); 0.1 measured worse
+    # rad, upper elbow bound -elbow_margin (URDF: 0, the straight arm); 0.1 measured worse
+    elbow_margin: float = 0.0
     contact_pos_tol: float = 0.002   # m, eq. 3 at the knots (drift bound)
     contact_vel_tol: float = 0.02    # m/s, eq. 4 at the knots
     nlp_max_wall_time: float = 20.0

@@ -176,7 +176,8 @@ class FallPlanner:
 
 def failure(reason: str, elapsed: float = 0.0) -> dict:
     return {"success": False, "reason": reason, "contact_sequence": [], "node_ke": [], "final_ke": float("nan"),
-            "segments": [], "nlp_times_s": [], "nlp_cpu_s": [], "nlp_build_s": [], "total_time_s": elapsed, "nlp_count": 0, "tree_nodes": 0,
+            "segments": [], "nlp_times_s": [], "nlp_cpu_s": [], "nlp_build_s": [], "total_time_s": elapsed,
+            "nlp_count": 0, "tree_nodes": 0,
             "deepest_depth": 0, "tree": None, "initial_ke": float("nan")}
 
 

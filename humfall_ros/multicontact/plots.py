@@ -42,7 +42,8 @@ def plot_tree(tree: dict, path: str, title: str = "") -> str:
     for d, ns in by_depth.items():
         for i, n in enumerate(ns):
             pos[n["id"]] = (d, -(i - (len(ns) - 1) / 2.0))
-    fig, ax = plt.subplots(figsize=(2.8 + 2.4 * max(by_depth) if by_depth else 4, 1.2 + 0.9 * max(len(v) for v in by_depth.values())))
+    width = 2.8 + 2.4 * max(by_depth) if by_depth else 4
+    fig, ax = plt.subplots(figsize=(width, 1.2 + 0.9 * max(len(v) for v in by_depth.values())))
     for n in nodes:
         if n["parent"] is not None:
             (x0, y0), (x1, y1) = pos[n["parent"]], pos[n["id"]]
@@ -132,9 +133,9 @@ def write_all(model: PlanarModel, results: list[dict], wall_result: dict | None,
     for r in cases:
         tag = f"{r['initial_ke']:.0f}J" + ("_wall" if r.get("wall_x") else "")
         if r.get("tree"):
-            files.append(plot_tree(r["tree"], os.path.join(outdir, f"multicontact_tree_{tag}.png"),
-                                   title=f"{r['initial_ke']:.0f} J" + (f", wall at {r['wall_x']:.2f} m" if r.get("wall_x") else "")
-                                   + (": " + " -> ".join(r["contact_sequence"]) if r["success"] else ": no solution")))
+            title = f"{r['initial_ke']:.0f} J" + (f", wall at {r['wall_x']:.2f} m" if r.get("wall_x") else "")
+            title += ": " + " -> ".join(r["contact_sequence"]) if r["success"] else ": no solution"
+            files.append(plot_tree(r["tree"], os.path.join(outdir, f"multicontact_tree_{tag}.png"), title=title))
         if r.get("segments"):
             files.append(plot_sticks(model, r["segments"], os.path.join(outdir, f"multicontact_sticks_{tag}.png"),
                                      wall_x=r.get("wall_x"), title=f"{r['initial_ke']:.0f} J"))

@@ -59,8 +59,7 @@ class TreeNode:
                 d[name] = seg.to_dict()
             else:
                 d[name] = {"success": seg.success, "final_ke": seg.final_ke, "nlp_time": seg.nlp_time,
-                    "build_time": seg.build_time,
-                           "duration": float(seg.time[-1]), "status": seg.status}
+                           "build_time": seg.build_time, "duration": float(seg.time[-1]), "status": seg.status}
         return d
 
 
@@ -137,8 +136,8 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         log.append({"kind": kind, "node": node.id, "mode": mode_label(node.mode),
                     "target": mode_label(target) if target is not None else mode_label(node.mode),
                     "success": seg.success, "final_ke": seg.final_ke, "nlp_time": seg.nlp_time,
-                    "build_time": seg.build_time,
-                    "cpu_time": seg.cpu_time, "iterations": seg.iterations, "attempts": seg.attempts, "status": seg.status,
+                    "build_time": seg.build_time, "cpu_time": seg.cpu_time, "iterations": seg.iterations,
+                    "attempts": seg.attempts, "status": seg.status,
                     "objective": seg.objective, "attempt_log": seg.attempt_log})
 
     while frontier:
