@@ -81,8 +81,13 @@ def run_case(planner: FallPlanner, ke: float, wall: float, budget: float, resim:
         from humfall_ros.multicontact.resim import check_segment
         checks = [check_segment(planner.model, s, r["env"]) for s in r["segments"]]
         keys = ("dyn_residual_rel_mg", "contact_pos_max_m", "sim_local_q_error_max",
-                "sim_local_force_error_max_mg", "sim_local_unilateral_violation_mg")
+                "sim_local_force_error_max_mg", "sim_local_unilateral_violation_mg",
+                "track_local_q_error_max", "track_local_force_error_max_mg", "track_local_feedback_max",
+                "track_tracked_end_q_error_max", "track_tracked_feedback_max")
         case["resim_worst"] = {k: round(float(max(c[k] for c in checks)), 4) for k in keys}
+        # the whole plan executed under joint tracking, segment by segment from
+        # each segment's first state: the kinetic energy the last one ends with
+        case["tracked_final_ke"] = round(float(checks[-1]["track_tracked_end_ke"]), 4)
     r.pop("search", None)
     case["_result"] = r
     return case

@@ -125,3 +125,24 @@ def test_plan_check_rejects_a_plan_the_dynamics_do_not_reproduce(plan10, planner
     bad = dataclasses.replace(seg, u=-seg.u)     # same knots, wrong torques
     reason = plan_check(model, [bad], env, 0.1, 1.0)
     assert reason is not None and "re-simulation" in reason
+    # a tracking controller does not rescue wrong torques either
+    reason = plan_check(model, [bad], env, 0.1, 1.0, feedback_omega=40.0)
+    assert reason is not None and "knot-to-knot error" in reason and "tracked knot-to-knot error" in reason
+
+
+def test_tracking_resimulation_holds_what_open_loop_lets_drift(plan10, planner):
+    """The tracked re-simulation (joint PD around the plan on top of its
+    feed-forward) stays closer to the knots than the open-loop one, with small
+    feedback; a tolerance the open loop misses is then met only with tracking."""
+    model, env, seg = planner.model, plan10["env"], plan10["segments"][0]
+    open_loop = forward_resim(model, seg, env, open_loop=False)
+    tracked = forward_resim(model, seg, env, feedback_omega=40.0)
+    assert tracked["local_q_error_max"] < 0.5 * open_loop["local_q_error_max"]
+    assert tracked["local_feedback_max"] < 0.1          # the plan's own torques do the work
+    assert tracked["tracked_end_q_error_max"] < 0.05
+    assert tracked["tracked_end_ke"] < 0.1               # executed, it still ends at rest
+    tol = 0.5 * (open_loop["local_q_error_max"] + tracked["local_q_error_max"])
+    assert plan_check(model, [seg], env, tol, 1.0) is not None
+    assert plan_check(model, [seg], env, tol, 1.0, feedback_omega=40.0) is None
+    # ... unless the feedback it needs is more than allowed
+    assert "feedback torque" in plan_check(model, [seg], env, tol, 1.0, feedback_omega=40.0, feedback_max=1e-4)

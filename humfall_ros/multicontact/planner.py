@@ -39,6 +39,10 @@ class PlannerConfig:
     # (resim.plan_check) stays within these; <= 0 disables the check
     check_q_error_max: float = 0.1         # rad or m
     check_force_error_max_mg: float = 1.0  # contact force correction, units of M g
+    # a segment that fails open loop passes if a joint tracking controller of this bandwidth
+    # (rad/s) reproduces it with at most check_feedback_max of a joint's torque limit as feedback
+    check_feedback_omega: float = 40.0
+    check_feedback_max: float = 0.5
     stance: dict = dataclasses.field(default_factory=dict)
 
     @staticmethod
@@ -166,7 +170,8 @@ class FallPlanner:
         if self.cfg.check_q_error_max > 0:
             def check(segments, env=vr.env):
                 return plan_check(self.model, segments, env, self.cfg.check_q_error_max,
-                                  self.cfg.check_force_error_max_mg)
+                                  self.cfg.check_force_error_max_mg, self.cfg.check_feedback_omega,
+                                  self.cfg.check_feedback_max)
         res = search(self.opt, vr.q, vr.v, vr.mode, vr.env, max_depth=self.cfg.max_depth,
                      time_budget=vr.time_budget, symmetry_cut=self.cfg.symmetry_cut, check_plan=check)
         out = result_dict(self.model, res, vr)

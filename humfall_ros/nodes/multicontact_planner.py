@@ -75,6 +75,12 @@ class MulticontactPlanner(Node):
             "check_force_error_max_mg": p.declare("check_force_error_max_mg",
                                                   "re-simulation acceptance: contact force correction (M g)",
                                                   (0.0, 1000.0)),
+            "check_feedback_omega": p.declare(
+                "check_feedback_omega", "re-simulation acceptance: bandwidth of the joint tracking controller a "
+                "segment that fails open loop is re-checked with (rad/s; 0: open loop only)", (0.0, 1000.0)),
+            "check_feedback_max": p.declare(
+                "check_feedback_max", "re-simulation acceptance: largest tracking feedback torque, fraction of "
+                "a joint's torque limit", (0.0, 10.0)),
         }
         stance = {k: p.declare(f"stance_{k}", f"nominal stance {k} (rad)", (-3.2, 3.2))
                   for k in ("hip_pitch", "knee", "shoulder_pitch", "elbow")}
