@@ -28,7 +28,7 @@ from humfall_ros.multicontact.tree import SearchResult, search
 @dataclasses.dataclass
 class PlannerConfig:
     max_depth: int = 4
-    time_budget: float = 60.0         # s, default when the request gives <= 0
+    time_budget: float = 120.0        # s, default when the request gives <= 0
     max_time_budget: float = 600.0
     max_kinetic_energy: float = 1000.0  # J, refuse requests beyond this
     contact_tolerance: float = 0.005   # m, |phi| of a contact in the given state
