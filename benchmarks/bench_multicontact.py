@@ -79,7 +79,7 @@ def run_case(planner: FallPlanner, ke: float, wall: float, budget: float, resim:
                                  for i in r["search"].path]
     if resim and r["success"]:
         from humfall_ros.multicontact.resim import check_segment
-        checks = [check_segment(planner.model, s, r["env"]) for s in r["segments"]]
+        checks = [check_segment(planner.model, s, r["env"], planner.cfg.check_feedback_omega) for s in r["segments"]]
         keys = ("dyn_residual_rel_mg", "contact_pos_max_m", "sim_local_q_error_max",
                 "sim_local_force_error_max_mg", "sim_local_unilateral_violation_mg",
                 "track_local_q_error_max", "track_local_force_error_max_mg", "track_local_feedback_max",

@@ -223,7 +223,7 @@ def forward_resim(model: PlanarModel, seg: Segment, env: Environment, dt: float 
     return out
 
 
-def check_segment(model: PlanarModel, seg: Segment, env: Environment, feedback_omega: float = 40.0) -> dict:
+def check_segment(model: PlanarModel, seg: Segment, env: Environment, feedback_omega: float = 0.0) -> dict:
     """Dense residual, open-loop re-simulation ("sim_") and, with
     ``feedback_omega`` > 0, the re-simulation under joint tracking ("track_")."""
     out = dense_check(model, seg, env)
@@ -234,8 +234,7 @@ def check_segment(model: PlanarModel, seg: Segment, env: Environment, feedback_o
     return out
 
 
-def _interval_failure(model: PlanarModel, sim: dict, q_error_max: float, force_error_max_mg: float,
-                      feedback_max: float) -> str | None:
+def _interval_failure(sim: dict, q_error_max: float, force_error_max_mg: float, feedback_max: float) -> str | None:
     what = "tracked knot-to-knot" if "local_feedback_max" in sim else "knot-to-knot"
     if sim["local_q_error_max"] > q_error_max:
         return f"{what} error {sim['local_q_error_max']:.3g} > {q_error_max:g} ({sim['local_q_error_coordinate']})"
@@ -269,11 +268,11 @@ def plan_check(model: PlanarModel, segments: list, env: Environment, q_error_max
     landing lies) past that edge. Wrong feed-forward torques fail both (the
     test negates u)."""
     for i, seg in enumerate(segments):
-        reason = _interval_failure(model, forward_resim(model, seg, env, open_loop=False),
+        reason = _interval_failure(forward_resim(model, seg, env, open_loop=False),
                                    q_error_max, force_error_max_mg, feedback_max)
         if reason and feedback_omega > 0:
             tracked = _interval_failure(
-                model, forward_resim(model, seg, env, open_loop=False, feedback_omega=feedback_omega),
+                forward_resim(model, seg, env, open_loop=False, feedback_omega=feedback_omega),
                 q_error_max, force_error_max_mg, feedback_max)
             reason = f"{reason}; {tracked}" if tracked else None
         if reason:
