@@ -3,12 +3,15 @@ returned plan with pinocchio (no casadi in the checker)."""
 from __future__ import annotations
 
 import dataclasses
+import json
+import pathlib
 
 import numpy as np
 import pytest
 
 from humfall_ros.multicontact import contacts as C
-from humfall_ros.multicontact.collocation import OptConfig
+from humfall_ros.multicontact.collocation import OptConfig, Segment
+from humfall_ros.multicontact.modes import Environment
 from humfall_ros.multicontact.planner import FallPlanner, PlannerConfig
 from humfall_ros.multicontact.resim import dense_check, forward_resim, plan_check
 
@@ -146,3 +149,26 @@ def test_tracking_resimulation_holds_what_open_loop_lets_drift(plan10, planner):
     assert plan_check(model, [seg], env, tol, 1.0, feedback_omega=40.0) is None
     # ... unless the feedback it needs is more than allowed
     assert "feedback torque" in plan_check(model, [seg], env, tol, 1.0, feedback_omega=40.0, feedback_max=1e-4)
+
+
+def test_80J_hand_support_is_consistent_but_holds_only_under_tracking(planner):
+    """The last segment of the 80 J plan (stored: the search takes ~60 s): the
+    left arm is straight and loaded while the free limbs swing. Its splines
+    satisfy eq. 1 as well as the other plans do, yet open loop the arm buckles
+    within every knot interval; under joint tracking it is reproduced, with
+    small feedback, and executed whole it ends at rest."""
+    data = json.loads((pathlib.Path(__file__).parent / "data" / "plan80_hand_support.json").read_text())
+    seg = Segment.from_dict(data["segment"])
+    model = planner.model
+    env = Environment.from_distance(data["wall_distance"])
+    assert seg.mode == ("LF", "LH") and seg.final_ke < 0.1
+    assert seg.q[0][model.coordinate_names.index("l_elbow")] > -0.1        # the straight arm
+    dense = dense_check(model, seg, env)
+    assert dense["dyn_residual_rel_mg"] < 0.12 and dense["contact_pos_max_m"] < 0.005, dense
+    open_loop = forward_resim(model, seg, env, open_loop=False)
+    assert open_loop["local_q_error_max"] > 1.0                             # buckles open loop
+    tracked = forward_resim(model, seg, env, feedback_omega=40.0)
+    assert tracked["local_q_error_max"] < 0.1 and tracked["local_feedback_max"] < 0.1, tracked
+    assert tracked["tracked_end_q_error_max"] < 0.1 and tracked["tracked_end_ke"] < 0.1, tracked
+    assert "knot-to-knot error" in plan_check(model, [seg], env, 0.1, 1.0)
+    assert plan_check(model, [seg], env, 0.1, 1.0, feedback_omega=40.0) is None

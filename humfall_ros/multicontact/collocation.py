@@ -42,7 +42,7 @@ import numpy as np
 
 from humfall_ros.multicontact import contacts as C
 from humfall_ros.multicontact.model import EXTREMITIES, PlanarModel
-from humfall_ros.multicontact.modes import Environment, Mode, make_mode, mode_label
+from humfall_ros.multicontact.modes import Environment, Mode, make_mode, mode_label, parse_mode
 
 
 @dataclasses.dataclass
@@ -161,6 +161,21 @@ class Segment:
             "seed_duration": self.seed_duration, "attempts": self.attempts,
             "max_violation": self.max_violation, "objective": self.objective, "attempt_log": self.attempt_log,
         }
+
+    @staticmethod
+    def from_dict(d: dict) -> "Segment":
+        """Inverse of ``to_dict`` (a stored plan re-checked or re-plotted later)."""
+        arrays = {k: np.asarray(d[k], float) for k in ("time", "q", "v", "a", "u", "lam", "ke")}
+        if arrays["lam"].ndim == 1:      # no contact rows: keep the (Nd, 0) shape
+            arrays["lam"] = arrays["lam"].reshape(len(arrays["time"]), -1)
+        return Segment(kind=d["kind"], mode=parse_mode(d["mode"]), target_mode=parse_mode(d["target_mode"]),
+                       change=d["change"], extremity=d["extremity"], rows=[C.ContactRow(**r) for r in d["rows"]],
+                       success=bool(d["success"]), status=d["status"], iterations=int(d["iterations"]),
+                       nlp_time=float(d["nlp_time"]), seed_duration=float(d["seed_duration"]),
+                       attempts=int(d["attempts"]), max_violation=float(d["max_violation"]),
+                       cpu_time=float(d.get("cpu_time", 0.0)), build_time=float(d.get("build_time", 0.0)),
+                       objective=float(d.get("objective", float("nan"))),
+                       attempt_log=list(d.get("attempt_log", [])), **arrays)
 
 
 # ---------------------------------------------------------------- splines
