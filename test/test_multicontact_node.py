@@ -3,6 +3,7 @@ and an invalid request, keeps serving, and the CLI client prints JSON."""
 from __future__ import annotations
 
 import json
+import pathlib
 import subprocess
 import sys
 import time
@@ -25,7 +26,7 @@ def planner_process(ros_env):
         proc.wait()
 
 
-def test_plan_fall_service_valid_and_invalid(planner_process, in_ros_domain):
+def test_plan_fall_service_valid_and_invalid(planner_process, in_ros_domain, tmp_path):
     import rclpy
     from humfall_interfaces.srv import PlanFall
 
@@ -84,6 +85,19 @@ def test_plan_fall_service_valid_and_invalid(planner_process, in_ros_domain):
     assert d["success"] is False and "unknown extremity 'QQ'" in d["reason"]
     for key in ("contact_sequence", "node_ke", "final_ke", "nlp_times_s", "total_time_s"):
         assert key in d
+
+    # ... a plan with its figures: tree, stick figures and KE over time from the answer alone
+    out = subprocess.run([sys.executable, "-c",
+                          "import sys; from humfall_ros.nodes.plan_fall_client import main; "
+                          "sys.exit(main(sys.argv[1:]))", "--ke", "10", "--json", "--plots", str(tmp_path)],
+                         env=in_ros_domain, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stdout + out.stderr
+    d = json.loads(out.stdout)
+    assert d["success"] and d["contact_sequence"] == ["LF/RF"]
+    names = sorted(pathlib.Path(f).name for f in d["plots"])
+    assert names == ["plan_10J_ke.png", "plan_10J_sticks.png", "plan_10J_tree.png"]
+    for f in d["plots"]:
+        assert pathlib.Path(f).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_client_reports_missing_service(in_ros_domain):

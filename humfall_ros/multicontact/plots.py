@@ -3,6 +3,7 @@ stick-figure sequences of a plan (Fig. 5, 6) and kinetic energy over time for
 the sweep (Fig. 7). matplotlib with the Agg backend; no ROS."""
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import matplotlib
@@ -126,17 +127,54 @@ def plot_ke_sweep(results: list[dict], path: str) -> str:
 
 
 def write_all(model: PlanarModel, results: list[dict], wall_result: dict | None, outdir: str) -> list[str]:
-    """All figures for a sweep (and the wall case) into ``outdir``."""
+    """All figures for a sweep (and the wall case) into ``outdir``: the sweep's
+    kinetic energies, then ``write_plan`` for every case."""
     os.makedirs(outdir, exist_ok=True)
     files = [plot_ke_sweep(results, os.path.join(outdir, "multicontact_ke_sweep.png"))]
-    cases = list(results) + ([wall_result] if wall_result else [])
-    for r in cases:
-        tag = f"{r['initial_ke']:.0f}J" + ("_wall" if r.get("wall_x") else "")
-        if r.get("tree"):
-            title = f"{r['initial_ke']:.0f} J" + (f", wall at {r['wall_x']:.2f} m" if r.get("wall_x") else "")
-            title += ": " + " -> ".join(r["contact_sequence"]) if r["success"] else ": no solution"
-            files.append(plot_tree(r["tree"], os.path.join(outdir, f"multicontact_tree_{tag}.png"), title=title))
-        if r.get("segments"):
-            files.append(plot_sticks(model, r["segments"], os.path.join(outdir, f"multicontact_sticks_{tag}.png"),
-                                     wall_x=r.get("wall_x"), title=f"{r['initial_ke']:.0f} J"))
+    for r in list(results) + ([wall_result] if wall_result else []):
+        tag = f"multicontact_{r['initial_ke']:.0f}J" + ("_wall" if r.get("wall_x") else "")
+        files += write_plan(model, r, outdir, tag)
     return files
+
+
+@dataclasses.dataclass
+class PlottedSegment:
+    """What the plots need of a plan segment; built from a ``plan_fall``
+    response (``PlanSegment`` messages: row-major arrays) by ``segments_from_msgs``."""
+
+    kind: str
+    mode: tuple
+    target_mode: tuple
+    time: np.ndarray
+    q: np.ndarray
+    ke: np.ndarray
+
+
+def segments_from_msgs(msgs) -> list[PlottedSegment]:
+    out = []
+    for s in msgs:
+        n = len(s.coordinate_names)
+        out.append(PlottedSegment(kind=s.kind, mode=tuple(s.mode.split("/")),
+                                  target_mode=tuple(s.target_mode.split("/")), time=np.asarray(s.time, float),
+                                  q=np.asarray(s.q, float).reshape(len(s.time), n),
+                                  ke=np.asarray(s.kinetic_energy, float)))
+    return out
+
+
+def write_plan(model: PlanarModel, result: dict, outdir: str, tag: str = "plan") -> list[str]:
+    """The figures of one plan: its tree (Fig. 1), stick figures (Fig. 5-6) and
+    kinetic energy over time (Fig. 7). ``result`` holds ``tree`` (dict or None),
+    ``segments``, ``contact_sequence``, ``success``, ``initial_ke`` and
+    ``wall_x`` (None without a wall)."""
+    os.makedirs(outdir, exist_ok=True)
+    files = []
+    title = f"{result['initial_ke']:.0f} J" + (f", wall at {result['wall_x']:.2f} m" if result.get("wall_x") else "")
+    if result.get("tree"):
+        seq = ": " + " -> ".join(result["contact_sequence"]) if result["success"] else ": no solution"
+        files.append(plot_tree(result["tree"], os.path.join(outdir, f"{tag}_tree.png"), title=title + seq))
+    if result.get("segments"):
+        files.append(plot_sticks(model, result["segments"], os.path.join(outdir, f"{tag}_sticks.png"),
+                                 wall_x=result.get("wall_x"), title=title))
+        files.append(plot_ke_sweep([result], os.path.join(outdir, f"{tag}_ke.png")))
+    return files
+

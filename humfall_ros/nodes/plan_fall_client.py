@@ -1,11 +1,13 @@
 """Client of the ``plan_fall`` service, behind ``humfall plan-fall``.
 
-    humfall plan-fall --ke 30 [--wall 0.8] [--direction 1] [--mode LF/RF] [--budget S] [--json]
+    humfall plan-fall --ke 30 [--wall 0.8] [--direction 1] [--mode LF/RF] [--budget S] [--json] [--plots DIR]
 
 Prints a human summary, or with --json one JSON object (success, reason,
 contact_sequence, node_ke, final_ke, nlp_times_s, total_time_s, ...).
 Exit code: 0 plan found, 1 no plan (service answered success=false),
-2 service unavailable or no answer in time.
+2 service unavailable or no answer in time. ``--plots DIR`` also writes the
+plan's contact transition tree, stick figures and kinetic energy over time
+(paper 2, Fig. 1, 5-7) as PNG files into DIR.
 """
 from __future__ import annotations
 
@@ -27,6 +29,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap.add_argument("--mode", default="LF/RF", help="initial contact mode, e.g. LF/RF")
     ap.add_argument("--budget", type=float, default=0.0, help="planning time budget (s); 0: node default")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--plots", default="", help="write the tree, stick-figure and KE plots of the answer into DIR")
     ap.add_argument("--service", default=SERVICE, help="service name")
     ap.add_argument("--wait", type=float, default=10.0, help="seconds to wait for the service to appear")
     ap.add_argument("--timeout", type=float, default=0.0,
@@ -68,7 +71,23 @@ def summary(d: dict) -> str:
         med = sorted(times)[len(times) // 2]
         lines.append(f"{d['nlp_count']} NLPs (median {med:.2f} s), tree of {d['tree_nodes']} nodes, "
                      f"depth {d['deepest_depth']}, total {d['total_time_s']:.1f} s")
+    if d.get("plots"):
+        lines.append("plots: " + ", ".join(d["plots"]))
     return "\n".join(lines)
+
+
+def write_plots(resp, d: dict, args) -> list[str]:
+    """The answer's figures (multicontact.plots.write_plan) into ``args.plots``."""
+    from humfall_ros.multicontact import plots
+    from humfall_ros.multicontact.model import load_model
+
+    result = {"tree": json.loads(resp.tree_json) if resp.tree_json else None,
+              "segments": plots.segments_from_msgs(resp.segments), "success": d["success"],
+              "contact_sequence": d["contact_sequence"],
+              "initial_ke": d["node_ke"][0] if d["node_ke"] else float(args.ke),
+              "wall_x": float(args.wall) if args.wall > 0 else None}
+    tag = f"plan_{args.ke:g}J" + (f"_wall{args.wall:g}" if args.wall > 0 else "")
+    return plots.write_plan(load_model(), result, args.plots, tag)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -105,7 +124,10 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps({"success": False, "reason": msg}) if args.json else msg,
                   file=sys.stdout if args.json else sys.stderr)
             return 2
-        d = response_to_dict(future.result())
+        resp = future.result()
+        d = response_to_dict(resp)
+        if args.plots:
+            d["plots"] = write_plots(resp, d, args)
         print(json.dumps(d) if args.json else summary(d))
         return 0 if d["success"] else 1
     finally:
