@@ -77,6 +77,11 @@ def run_case(planner: FallPlanner, ke: float, wall: float, budget: float, resim:
         case["seed_attempts"] = sum(e["attempts"] for e in r["tree"]["nlp_log"])
         case["pre_impact_ke"] = [None if nodes[i]["pre_impact_ke"] is None else round(nodes[i]["pre_impact_ke"], 2)
                                  for i in r["search"].path]
+        # normal impulse on the limb that lands (N s), and as the velocity change it would give the whole robot
+        imp = [nodes[i]["landing_impulse"] for i in r["search"].path]
+        case["landing_impulse_Ns"] = [None if x is None else round(x, 1) for x in imp]
+        case["landing_impulse_over_mass_mps"] = [None if x is None else round(x / planner.model.total_mass, 2)
+                                                 for x in case["landing_impulse_Ns"]]
     if resim and r["success"]:
         from humfall_ros.multicontact.resim import check_segment
         checks = [check_segment(planner.model, s, r["env"], planner.cfg.check_feedback_omega) for s in r["segments"]]

@@ -113,6 +113,8 @@ def test_60J_hand_landing_keeps_post_impact_joint_speeds_within_limits(planner):
     # tree recomputes independently of the NLP's own post-impact variables
     added = [i for i in path[1:] if nodes[i]["pre_impact_ke"] is not None]
     assert added and all(nodes[i]["pre_impact_ke"] >= nodes[i]["ke"] - 1e-6 for i in added)
+    # the landing limb takes a pushing (>= 0) normal impulse, and some: a contact was made at speed
+    assert all(nodes[i]["landing_impulse"] > 0 for i in added)
     log = r["tree"]["nlp_log"]
     assert log[-1]["plan_check"] == "passed"
     assert all(len(e["attempt_log"]) == e["attempts"] >= 1 for e in log)

@@ -41,6 +41,8 @@ class TreeNode:
     ke: float
     pre_impact_ke: float | None = None
     min_normal_impulse: float | None = None
+    # N s, normal impulse the added extremity takes in the impact (eq. 10): what a hard landing costs the limb
+    landing_impulse: float | None = None
     edge: Segment | None = None          # transition from the parent
     self_motion: Segment | None = None
     status: str = "frontier"             # frontier | expanded | terminal | unexpanded
@@ -50,6 +52,7 @@ class TreeNode:
     def to_dict(self, with_trajectories: bool = True) -> dict:
         d = {"id": self.id, "parent": self.parent, "depth": self.depth, "mode": mode_label(self.mode),
              "ke": self.ke, "pre_impact_ke": self.pre_impact_ke, "min_normal_impulse": self.min_normal_impulse,
+             "landing_impulse": self.landing_impulse,
              "status": self.status, "children": list(self.children), "rejected": self.rejected,
              "q": self.q.tolist(), "v": self.v.tolist()}
         for name, seg in (("edge", self.edge), ("self_motion", self.self_motion)):
@@ -194,15 +197,16 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
             if not y_ij.success:
                 continue
             qj, vj = y_ij.q[-1].copy(), y_ij.v[-1].copy()                       # line 15
-            pre, min_imp = None, None
+            pre, min_imp, landing = None, None, None
             if change == "add":                                                # line 16, eq. 10
                 pre = model.kinetic_energy(qj, vj)
                 rows = C.contact_rows(sigma_j, env)
                 vj, impulse = C.impact_map(model, qj, vj, rows)
                 normals = [impulse[i] for i, r in enumerate(rows) if r.axis == "n"]
                 min_imp = float(min(normals)) if normals else None
+                landing = float(sum(impulse[i] for i, r in enumerate(rows) if r.axis == "n" and r.extremity == ext))
             child = TreeNode(len(nodes), d.id, d.depth + 1, sigma_j, qj, vj, model.kinetic_energy(qj, vj),
-                             pre_impact_ke=pre, min_normal_impulse=min_imp, edge=y_ij)
+                             pre_impact_ke=pre, min_normal_impulse=min_imp, landing_impulse=landing, edge=y_ij)
             nodes.append(child)                                               # lines 17-19
             d.children.append(child.id)
             deepest = max(deepest, child.depth)
