@@ -629,15 +629,21 @@ class TrajectoryOptimizer:
         change, ext = ("add", added.pop()) if added else ("remove", removed.pop())
         return self._optimize(q0, v0, mode, change, ext, env, deadline)
 
-    def seed(self, q0, v0, mode: Mode, change: str, ext: str, env: Environment, T: float):
-        """Initial guess for one duration (Sec. III-D); returns (nlp, guess arrays, q_goal)."""
-        key = StructureKey(change, tuple(mode), ext, env.has_wall, self.cfg.n_knots)
-        nlp = self.nlp(key)
+    def structures(self, mode: Mode, change: str, ext: str, env: Environment) -> tuple[SegmentNLP, Mode]:
+        """The cached NLP of a segment and the mode its seed goal is projected onto
+        (both built on first use)."""
+        nlp = self.nlp(StructureKey(change, tuple(mode), ext, env.has_wall, self.cfg.n_knots))
         # a released contact is held until the end of the transition, so only
         # an added contact changes the manifold the goal is projected onto
         goal_mode = make_mode(set(mode) | {ext}) if change == "add" else tuple(mode)
+        self.projector(goal_mode, env, nlp)
+        return nlp, goal_mode
+
+    def seed(self, q0, v0, mode: Mode, change: str, ext: str, env: Environment, T: float):
+        """Initial guess for one duration (Sec. III-D); returns (nlp, guess arrays, q_goal)."""
+        nlp, goal_mode = self.structures(mode, change, ext, env)
         q_goal = self.project_goal(q0, v0, mode, goal_mode, env, nlp, T)
-        t, q, v, a, u, lam = parabolic_seed(self.model, q0, v0, q_goal, T, key.n_knots, nlp.rows)
+        t, q, v, a, u, lam = parabolic_seed(self.model, q0, v0, q_goal, T, nlp.key.n_knots, nlp.rows)
         return nlp, (t, q, v, a, u, lam), q_goal
 
     def project_goal(self, q0, v0, mode, goal_mode, env, nlp: SegmentNLP, T):
@@ -688,9 +694,7 @@ class TrajectoryOptimizer:
         c_start = time.thread_time()
         # build (or fetch) the cached structures first, so that the one-off
         # build cost is reported apart from the solve time
-        key = StructureKey(change, tuple(mode), ext, env.has_wall, cfg.n_knots)
-        goal_mode = make_mode(set(mode) | {ext}) if change == "add" else tuple(mode)
-        self.projector(goal_mode, env, self.nlp(key))
+        self.structures(mode, change, ext, env)
         build_time = time.perf_counter() - t_start
         ke0 = model.kinetic_energy(q0, v0)
         best = None

@@ -13,6 +13,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from humfall_ros.multicontact.model import PlanarModel  # noqa: E402
+from humfall_ros.multicontact.modes import parse_mode  # noqa: E402
 
 _COLORS = {"root": "#e6c700", "terminal": "#1f5fd6", "connectable": "#2ca02c", "failed": "#d62728"}
 
@@ -154,8 +155,8 @@ def segments_from_msgs(msgs) -> list[PlottedSegment]:
     out = []
     for s in msgs:
         n = len(s.coordinate_names)
-        out.append(PlottedSegment(kind=s.kind, mode=tuple(s.mode.split("/")),
-                                  target_mode=tuple(s.target_mode.split("/")), time=np.asarray(s.time, float),
+        out.append(PlottedSegment(kind=s.kind, mode=parse_mode(s.mode),
+                                  target_mode=parse_mode(s.target_mode), time=np.asarray(s.time, float),
                                   q=np.asarray(s.q, float).reshape(len(s.time), n),
                                   ke=np.asarray(s.kinetic_energy, float)))
     return out

@@ -83,7 +83,7 @@ def dense_check(model: PlanarModel, seg: Segment, env: Environment, samples_per_
             "contact_pos_max_m": worst_pos, "contact_vel_max_mps": worst_vel}
 
 
-def _constrained_accel(model: PlanarModel, pc: PinContacts, pd, rows, q, v, u, lam_plan, anchors, env,
+def _constrained_accel(model: PlanarModel, pc: PinContacts, pd, M, rows, q, v, u, lam_plan, anchors, env,
                        baumgarte):
     """Forward dynamics with the segment's contacts held (Baumgarte-stabilised).
 
@@ -92,11 +92,10 @@ def _constrained_accel(model: PlanarModel, pc: PinContacts, pd, rows, q, v, u, l
     acceleration) - (contact acceleration under the plan's lambda). With several
     contacts the internal forces are not unique, which is why the plan's force
     is the starting point; |delta| measures how far the plan's forces are from
-    holding the contacts (0 for a consistent plan).
+    holding the contacts (0 for a consistent plan). ``M`` is the joint-space
+    inertia at ``q`` (the caller computes it once per evaluation).
     """
     pm = pc.pm
-    M = pin.crba(pm, pd, q)
-    M = np.triu(M) + np.triu(M, 1).T
     b = pin.rnea(pm, pd, q, v, np.zeros(model.n))
     tau = model.B @ u
     if not rows:
@@ -161,13 +160,14 @@ def forward_resim(model: PlanarModel, seg: Segment, env: Environment, dt: float 
     def f(t, x):
         q, v = x[:model.n], x[model.n:]
         q_plan, v_plan, _, u, lam_plan = _interp(seg, t)
+        M = pin.crba(pc.pm, pd, q)
+        M = np.triu(M) + np.triu(M, 1).T
         if feedback_omega > 0:
-            inertia = np.diag(pin.crba(pc.pm, pd, q))[3:]
-            fb = inertia * (feedback_omega ** 2 * (q_plan[3:] - q[3:])
-                            + 2 * feedback_zeta * feedback_omega * (v_plan[3:] - v[3:]))
+            fb = np.diag(M)[3:] * (feedback_omega ** 2 * (q_plan[3:] - q[3:])
+                                   + 2 * feedback_zeta * feedback_omega * (v_plan[3:] - v[3:]))
             stats["feedback"] = max(stats["feedback"], float(np.max(np.abs(fb) / model.u_max)))
             u = np.clip(u + fb, -model.u_max, model.u_max)
-        a, lam, delta = _constrained_accel(model, pc, pd, seg.rows, q, v, u, lam_plan, anchors, env, baumgarte)
+        a, lam, delta = _constrained_accel(model, pc, pd, M, seg.rows, q, v, u, lam_plan, anchors, env, baumgarte)
         if len(lam):
             stats["lam_err"] = max(stats["lam_err"], float(np.abs(delta).max()) / mg)
             for ti, ni in groups:

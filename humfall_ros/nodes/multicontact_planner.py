@@ -21,8 +21,8 @@ from rclpy.node import Node
 from humfall_interfaces.msg import PlanSegment
 from humfall_interfaces.srv import PlanFall
 from humfall_ros.multicontact import contacts as C
-from humfall_ros.multicontact.collocation import OptConfig, StructureKey
-from humfall_ros.multicontact.modes import mode_label
+from humfall_ros.multicontact.collocation import OptConfig
+from humfall_ros.multicontact.modes import Environment, mode_label
 from humfall_ros.multicontact.planner import FallPlanner, PlannerConfig
 from humfall_ros.nodes.common import Params, run_node
 
@@ -102,17 +102,14 @@ class MulticontactPlanner(Node):
     def _warm_up(self):
         """Build the NLP structures of the root two-foot mode (the sweep's first
         level) so that the first request does not pay for them."""
-        opt = self.planner.opt
-        N = opt.cfg.n_knots
-        keys = [StructureKey("", ("LF", "RF"), "", False, N), StructureKey("add", ("LF", "RF"), "LH", False, N),
-                StructureKey("remove", ("LF", "RF"), "LF", False, N), StructureKey("", ("RF",), "", False, N),
-                StructureKey("add", ("RF",), "LF", False, N)]
+        segments = [(("LF", "RF"), "", ""), (("LF", "RF"), "add", "LH"), (("LF", "RF"), "remove", "LF"),
+                    (("RF",), "", ""), (("RF",), "add", "LF")]   # (mode, change, extremity)
         t0 = time.perf_counter()
-        for k in keys:
+        for mode, change, ext in segments:
             if self._closing:
                 return
-            opt.nlp(k)
-        self.get_logger().info(f"warm-up: {len(keys)} NLP structures built in {time.perf_counter() - t0:.1f} s")
+            self.planner.opt.structures(mode, change, ext, Environment())   # NLP and seed projector
+        self.get_logger().info(f"warm-up: {len(segments)} NLP structures built in {time.perf_counter() - t0:.1f} s")
 
     def close(self):
         self._closing = True

@@ -80,12 +80,13 @@ def write_plots(resp, d: dict, args) -> list[str]:
     """The answer's figures (multicontact.plots.write_plan) into ``args.plots``."""
     from humfall_ros.multicontact import plots
     from humfall_ros.multicontact.model import load_model
+    from humfall_ros.multicontact.modes import Environment
 
     result = {"tree": json.loads(resp.tree_json) if resp.tree_json else None,
               "segments": plots.segments_from_msgs(resp.segments), "success": d["success"],
               "contact_sequence": d["contact_sequence"],
               "initial_ke": d["node_ke"][0] if d["node_ke"] else float(args.ke),
-              "wall_x": float(args.wall) if args.wall > 0 else None}
+              "wall_x": Environment.from_distance(args.wall).wall_x}   # the request's convention
     tag = f"plan_{args.ke:g}J" + (f"_wall{args.wall:g}" if args.wall > 0 else "")
     return plots.write_plan(load_model(), result, args.plots, tag)
 
