@@ -19,6 +19,7 @@ import time
 
 import yaml
 
+from humfall_ros import params as params_mod
 from humfall_ros import scenario as scenario_mod
 
 # Which node serves which fall controller (nodes of later issues plug in here).
@@ -120,9 +121,7 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[tuple[str,
         "lockstep_sources": [LOCKSTEP_SOURCE[n] for n in control_nodes if n in LOCKSTEP_SOURCE] or [""],
         "wait_for_nodes": ["recorder"] if record else [""],
     }))
-    from humfall_ros.nodes.common import load_node_defaults
-
-    est = {**load_node_defaults("state_estimator"), **extra.get("state_estimator", {})}
+    est = {**params_mod.defaults("state_estimator"), **extra.get("state_estimator", {})}
     if est.get("use_ground_truth") is True:
         # the estimator then waits for ground_truth/odom every tick
         nodes[-1][1]["ground_truth_rate"] = float(s["control_rate"])
@@ -133,46 +132,21 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[tuple[str,
 
 
 def check_node_params(node: str, params: dict, owned: set[str]) -> dict:
-    """Refuse parameters a node does not have, of the wrong type, or that the launcher sets.
+    """Refuse parameters a node does not have, of the wrong type or range, or that the launcher sets.
 
     Returns them typed like the node declares them (``50`` for a double becomes 50.0:
     ROS refuses an INTEGER for a DOUBLE parameter and the node would die on it).
-
-    rclpy silently ignores overrides of undeclared parameters and kills the node
-    on a wrong type after the whole suite has started; checking against the
-    node's config file (where every parameter has its default) catches both first.
+    rclpy silently ignores overrides of undeclared parameters and kills the node on a
+    wrong type after the whole suite has started: the one declaration
+    (``config/<node>.yaml``, humfall_ros.params) catches both first.
     """
-    from humfall_ros.nodes.common import load_node_defaults
-
-    defaults = load_node_defaults(node)
-    typed = {}
-    for key, value in params.items():
-        where = f"params.{node}.{key}"
+    for key in params:
         if key in owned:
-            raise RunError(f"{where} is set by the launcher from the scenario (use the scenario's own keys)")
-        if key not in defaults:
-            raise RunError(f"{where}: {node} has no parameter {key!r} (known: {', '.join(sorted(defaults))})")
-        if not _same_param_type(defaults[key], value):
-            raise RunError(f"{where}: expected {type(defaults[key]).__name__} like {defaults[key]!r}, got {value!r}")
-        if isinstance(defaults[key], float) and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        typed[key] = value
-    return typed
-
-
-def _same_param_type(default, value) -> bool:
-    def kind(v):
-        if isinstance(v, bool):
-            return "bool"
-        if isinstance(v, (int, float)):
-            return "number"
-        if isinstance(v, str):
-            return "string"
-        if isinstance(v, list):
-            return "list of " + (kind(v[0]) if v else "?")
-        return type(v).__name__
-    a, b = kind(default), kind(value)
-    return a == b or (a.startswith("list") and b == "list of ?")
+            raise RunError(f"params.{node}.{key} is set by the launcher from the scenario (use the scenario's own keys)")
+    try:
+        return params_mod.check_overrides(node, params, prefix=f"params.{node}.")
+    except params_mod.ParamError as e:
+        raise RunError(str(e)) from None
 
 
 def child_env(run_dir: pathlib.Path) -> dict:

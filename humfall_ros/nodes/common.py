@@ -15,9 +15,7 @@ import sys
 import time
 from typing import Any, Callable
 
-import yaml
-
-from humfall_ros import paths
+from humfall_ros import params as params_mod
 
 import rclpy
 import rclpy.executors
@@ -39,45 +37,60 @@ QOS_CLOCK = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
 
 
 def load_node_defaults(node_name: str) -> dict[str, Any]:
-    """The ros__parameters of ``config/<node_name>.yaml`` (empty if absent)."""
-    p = paths.config_path(f"{node_name}.yaml")
-    if not p.is_file():
-        return {}
-    data = yaml.safe_load(p.read_text()) or {}
-    return dict((data.get(node_name) or {}).get("ros__parameters") or {})
+    """Default values of a node's parameters (``config/<node>.yaml``; see humfall_ros.params)."""
+    return params_mod.defaults(node_name)
+
+
+_ROS_TYPES = {"bool": Parameter.Type.BOOL, "int": Parameter.Type.INTEGER, "double": Parameter.Type.DOUBLE,
+              "string": Parameter.Type.STRING, "bool_array": Parameter.Type.BOOL_ARRAY,
+              "int_array": Parameter.Type.INTEGER_ARRAY, "double_array": Parameter.Type.DOUBLE_ARRAY,
+              "string_array": Parameter.Type.STRING_ARRAY}
 
 
 class Params:
-    """Declares a node's parameters with defaults from its config file.
+    """Declares a node's parameters from their one declaration in ``config/<node>.yaml``.
 
-    ``p.declare("physics_rate", "physics steps per second", (100, 5000))``
-    returns the value; ``p.values`` keeps all of them.
+    ``p.declare("physics_rate")`` declares it with the file's type, default,
+    description and range and returns its value (a ``-p`` or ``--params-file``
+    override wins, as usual); ``p.declare_all()`` declares every parameter of the
+    file; ``p.values`` keeps what was declared; ``p.overridden`` names the ones
+    set explicitly on the command line or by a params file.
     """
 
     def __init__(self, node: Node, config_name: str | None = None):
         self.node = node
-        self.defaults = load_node_defaults(config_name or node.get_name())
+        self.config_name = config_name or node.get_name()
+        self.declarations = params_mod.declarations(self.config_name)
         self.values: dict[str, Any] = {}
+        overrides = getattr(node, "_parameter_overrides", None)  # rclpy keeps -p / params-file values here
+        self._explicit = set(overrides) if isinstance(overrides, dict) else set()
+        self.overridden: set[str] = set()
 
-    def declare(self, name: str, description: str, value_range: tuple | None = None,
-                default: Any = None, read_only: bool = False) -> Any:
-        if name in self.defaults:
-            default = self.defaults[name]
-        if default is None:
-            raise KeyError(f"parameter {name!r} of {self.node.get_name()} has no default in config")
-        desc = ParameterDescriptor(description=description, read_only=read_only)
-        if value_range is not None:
-            lo, hi = value_range
-            if isinstance(default, bool):
-                pass
-            elif isinstance(default, int) and isinstance(lo, int) and isinstance(hi, int):
-                desc.integer_range = [IntegerRange(from_value=lo, to_value=hi, step=0)]
+    def declare(self, name: str) -> Any:
+        d = self.declarations.get(name)
+        if d is None:
+            raise KeyError(f"parameter {name!r} of {self.node.get_name()} is not declared in "
+                           f"config/{self.config_name}.yaml")
+        desc = ParameterDescriptor(description=d.description, read_only=d.read_only, type=_ROS_TYPES[d.type])
+        if d.bounds is not None:
+            lo, hi = d.bounds
+            if d.type.startswith("int"):
+                desc.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
             else:
-                default = float(default)
                 desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
-        value = self.node.declare_parameter(name, default, desc).value
+        value = self.node.declare_parameter(name, d.default, desc).value
+        if isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
+            value = list(value)
         self.values[name] = value
+        if name in self._explicit:
+            self.overridden.add(name)
         return value
+
+    def declare_all(self) -> dict[str, Any]:
+        for name in self.declarations:
+            if name not in self.values:
+                self.declare(name)
+        return dict(self.values)
 
 
 def stamp_key(stamp) -> int:

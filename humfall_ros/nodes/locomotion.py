@@ -20,9 +20,9 @@ class Locomotion(Node):
     def __init__(self):
         super().__init__("locomotion")
         P = Params(self)
-        kp = P.declare("ankle_kp", "ankle offset per metre of CoM error (rad/m)", (0.0, 20.0))
-        kd = P.declare("ankle_kd", "ankle offset per m/s of CoM velocity (rad s/m)", (0.0, 5.0))
-        max_off = P.declare("ankle_max_offset", "largest ankle correction (rad)", (0.0, 0.5))
+        kp = P.declare("ankle_kp")
+        kd = P.declare("ankle_kd")
+        max_off = P.declare("ankle_max_offset")
         self.model = load_model()
         self.balance = StandingBalance(self.model, STANDING_POSTURE, kp, kd, max_off)
         self.pub = self.create_publisher(JointState, "joint_command/locomotion", QOS_RELIABLE,

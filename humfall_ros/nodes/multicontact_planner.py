@@ -34,58 +34,44 @@ class MulticontactPlanner(Node):
         super().__init__(NAME)
         p = Params(self)
         opt = {
-            "n_knots": p.declare("n_knots", "knots per trajectory (Nd, Table I)", (3, 40)),
-            "t_min": p.declare("t_min", "shortest trajectory duration T_min (s)", (0.05, 10.0)),
-            "t_max": p.declare("t_max", "longest trajectory duration T_max (s)", (0.1, 20.0)),
-            "n_seed_durations": p.declare("n_seed_durations", "seed duration grid size (N_tot)", (1, 400)),
-            "max_seed_attempts": p.declare("max_seed_attempts", "seeds tried per NLP", (1, 40)),
-            "seed_first_duration": p.declare("seed_first_duration", "first seed duration tried (s)", (0.05, 20.0)),
-            "seed_retry_durations": tuple(float(x) for x in p.declare("seed_retry_durations",
-                                                    "seed durations tried after the first, in order (s)")),
-            "retry_if_energy_rises": p.declare("retry_if_energy_rises",
-                                               "retry a converged contact-adding transition keeping too much KE"),
-            "retry_energy_fraction": p.declare("retry_energy_fraction",
-                                               "retry threshold: objective above this fraction of the start KE",
-                                               (0.0, 10.0)),
-            "eps_ke": p.declare("eps_ke", "stationary kinetic energy eps_KE (J)", (1e-6, 100.0)),
-            "eps_cl": p.declare("eps_cl", "clearance of non-contact points eps_cl (m)", (0.0, 0.5)),
-            "mu": p.declare("mu", "friction coefficient", (0.0, 2.0)),
-            "acc_max": p.declare("acc_max", "knot acceleration bound", (1.0, 1e4)),
-            "force_max_mg": p.declare("force_max_mg", "contact force cap (M g)", (0.1, 100.0)),
-            "contact_pos_tol": p.declare("contact_pos_tol", "contact position tolerance at knots (m)", (0.0, 0.05)),
-            "contact_vel_tol": p.declare("contact_vel_tol", "contact velocity tolerance at knots (m/s)", (0.0, 1.0)),
-            "impact_dissipation_weight": p.declare(
-                "impact_dissipation_weight", "transition objective E_post + w (E_pre - E_post); 1: paper", (0.0, 1.0)),
-            "knee_margin": p.declare("knee_margin", "lower knee bound of the NLP (rad)", (0.0, 1.0)),
-            "post_impact_velocity_limits": p.declare(
-                "post_impact_velocity_limits", "eq. 6 joint velocity limits on the post-impact state (eq. 10)"),
-            "max_iter": p.declare("max_iter", "IPOPT iteration cap", (1, 100000)),
-            "tol": p.declare("tol", "IPOPT tolerance", (1e-12, 1.0)),
-            "nlp_max_wall_time": p.declare("nlp_max_wall_time", "wall-time cap of one NLP (s)", (0.1, 3600.0)),
+            "n_knots": p.declare("n_knots"),
+            "t_min": p.declare("t_min"),
+            "t_max": p.declare("t_max"),
+            "n_seed_durations": p.declare("n_seed_durations"),
+            "max_seed_attempts": p.declare("max_seed_attempts"),
+            "seed_first_duration": p.declare("seed_first_duration"),
+            "seed_retry_durations": tuple(float(x) for x in p.declare("seed_retry_durations")),
+            "retry_if_energy_rises": p.declare("retry_if_energy_rises"),
+            "retry_energy_fraction": p.declare("retry_energy_fraction"),
+            "eps_ke": p.declare("eps_ke"),
+            "eps_cl": p.declare("eps_cl"),
+            "mu": p.declare("mu"),
+            "acc_max": p.declare("acc_max"),
+            "force_max_mg": p.declare("force_max_mg"),
+            "contact_pos_tol": p.declare("contact_pos_tol"),
+            "contact_vel_tol": p.declare("contact_vel_tol"),
+            "impact_dissipation_weight": p.declare("impact_dissipation_weight"),
+            "knee_margin": p.declare("knee_margin"),
+            "post_impact_velocity_limits": p.declare("post_impact_velocity_limits"),
+            "max_iter": p.declare("max_iter"),
+            "tol": p.declare("tol"),
+            "nlp_max_wall_time": p.declare("nlp_max_wall_time"),
         }
         plan = {
-            "max_depth": p.declare("max_depth", "deepest tree level expanded", (0, 20)),
-            "time_budget": p.declare("time_budget", "default planning budget (s)", (0.1, 3600.0)),
-            "max_time_budget": p.declare("max_time_budget", "largest budget a request may ask (s)", (0.1, 36000.0)),
-            "max_kinetic_energy": p.declare("max_kinetic_energy", "largest initial kinetic energy (J)", (0.0, 1e5)),
-            "symmetry_cut": p.declare("symmetry_cut", "skip mirror-image neighbours of symmetric nodes"),
-            "check_q_error_max": p.declare("check_q_error_max",
-                                           "re-simulation acceptance: knot-to-knot error (rad or m; <= 0: off)",
-                                           (-1.0, 100.0)),
-            "check_force_error_max_mg": p.declare("check_force_error_max_mg",
-                                                  "re-simulation acceptance: contact force correction (M g)",
-                                                  (0.0, 1000.0)),
-            "check_feedback_omega": p.declare(
-                "check_feedback_omega", "re-simulation acceptance: bandwidth of the joint tracking controller a "
-                "segment that fails open loop is re-checked with (rad/s; 0: open loop only)", (0.0, 1000.0)),
-            "check_feedback_max": p.declare(
-                "check_feedback_max", "re-simulation acceptance: largest tracking feedback torque, fraction of "
-                "a joint's torque limit", (0.0, 10.0)),
+            "max_depth": p.declare("max_depth"),
+            "time_budget": p.declare("time_budget"),
+            "max_time_budget": p.declare("max_time_budget"),
+            "max_kinetic_energy": p.declare("max_kinetic_energy"),
+            "symmetry_cut": p.declare("symmetry_cut"),
+            "check_q_error_max": p.declare("check_q_error_max"),
+            "check_force_error_max_mg": p.declare("check_force_error_max_mg"),
+            "check_feedback_omega": p.declare("check_feedback_omega"),
+            "check_feedback_max": p.declare("check_feedback_max"),
         }
-        stance = {k: p.declare(f"stance_{k}", f"nominal stance {k} (rad)", (-3.2, 3.2))
+        stance = {k: p.declare(f"stance_{k}")
                   for k in ("hip_pitch", "knee", "shoulder_pitch", "elbow")}
-        self.queue_size = p.declare("queue_size", "requests that may wait while one is planned", (0, 16))
-        warm = p.declare("warm_up", "build the two-foot NLP structures in the background at start")
+        self.queue_size = p.declare("queue_size")
+        warm = p.declare("warm_up")
         self.planner = FallPlanner(OptConfig.from_dict(opt), PlannerConfig.from_dict({**plan, "stance": stance}))
         self._state = threading.Lock()
         self._plan_lock = threading.Lock()

@@ -106,23 +106,15 @@ class Recorder(Node):
     def __init__(self):
         super().__init__(NODE_NAME)
         p = Params(self)
-        self.scenario = p.declare("scenario", "scenario name for the default run folder", default="run")
-        out = p.declare("output_dir", "run folder for bag.mcap and recording_stats.json; "
-                        "empty: runs/<YYYYmmdd-HHMMSS>-<scenario>", default="")
-        self.clock_mode = p.declare("clock", "log-time clock: 'sim' (/clock) or 'wall'", default="sim")
-        self.flush_period = p.declare("flush_period", "s between chunk flushes (bounds kill -9 loss)",
-                                      (0.05, 1.0), default=0.5)
-        self.discovery_period = p.declare("discovery_period", "s between graph polls for new topics",
-                                          (0.05, 5.0), default=0.25)
-        self.depth = p.declare("queue_depth", "history depth of every subscription", (1, 100000),
-                               default=1000)
-        self.drain_max = p.declare("drain_max", "extra queued messages taken per callback "
-                                   "(0: one per executor wait)", (0, 100000), default=1000)
-        self.batch_period = p.declare("batch_period", "s to let messages gather before each "
-                                      "executor wait (CPU vs latency; 0: wait at once)",
-                                      (0.0, 0.05), default=0.005)
-        exclude = p.declare("exclude_regex", "topics matching this regex are not recorded "
-                            "(empty: record everything)", default="")
+        self.scenario = p.declare("scenario")
+        out = p.declare("output_dir")
+        self.clock_mode = p.declare("clock")
+        self.flush_period = p.declare("flush_period")
+        self.discovery_period = p.declare("discovery_period")
+        self.depth = p.declare("queue_depth")
+        self.drain_max = p.declare("drain_max")
+        self.batch_period = p.declare("batch_period")
+        exclude = p.declare("exclude_regex")
         if self.clock_mode not in ("sim", "wall"):
             raise ValueError(f"recorder: clock must be 'sim' or 'wall', not {self.clock_mode!r}")
         self._exclude = re.compile(exclude) if exclude else None

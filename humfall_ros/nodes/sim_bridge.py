@@ -73,40 +73,31 @@ class SimBridge(Node):
     def __init__(self):
         super().__init__("sim_bridge")
         P = Params(self)
-        self.physics_rate = P.declare("physics_rate", "physics steps per second", (100.0, 10000.0))
-        self.control_rate = P.declare("control_rate", "control ticks per second (sensor and command rate)",
-                                      (10.0, 2000.0))
-        self.lockstep = P.declare("lockstep", "advance a tick only when every lockstep source has answered it")
-        self.rtf_target = P.declare("real_time_factor", "free-run speed target (0: as fast as possible)",
-                                    (0.0, 100.0))
-        self.sources = _names(P.declare("command_sources", "joint command sources, highest priority first"))
-        self.lockstep_sources = _names(P.declare("lockstep_sources", "sources whose command each tick waits for "
-                                                 "([''] for none)"))
-        self.command_timeout = P.declare("command_timeout", "sim seconds a command stays live", (0.0, 10.0))
-        self.retransmit_period = P.declare("retransmit_period", "wall seconds without progress before "
-                                           "the tick's sensors are sent again", (0.05, 60.0))
-        self.stall_timeout = P.declare("stall_timeout", "wall seconds to wait for a lockstep command before "
-                                       "stepping without it (logged)", (1.0, 3600.0))
-        self.start_timeout = P.declare("start_timeout", "free-run: wall seconds to wait for the lockstep sources' "
-                                       "command of the first tick before time starts without them", (0.0, 600.0))
-        self.end_time = P.declare("end_time", "sim time at which the run ends (0: never)", (0.0, 36000.0))
-        self.wait_for_nodes = _names(P.declare("wait_for_nodes", "nodes (e.g. the recorder) that must subscribe to "
-                                             "joint_states before time starts"))
-        self.wait_timeout = P.declare("wait_timeout", "wall seconds to wait for wait_for_nodes", (0.0, 600.0))
-        self.metrics_file = P.declare("metrics_file", "where to write ground-truth run metrics (JSON)")
-        self.scenario_name = P.declare("scenario", "scenario name or file for obstacles, pushes and posture")
-        friction = P.declare("friction", "ground and foot friction coefficient", (0.05, 3.0))
-        tf_rate = P.declare("tf_rate", "rate of /tf (ground-truth link poses) in Hz; 0: none", (0.0, 2000.0))
-        gt_rate = P.declare("ground_truth_rate", "rate of ground_truth/odom in Hz (at most control_rate; the "
-                            "estimator's use_ground_truth mode needs control_rate)", (1.0, 10000.0))
-        self.service_period = 1.0 / P.declare("service_rate", "how often (Hz, wall) services and parameters are "
-                                              "served between ticks", (1.0, 1000.0))
-        noise = {f: P.declare(f"noise_{f}", f"std of the Gaussian noise on {what} (0: exact)", (0.0, 100.0))
+        self.physics_rate = P.declare("physics_rate")
+        self.control_rate = P.declare("control_rate")
+        self.lockstep = P.declare("lockstep")
+        self.rtf_target = P.declare("real_time_factor")
+        self.sources = _names(P.declare("command_sources"))
+        self.lockstep_sources = _names(P.declare("lockstep_sources"))
+        self.command_timeout = P.declare("command_timeout")
+        self.retransmit_period = P.declare("retransmit_period")
+        self.stall_timeout = P.declare("stall_timeout")
+        self.start_timeout = P.declare("start_timeout")
+        self.end_time = P.declare("end_time")
+        self.wait_for_nodes = _names(P.declare("wait_for_nodes"))
+        self.wait_timeout = P.declare("wait_timeout")
+        self.metrics_file = P.declare("metrics_file")
+        self.scenario_name = P.declare("scenario")
+        friction = P.declare("friction")
+        tf_rate = P.declare("tf_rate")
+        gt_rate = P.declare("ground_truth_rate")
+        self.service_period = 1.0 / P.declare("service_rate")
+        noise = {f: P.declare(f"noise_{f}")
                  for f, what in (("joint_position", "joint positions, rad"), ("joint_velocity", "joint velocities, "
                                  "rad/s"), ("imu_orientation", "the IMU attitude, rad"), ("gyro", "the gyro, rad/s"),
                                  ("accelerometer", "the accelerometer, m/s^2"), ("force", "ankle forces, N"),
                                  ("torque", "ankle torques, N m"))}
-        noise_seed = P.declare("noise_seed", "seed of the sensor noise (same seed, same noise)", (0, 2**31 - 1))
+        noise_seed = P.declare("noise_seed")
         unknown = set(self.lockstep_sources) - set(self.sources)
         if unknown:
             raise ValueError(f"lockstep_sources {sorted(unknown)} are not command_sources")

@@ -39,11 +39,9 @@ class StateEstimator(Node):
     def __init__(self):
         super().__init__("state_estimator")
         P = Params(self)
-        self.use_ground_truth = P.declare("use_ground_truth", "use the simulator's base pose instead of odometry")
-        viz_rate = P.declare("viz_rate", "rate of the PointStamped/PolygonStamped/MarkerArray copies (Hz)",
-                             (0.0, 1000.0))
-        contact_force = P.declare("contact_force", "normal force above which a foot is in contact (N)",
-                                  (0.0, 500.0))
+        self.use_ground_truth = P.declare("use_ground_truth")
+        viz_rate = P.declare("viz_rate")
+        contact_force = P.declare("contact_force")
         self.model = load_model()
         self.estimator = CentroidalEstimator(self.model, contact_force=contact_force)
         self.viz_period = 1.0 / viz_rate if viz_rate > 0 else float("inf")
