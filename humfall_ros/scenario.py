@@ -1,183 +1,519 @@
 """Scenario files (config/scenarios/*.yaml): schema, validation and overrides.
 
 A scenario says what world the robot is in, what happens to it and how long
-the run lasts. Unknown keys and wrong types are refused with the dotted path
-of the offending key, so a typo never silently runs the wrong experiment.
+the run lasts. The schema is a tree of pydantic v2 models (:class:`Scenario`
+and its sections); unknown keys and wrong types are refused with the dotted
+path of the offending key (``push.0.force: expected a list of 3 numbers, got
+[1, 2]``), so a typo never silently runs the wrong experiment.
+
+Callers get a complete, normalised plain dict (:func:`validate`, :func:`load`):
+every key present, numbers as floats, vectors as lists of floats, ``null``
+for an absent optional section (``push.N.at``, ``estop.at``).
+
+No rclpy and no simulator here: push limits come from
+:mod:`humfall_ros.sim.push` (pure), link and joint names from the model
+(:func:`humfall_ros.model.humanoid.load_model`), the bridge's rates and
+their ranges from ``config/sim_bridge.yaml`` (:mod:`humfall_ros.params`).
 """
 from __future__ import annotations
 
 import copy
+import importlib.util
 import math
-from typing import Any
+import os
+import re
+import sys
+from importlib.machinery import PathFinder
+from typing import Annotated, Any, Literal, get_args
 
 import yaml
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PlainValidator,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
+from humfall_ros import params as params_mod
 from humfall_ros import paths
+from humfall_ros.sim.push import validate_push
 
 
 class ScenarioError(ValueError):
-    pass
+    """A scenario is refused; the message is ``<dotted.path>: <reason>`` (one line per error)."""
 
-
-NUM = (int, float)
-VEC3 = ("vec", 3)
-
-# A schema is a dict of key -> (type, default). Types: python types/tuples,
-# VEC3, ("list", item_schema), ("dict", schema), ("map", value_type) for free-form maps.
-PUSH = {
-    "time": (NUM, 1.0),
-    "force": (VEC3, [0.0, 0.0, 0.0]),
-    "point": (VEC3, [0.0, 0.0, 0.0]),
-    "link": (str, "chest"),
-    "duration": (NUM, 0.1),
-}
-OBSTACLE = {
-    "name": (str, "box"),
-    "position": (VEC3, [0.0, 0.0, 0.0]),
-    "size": (VEC3, [0.3, 0.3, 0.3]),
-    "yaw": (NUM, 0.0),
-    "is_target": (bool, False),
-}
-SIM = {
-    "physics_rate": (NUM, 1000.0),
-    "control_rate": (NUM, 500.0),
-    "lockstep": (bool, True),
-    "real_time_factor": (NUM, 1.0),
-    "friction": (NUM, 0.9),
-}
-WALK = {
-    "start_time": (NUM, 0.0),
-    "speed_kmh": (NUM, 0.0),
-    "direction_deg": (NUM, 0.0),
-}
-ESTOP = {
-    "time": (NUM, -1.0),
-    "random_window": (("vec", 2), [0.0, 0.0]),
-    "seed": (int, 0),
-}
-SCHEMA = {
-    "name": (str, ""),
-    "description": (str, ""),
-    "duration": (NUM, 5.0),
-    "controller": (str, "none"),
-    "robot": (("dict", {"initial_posture": (("map", NUM), {})}), {}),
-    "push": (("list", PUSH), []),
-    "obstacles": (("list", OBSTACLE), []),
-    "sim": (("dict", SIM), {}),
-    "walk": (("dict", WALK), {}),
-    "estop": (("dict", ESTOP), {}),
-    "params": (("map", dict), {}),
-}
 
 CONTROLLERS = ("none", "stepping", "stepping_inertia")
-# the bridge's parameter ranges (config/sim_bridge.yaml descriptors)
-SIM_RANGES = {"physics_rate": (100.0, 10000.0), "control_rate": (10.0, 2000.0),
-              "real_time_factor": (0.0, 100.0), "friction": (0.05, 3.0)}
+# Mux priorities of the built-in command sources (higher wins): a scenario's extra controllers must not reuse them.
+BUILTIN_PRIORITIES = {"locomotion": 10, "estop": 20, "safe_fall": 30}
+# Gait phases a push or an e-stop can be timed to (walking pattern: double support, then single support).
+Phase = Literal["ds_start", "ds_mid", "ss_start", "ss_mid", "ss_end"]
+PHASES: tuple[str, ...] = get_args(Phase)
+_SIM_KEYS = ("physics_rate", "control_rate", "lockstep", "real_time_factor", "friction")
+# the bridge's parameter ranges (config/sim_bridge.yaml bounds)
+SIM_RANGES = {k: params_mod.declarations("sim_bridge")[k].bounds for k in _SIM_KEYS
+              if params_mod.declarations("sim_bridge")[k].bounds is not None}
+SOURCE_NAME = re.compile(r"[a-z_][a-z0-9_]*")
+MODULE_PATH = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*")
+# Free-form maps: their keys are not in the schema, --set may add keys below them ("*": any list index).
+FREE_MAPS = (("params",), ("robot", "initial_posture"), ("controllers", "*", "params"))
 
 
-def _type_name(t) -> str:
-    if t is NUM:
-        return "number"
-    if isinstance(t, tuple) and t and t[0] == "vec":
-        return f"list of {t[1]} numbers"
-    if isinstance(t, tuple) and t and t[0] == "list":
-        return "list"
-    if isinstance(t, tuple) and t and t[0] in ("dict", "map"):
-        return "mapping"
-    return getattr(t, "__name__", str(t))
+# ----------------------------------------------------------------- errors
+class _Reason(ValueError):
+    """A short reason, optionally for a key below the one pydantic reports (``sub``)."""
+
+    def __init__(self, reason: str, sub: tuple = ()):
+        super().__init__(reason)
+        self.sub = tuple(sub)
 
 
-def _check(value, typ, path: str):
-    """Validate and normalise one value against a schema type."""
-    if isinstance(typ, tuple) and typ and typ[0] == "vec":
-        if not isinstance(value, (list, tuple)) or len(value) != typ[1] or \
-                not all(isinstance(v, NUM) and not isinstance(v, bool) for v in value):
-            raise ScenarioError(f"{path}: expected a {_type_name(typ)}, got {value!r}")
-        out = [float(v) for v in value]
-        if not all(math.isfinite(v) for v in out):
-            raise ScenarioError(f"{path}: non-finite number in {value!r}")
+class _UnknownKey(ValueError):
+    def __init__(self, key: str, known: list[str]):
+        super().__init__(f"unknown key {key}")
+        self.key, self.known = key, known
+
+
+def _dotted(loc) -> str:
+    return ".".join(str(p) for p in loc)
+
+
+def _short(err: dict) -> str:
+    """'<dotted.path>: <short reason>' for one pydantic error."""
+    loc = tuple(err["loc"])
+    exc = (err.get("ctx") or {}).get("error")
+    if isinstance(exc, _UnknownKey):
+        return f"unknown key {_dotted((*loc, exc.key))} (known: {', '.join(exc.known)})"
+    if isinstance(exc, _Reason):
+        loc, reason = (*loc, *exc.sub), str(exc)
+    elif err["type"] == "literal_error":
+        reason = f"{err['input']!r} is not one of {err['ctx']['expected']}"
+    elif err["type"] == "missing":
+        reason = "required key missing"
+    elif err["type"] == "list_type":
+        reason = f"expected a list, got {type(err['input']).__name__}"
+    elif err["type"] in ("model_type", "dict_type"):
+        reason = f"expected a mapping, got {type(err['input']).__name__}"
+    elif err["type"] == "extra_forbidden":
+        return f"unknown key {_dotted(loc)}"
+    elif exc is not None:
+        reason = str(exc)
+    else:
+        reason = err["msg"]
+    return f"{_dotted(loc) or 'scenario'}: {reason}"
+
+
+def _scenario_error(e: ValidationError) -> ScenarioError:
+    lines = [_short(err) for err in e.errors()]
+    return ScenarioError(lines[0] if len(lines) == 1 else f"{len(lines)} errors:\n  " + "\n  ".join(lines))
+
+
+# ----------------------------------------------------------------- value types
+def _number(v: Any) -> float:
+    if isinstance(v, str):
+        try:  # YAML 1.1 reads 1e7 (no dot) as a string
+            v = float(v)
+        except ValueError:
+            pass
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise _Reason(f"expected a number, got {v!r}")
+    if not math.isfinite(float(v)):
+        raise _Reason(f"non-finite number {v!r}")
+    return float(v)
+
+
+def _integer(v: Any) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise _Reason(f"expected an integer, got {v!r}")
+    return v
+
+
+def _string(v: Any) -> str:
+    if not isinstance(v, str):
+        raise _Reason(f"expected str, got {v!r}")
+    return v
+
+
+def _boolean(v: Any) -> bool:
+    if not isinstance(v, bool):
+        raise _Reason(f"expected bool, got {v!r}")
+    return v
+
+
+def _vector(n: int):
+    def check(v: Any) -> list[float]:
+        if not isinstance(v, (list, tuple)) or len(v) != n or \
+                not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+            raise _Reason(f"expected a list of {n} numbers, got {v!r}")
+        out = [float(x) for x in v]
+        if not all(math.isfinite(x) for x in out):
+            raise _Reason(f"non-finite number in {v!r}")
         return out
-    if isinstance(typ, tuple) and typ and typ[0] == "list":
-        if not isinstance(value, list):
-            raise ScenarioError(f"{path}: expected a list, got {type(value).__name__}")
-        return [_fill(item, typ[1], f"{path}.{i}") for i, item in enumerate(value)]
-    if isinstance(typ, tuple) and typ and typ[0] == "dict":
-        return _fill(value, typ[1], path)
-    if isinstance(typ, tuple) and typ and typ[0] == "map":
-        if not isinstance(value, dict):
-            raise ScenarioError(f"{path}: expected a mapping, got {type(value).__name__}")
-        return {str(k): _check(v, typ[1], f"{path}.{k}") for k, v in value.items()}
-    if typ is NUM:
-        if isinstance(value, str):
-            try:  # YAML 1.1 reads 1e7 (no dot) as a string
-                value = float(value)
-            except ValueError:
-                pass
-        if isinstance(value, bool) or not isinstance(value, NUM):
-            raise ScenarioError(f"{path}: expected a number, got {value!r}")
-        if not math.isfinite(float(value)):
-            raise ScenarioError(f"{path}: non-finite number {value!r}")
-        return float(value)
-    if typ is int and (isinstance(value, bool) or not isinstance(value, int)):
-        raise ScenarioError(f"{path}: expected an integer, got {value!r}")
-    if not isinstance(value, typ):
-        raise ScenarioError(f"{path}: expected {_type_name(typ)}, got {value!r}")
-    return value
+    return check
 
 
-def _fill(data, schema: dict, path: str) -> dict:
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise ScenarioError(f"{path or 'scenario'}: expected a mapping, got {type(data).__name__}")
-    unknown = set(data) - set(schema)
-    if unknown:
-        where = f"{path}." if path else ""
-        raise ScenarioError(f"unknown key {where}{sorted(unknown)[0]} (known: {', '.join(sorted(schema))})")
-    out = {}
-    for key, (typ, default) in schema.items():
-        sub = f"{path}.{key}" if path else key
-        out[key] = _check(data[key], typ, sub) if key in data else _check(copy.deepcopy(default), typ, sub)
-    return out
+def _mapping(v: Any) -> dict:
+    if not isinstance(v, dict):
+        raise _Reason(f"expected a mapping, got {type(v).__name__}")
+    return v
 
 
-def validate(data: dict) -> dict:
-    """A complete, normalised scenario from a parsed file, or ScenarioError."""
-    sc = _fill(data, SCHEMA, "")
-    if sc["duration"] <= 0 or sc["duration"] > 3600:
-        raise ScenarioError(f"duration: {sc['duration']} s must be in (0, 3600]")
-    if sc["controller"] not in CONTROLLERS:
-        raise ScenarioError(f"controller: {sc['controller']!r} is not one of {', '.join(CONTROLLERS)}")
-    sim = sc["sim"]
-    if sim["physics_rate"] <= 0 or sim["control_rate"] <= 0 or \
-            abs(sim["physics_rate"] / sim["control_rate"] - round(sim["physics_rate"] / sim["control_rate"])) > 1e-9:
-        raise ScenarioError("sim: physics_rate must be a positive integer multiple of control_rate")
-    for key, (lo, hi) in SIM_RANGES.items():
-        if not lo <= sim[key] <= hi:
-            raise ScenarioError(f"sim.{key}: {sim[key]} is outside [{lo}, {hi}]")
-    # robot facts come from the URDF: links that can be pushed, joints of the posture
-    from humfall_ros.model.humanoid import load_model
-    from humfall_ros.sim.world import validate_push
+def _map_of(value_check):
+    """A free-form map: any (string) key, each value checked by ``value_check`` (errors name the key)."""
+    def check(v: Any) -> dict:
+        out = {}
+        for k, x in _mapping(v).items():
+            try:
+                out[str(k)] = value_check(x)
+            except _Reason as r:
+                raise _Reason(str(r), (str(k), *r.sub)) from None
+        return out
+    return check
 
-    model = load_model()
-    for i, p in enumerate(sc["push"]):
-        reason = validate_push(p["force"], p["point"], p["duration"])
+
+Number = Annotated[float, PlainValidator(_number)]
+Integer = Annotated[int, PlainValidator(_integer)]
+String = Annotated[str, PlainValidator(_string)]
+Boolean = Annotated[bool, PlainValidator(_boolean)]
+Vec2 = Annotated[list[float], PlainValidator(_vector(2))]
+Vec3 = Annotated[list[float], PlainValidator(_vector(3))]
+Mapping = Annotated[dict[str, Any], PlainValidator(_mapping)]
+
+
+def _at_least(lo: float, v, unit: str = ""):
+    if v < lo:
+        raise _Reason(f"{v}{unit} must be >= {lo}")
+    return v
+
+
+class _Section(BaseModel):
+    """A mapping with a fixed set of keys: unknown keys are refused, ``null`` means all defaults."""
+
+    model_config = ConfigDict(extra="forbid", validate_default=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _known_keys(cls, data: Any) -> Any:
+        if data is None:
+            return {}
+        if isinstance(data, BaseModel):
+            return data
+        _mapping(data)
+        unknown = sorted(str(k) for k in data if k not in cls.model_fields)
+        if unknown:
+            raise _UnknownKey(unknown[0], sorted(cls.model_fields))
+        return data
+
+
+# ----------------------------------------------------------------- robot facts
+def _robot():
+    from humfall_ros.model.humanoid import load_model  # pinocchio; cached
+
+    return load_model()
+
+
+def controller_module(node: str) -> str:
+    """The python module a ``controllers.N.node`` runs: a bare name is a node of humfall_ros.nodes."""
+    return node if "." in node else f"humfall_ros.nodes.{node}"
+
+
+def _find_module(module: str) -> str | None:
+    """None if ``python -m module`` started from this directory finds it, else why not.
+
+    Walks the import path like the import system does, without importing anything; only for a module that
+    no path entry holds (a meta-path finder's, e.g. an editable install) it asks importlib, which imports
+    the parent packages.
+    """
+    search = [os.getcwd(), *sys.path]  # what `python -m` sees: the working directory first
+    parts = module.split(".")
+    for i, part in enumerate(parts):
+        spec = PathFinder.find_spec(part, search)
+        if spec is None:
+            break
+        if i == len(parts) - 1:
+            return None
+        search = list(spec.submodule_search_locations or [])
+    try:
+        if importlib.util.find_spec(module) is not None:
+            return None
+    except (ImportError, ValueError):
+        pass
+    if i > 0:  # a parent was found, but elsewhere (e.g. the stdlib's `test` package) or it is no package
+        where = ", ".join(search) or "a module, not a package"
+        return f"no module {module} ({'.'.join(parts[:i])} is {where})"
+    return f"no module {module} (looked from {os.getcwd()})"
+
+
+# ----------------------------------------------------------------- the schema
+class GaitEvent(_Section):
+    """A moment of the walking pattern: the given phase of step ``step`` (0 = the first step)."""
+
+    step: Integer
+    phase: Phase
+
+    @field_validator("step")
+    @classmethod
+    def _step(cls, v: int) -> int:
+        return _at_least(0, v)
+
+
+class Push(_Section):
+    """A force on a link for a while: world-frame force [N] at a point in the link frame [m]."""
+
+    time: Number = 1.0               # [s] sim time the push starts (ignored when ``at`` is given)
+    at: GaitEvent | None = None      # or: at this moment of the gait
+    force: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])   # [N] world frame
+    point: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])   # [m] link frame
+    link: String = "chest"
+    duration: Number = 0.1           # [s]
+
+    @field_validator("time")
+    @classmethod
+    def _time(cls, v: float) -> float:
+        return _at_least(0.0, v, " s")
+
+    @field_validator("link")
+    @classmethod
+    def _link(cls, v: str) -> str:
+        names = _robot().link_names
+        if v not in names:
+            raise _Reason(f"no link {v!r} (links: {', '.join(names)})")
+        return v
+
+    @model_validator(mode="after")
+    def _sane(self) -> Push:
+        reason = validate_push(self.force, self.point, self.duration)
         if reason:
-            raise ScenarioError(f"push.{i}: {reason}")
-        if p["link"] not in model.link_names:
-            raise ScenarioError(f"push.{i}.link: no link {p['link']!r} (links: {', '.join(model.link_names)})")
-        if p["time"] < 0:
-            raise ScenarioError(f"push.{i}.time must be >= 0")
-    unknown = set(sc["robot"]["initial_posture"]) - set(model.joint_names)
-    if unknown:
-        raise ScenarioError(f"robot.initial_posture: unknown joints {sorted(unknown)}")
-    names = [o["name"] for o in sc["obstacles"]]
-    if len(set(names)) != len(names):
-        raise ScenarioError("obstacles: names must be unique")
-    for i, o in enumerate(sc["obstacles"]):
-        if min(o["size"]) <= 0 or max(o["size"]) > 50:
-            raise ScenarioError(f"obstacles.{i}.size: each extent must be in (0, 50] m")
-    return sc
+            raise _Reason(reason)
+        return self
+
+
+class Obstacle(_Section):
+    """A box on the ground: centre position [m], full extents [m], yaw [rad]."""
+
+    name: String = "box"
+    position: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    size: Vec3 = Field(default_factory=lambda: [0.3, 0.3, 0.3])
+    yaw: Number = 0.0
+    is_target: Boolean = False
+
+    @field_validator("size")
+    @classmethod
+    def _size(cls, v: list[float]) -> list[float]:
+        if min(v) <= 0 or max(v) > 50:
+            raise _Reason("each extent must be in (0, 50] m")
+        return v
+
+
+_BRIDGE = params_mod.defaults("sim_bridge")
+
+
+class Sim(_Section):
+    """The bridge's simulation settings (defaults and ranges: config/sim_bridge.yaml)."""
+
+    physics_rate: Number = _BRIDGE["physics_rate"]            # [Hz]
+    control_rate: Number = _BRIDGE["control_rate"]            # [Hz]
+    lockstep: Boolean = _BRIDGE["lockstep"]
+    real_time_factor: Number = _BRIDGE["real_time_factor"]    # 0 = as fast as possible
+    friction: Number = _BRIDGE["friction"]
+
+    @field_validator(*SIM_RANGES)
+    @classmethod
+    def _in_range(cls, v: float, info: ValidationInfo) -> float:
+        lo, hi = SIM_RANGES[info.field_name]
+        if not lo <= v <= hi:
+            raise _Reason(f"{v} is outside [{lo}, {hi}]")
+        return v
+
+    @model_validator(mode="after")
+    def _substeps(self) -> Sim:
+        ratio = self.physics_rate / self.control_rate
+        if abs(ratio - round(ratio)) > 1e-9:
+            raise _Reason(f"physics_rate ({self.physics_rate} Hz) must be a positive integer multiple of "
+                          f"control_rate ({self.control_rate} Hz)")
+        return self
+
+
+_LOCOMOTION = params_mod.declarations("locomotion")
+
+
+def _gait_default(name: str, fallback: float) -> float:
+    """The walking controller's declared default (config/locomotion.yaml), so the two never drift."""
+    d = _LOCOMOTION.get(name)
+    return float(d.default) if d is not None else fallback
+
+
+class Walk(_Section):
+    """What the walking controller is asked to do (it clamps the speed to what it can do, with a warning)."""
+
+    start_time: Number = 0.0         # [s] sim time walking starts
+    speed_kmh: Number = 0.0          # [km/h]
+    direction_deg: Number = 0.0      # [deg] walking direction in the robot's initial frame, 0 = forward
+    steps: Integer = 0               # number of steps, 0 = no walk
+    step_period: Number = _gait_default("step_period", 0.8)         # [s] one step: double then single support
+    double_support: Number = _gait_default("double_support", 0.1)   # [s] of each step
+    turn_rate_deg_s: Number = 0.0    # [deg/s]
+
+    @field_validator("start_time")
+    @classmethod
+    def _start(cls, v: float) -> float:
+        return _at_least(0.0, v, " s")
+
+    @field_validator("speed_kmh")
+    @classmethod
+    def _speed(cls, v: float) -> float:
+        return _at_least(0.0, v, " km/h")
+
+    @field_validator("steps")
+    @classmethod
+    def _steps(cls, v: int) -> int:
+        return _at_least(0, v)
+
+    @field_validator("step_period")
+    @classmethod
+    def _period(cls, v: float) -> float:
+        if not 0.4 <= v <= 1.5:
+            raise _Reason(f"{v} s is outside [0.4, 1.5]")
+        return v
+
+    @field_validator("double_support")
+    @classmethod
+    def _double_support(cls, v: float, info: ValidationInfo) -> float:
+        period = info.data.get("step_period")
+        if period is not None and not 0 < v < period:
+            raise _Reason(f"{v} s must be in (0, step_period = {period} s)")
+        d = _LOCOMOTION.get("double_support")
+        if d is not None and d.bounds is not None and not d.bounds[0] <= v <= d.bounds[1]:
+            raise _Reason(f"{v} s is outside [{d.bounds[0]}, {d.bounds[1]}] (locomotion's double_support)")
+        return v
+
+
+class Estop(_Section):
+    """An e-stop: at a sim time, at a gait moment, or at a random time in a window (seeded)."""
+
+    time: Number = -1.0              # [s] sim time, -1 = none
+    at: GaitEvent | None = None      # or: at this moment of the gait
+    random_window: Vec2 = Field(default_factory=lambda: [0.0, 0.0])   # [s] (lo, hi)
+    seed: Integer = 0
+
+    @field_validator("time")
+    @classmethod
+    def _time(cls, v: float) -> float:
+        if v < 0 and v != -1.0:
+            raise _Reason(f"{v} s must be >= 0, or -1 for no e-stop at a time")
+        return v
+
+    @field_validator("random_window")
+    @classmethod
+    def _window(cls, v: list[float]) -> list[float]:
+        if not 0 <= v[0] <= v[1]:
+            raise _Reason(f"{v} must be [lo, hi] with 0 <= lo <= hi")
+        return v
+
+    @model_validator(mode="after")
+    def _one_trigger(self) -> Estop:
+        if self.at is not None and self.time >= 0:
+            raise _Reason(f"give time ({self.time} s) or at, not both")
+        return self
+
+
+class Robot(_Section):
+    initial_posture: Annotated[dict[str, float], PlainValidator(_map_of(_number))] = Field(default_factory=dict)
+
+    @field_validator("initial_posture")
+    @classmethod
+    def _joints(cls, v: dict[str, float]) -> dict[str, float]:
+        names = _robot().joint_names
+        unknown = sorted(set(v) - set(names))
+        if unknown:
+            raise _Reason(f"unknown joints {unknown} (joints: {', '.join(names)})")
+        return v
+
+
+class ControllerNode(_Section):
+    """An extra lockstep controller node: its mux source name and priority (higher wins), its parameters."""
+
+    node: String                     # a node of humfall_ros.nodes, or a dotted module path with a main()
+    source: String                   # joint_command/<source>
+    priority: Integer
+    params: Mapping = Field(default_factory=dict)
+
+    @field_validator("node")
+    @classmethod
+    def _node(cls, v: str) -> str:
+        if not MODULE_PATH.fullmatch(v):
+            raise _Reason(f"{v!r} is not a node name or a dotted module path")
+        why = _find_module(controller_module(v))
+        if why:
+            raise _Reason(why)
+        return v
+
+    @field_validator("source")
+    @classmethod
+    def _source(cls, v: str) -> str:
+        if not SOURCE_NAME.fullmatch(v):
+            raise _Reason(f"{v!r} is not a source name ([a-z_][a-z0-9_]*)")
+        return v
+
+
+class Scenario(_Section):
+    name: String = ""
+    description: String = ""
+    duration: Number = 5.0           # [s] sim time
+    controller: Literal[CONTROLLERS] = "none"
+    controllers: list[ControllerNode] = Field(default_factory=list)
+    robot: Robot = Field(default_factory=Robot)
+    push: list[Push] = Field(default_factory=list)
+    obstacles: list[Obstacle] = Field(default_factory=list)
+    sim: Sim = Field(default_factory=Sim)
+    walk: Walk = Field(default_factory=Walk)
+    estop: Estop = Field(default_factory=Estop)
+    params: Annotated[dict[str, dict], PlainValidator(_map_of(_mapping))] = Field(default_factory=dict)
+
+    @field_validator("duration")
+    @classmethod
+    def _duration(cls, v: float) -> float:
+        if v <= 0 or v > 3600:
+            raise _Reason(f"{v} s must be in (0, 3600]")
+        return v
+
+    @field_validator("controllers")
+    @classmethod
+    def _distinct(cls, v: list[ControllerNode]) -> list[ControllerNode]:
+        """No two sources (built-in or listed) share a name or a priority."""
+        seen = [(f"the built-in source {s!r} (priority {p})", s, p) for s, p in BUILTIN_PRIORITIES.items()]
+        for i, c in enumerate(v):
+            for who, source, priority in seen:
+                if source == c.source:
+                    raise _Reason(f"source {c.source!r} (priority {c.priority}) clashes with {who}: "
+                                  "source names must differ", (i,))
+                if priority == c.priority:
+                    raise _Reason(f"priority {c.priority} (source {c.source!r}) clashes with {who}: "
+                                  "priorities must differ", (i,))
+            seen.append((f"controllers.{i} (source {c.source!r}, priority {c.priority})", c.source, c.priority))
+        return v
+
+    @field_validator("obstacles")
+    @classmethod
+    def _unique(cls, v: list[Obstacle]) -> list[Obstacle]:
+        names = [o.name for o in v]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise _Reason(f"names must be unique ({', '.join(map(repr, twice))} more than once)")
+        return v
+
+
+# ----------------------------------------------------------------- public API
+def validate(data: dict) -> dict:
+    """A complete, normalised scenario (plain dict) from a parsed file, or ScenarioError."""
+    try:
+        return Scenario.model_validate(data).model_dump()
+    except ValidationError as e:
+        raise _scenario_error(e) from None
 
 
 def load(name_or_path: str, overrides: list[str] | None = None) -> dict:
@@ -198,8 +534,21 @@ def load(name_or_path: str, overrides: list[str] | None = None) -> dict:
     return sc
 
 
+def _free(parts: list[str], depth: int) -> bool:
+    """Whether ``parts[depth]`` is a key of a free-form map (so it may be new)."""
+    for pattern in FREE_MAPS:
+        n = len(pattern)
+        if depth >= n and all(a == "*" or a == b for a, b in zip(pattern, parts[:n])):
+            return True
+    return False
+
+
 def apply_override(sc: dict, assignment: str) -> dict:
-    """Apply ``dotted.key=value`` (value parsed as YAML) and revalidate."""
+    """Apply ``dotted.key=value`` (value parsed as YAML) and revalidate.
+
+    The key must exist, except below a free-form map (:data:`FREE_MAPS`: ``params.*``,
+    ``robot.initial_posture.*``, ``controllers.N.params.*``), where it may be new.
+    """
     if "=" not in assignment:
         raise ScenarioError(f"--set {assignment!r}: expected dotted.key=value")
     key, raw = assignment.split("=", 1)
@@ -211,20 +560,20 @@ def apply_override(sc: dict, assignment: str) -> dict:
     data = copy.deepcopy(sc)
     node: Any = data
     for i, part in enumerate(parts):
-        last = i == len(parts) - 1
         here = ".".join(parts[: i + 1])
         if isinstance(node, list):
             if not part.isdigit() or int(part) >= len(node):
                 raise ScenarioError(f"--set {key}: no list item {here}")
             part = int(part)
         elif isinstance(node, dict):
-            # free-form maps (params, initial_posture) may gain keys
-            free = parts[0] == "params" or (len(parts) >= 2 and parts[:2] == ["robot", "initial_posture"])
-            if part not in node and not (free and i >= (1 if parts[0] == "params" else 2)):
+            if part not in node and not _free(parts, i):
                 raise ScenarioError(f"--set {key}: no such key {here}")
+        elif node is None:
+            where = ".".join(parts[:i])
+            raise ScenarioError(f"--set {key}: {where} is null; set it whole, e.g. --set '{where}={{...}}'")
         else:
             raise ScenarioError(f"--set {key}: {'.'.join(parts[:i])} is not a mapping or list")
-        if last:
+        if i == len(parts) - 1:
             node[part] = value
         else:
             if isinstance(node, dict) and part not in node:

@@ -1,5 +1,9 @@
 """Scenario files: schema, validation, overrides."""
+import subprocess
+import sys
+
 import pytest
+import yaml
 
 from humfall_ros import paths, scenario
 
@@ -70,3 +74,165 @@ def test_obstacle_sizes_must_be_positive(tmp_path):
 
 def test_numbers_in_exponent_form_are_numbers():
     assert scenario.load("standing_push", ["sim.physics_rate=2e3"])["sim"]["physics_rate"] == 2000.0
+
+
+# ---------------------------------------------------------------- pydantic schema, new keys, boundaries
+def test_defaults_change_nothing_for_existing_scenarios():
+    sc = scenario.validate({})
+    assert sc["walk"]["steps"] == 0 and sc["walk"]["speed_kmh"] == 0.0     # no walk
+    assert sc["estop"]["time"] == -1.0 and sc["estop"]["at"] is None        # no e-stop
+    assert sc["controllers"] == []
+    assert scenario.load("standing_push")["push"][0]["at"] is None
+    from humfall_ros import params
+
+    bridge = params.defaults("sim_bridge")
+    assert sc["sim"] == {k: bridge[k] for k in sc["sim"]}   # one source: config/sim_bridge.yaml
+    assert scenario.SIM_RANGES["physics_rate"] == params.declarations("sim_bridge")["physics_rate"].bounds
+
+
+def test_dump_round_trips():
+    sc = scenario.load("standing_push", ["estop.at={step: 5, phase: ds_start}", "walk.steps=8"])
+    assert scenario.validate(yaml.safe_load(scenario.dump(sc))) == sc
+
+
+def test_gait_timed_push_and_estop():
+    sc = scenario.load("standing_push", ["push.0.at={step: 3, phase: ss_start}", "estop.at={step: 5, phase: ds_start}"])
+    assert sc["push"][0]["at"] == {"step": 3, "phase": "ss_start"}
+    assert sc["estop"]["at"] == {"step": 5, "phase": "ds_start"} and sc["estop"]["time"] == -1.0
+    assert set(scenario.PHASES) == {"ds_start", "ds_mid", "ss_start", "ss_mid", "ss_end"}
+
+
+def test_walk_keys():
+    sc = scenario.load("standing_push", ["walk={steps: 6, speed_kmh: 2.0, step_period: 0.7, double_support: 0.15}"])
+    w = sc["walk"]
+    assert (w["steps"], w["speed_kmh"], w["step_period"], w["double_support"]) == (6, 2.0, 0.7, 0.15)
+    assert w["turn_rate_deg_s"] == 0.0 and w["direction_deg"] == 0.0
+    # the controller clamps the speed (with a warning), the scenario does not
+    assert scenario.load("standing_push", ["walk.speed_kmh=4"])["walk"]["speed_kmh"] == 4.0
+
+
+@pytest.mark.parametrize("override, message", [
+    ("push.0.at={step: 2, phase: ds_begin}", r"push\.0\.at\.phase: 'ds_begin' is not one of"),
+    ("push.0.at={step: -1, phase: ds_mid}", r"push\.0\.at\.step: -1 must be >= 0"),
+    ("push.0.at={step: 1}", r"push\.0\.at\.phase: required key missing"),
+    ("push.0.at={step: 1, phase: ds_mid, when: 2}", r"unknown key push\.0\.at\.when \(known: phase, step\)"),
+    ("push.0.at.step=3", r"push\.0\.at is null; set it whole"),
+    ("push.0.time=-1", r"push\.0\.time: -1\.0 s must be >= 0"),
+    ("estop.at=[3]", r"estop\.at: expected a mapping"),
+    ("estop.time=-0.5", r"estop\.time: .*-1 for no e-stop"),
+    ("estop.random_window=[2, 1]", r"estop\.random_window"),
+    ("estop={time: 2, at: {step: 1, phase: ds_start}}", r"estop: give time .* or at, not both"),
+    ("walk.steps=-1", r"walk\.steps: -1 must be >= 0"),
+    ("walk.steps=2.5", r"walk\.steps: expected an integer"),
+    ("walk.step_period=0.3", r"walk\.step_period: 0\.3 s is outside \[0\.4, 1\.5\]"),
+    ("walk.double_support=0.8", r"walk\.double_support: 0\.8 s must be in \(0, step_period"),
+    ("walk.double_support=0", r"walk\.double_support"),
+    ("walk.speed_kmh=-0.5", r"walk\.speed_kmh: -0\.5 km/h must be >= 0"),
+    ("walk.speed_kmh=.inf", r"walk\.speed_kmh: non-finite"),
+    ("walk.turn_rate_deg_s=abc", r"walk\.turn_rate_deg_s: expected a number"),
+    ("walk.stride=3", r"no such key walk\.stride"),
+    ("sim.physics_rate=1100", r"sim: physics_rate \(1100\.0 Hz\) must be a positive integer multiple"),
+    ("obstacles=[{name: a}, {name: a}]", r"obstacles: names must be unique \('a'"),
+    ("robot.initial_posture.l_knee=abc", r"robot\.initial_posture\.l_knee: expected a number"),
+    ("params.locomotion=3", r"params\.locomotion: expected a mapping, got int"),
+    ("push=null", r"push: expected a list, got NoneType"),
+])
+def test_bad_new_keys_are_refused_with_their_dotted_path(override, message):
+    with pytest.raises(scenario.ScenarioError, match=message):
+        scenario.load("standing_push", [override])
+
+
+def test_several_errors_are_all_reported():
+    with pytest.raises(scenario.ScenarioError) as e:
+        scenario.validate({"duration": "x", "push": [{"force": [1, 2]}], "walk": {"steps": -1}})
+    lines = str(e.value).splitlines()
+    assert lines[0] == "3 errors:"
+    assert [ln.split(":")[0].strip() for ln in lines[1:]] == ["duration", "push.0.force", "walk.steps"]
+
+
+def test_a_file_that_is_not_a_mapping_is_refused(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("- 1\n- 2\n")
+    with pytest.raises(scenario.ScenarioError, match="scenario: expected a mapping, got list"):
+        scenario.load(str(bad))
+
+
+def extra(*entries):
+    return "controllers=[" + ", ".join("{" + e + "}" for e in entries) + "]"
+
+
+def test_extra_controllers():
+    sc = scenario.load("standing_push", [extra("node: locomotion, source: takeover, priority: 15, params: {a: 1}"),
+                                         "controllers.0.params.b=2"])   # its params are a free-form map
+    assert sc["controllers"] == [{"node": "locomotion", "source": "takeover", "priority": 15,
+                                  "params": {"a": 1, "b": 2}}]
+    assert scenario.controller_module("locomotion") == "humfall_ros.nodes.locomotion"
+    assert scenario.controller_module("mylab.ctrl") == "mylab.ctrl"
+    assert scenario.BUILTIN_PRIORITIES == {"locomotion": 10, "estop": 20, "safe_fall": 30}
+
+
+def test_extra_controller_from_a_module_path(tmp_path, monkeypatch):
+    (tmp_path / "mylab").mkdir()
+    (tmp_path / "mylab" / "ctrl.py").write_text("def main():\n    pass\n")
+    monkeypatch.chdir(tmp_path)   # `python -m mylab.ctrl` started here finds it
+    sc = scenario.load("standing_push", [extra("node: mylab.ctrl, source: lab, priority: 5")])
+    assert sc["controllers"][0]["node"] == "mylab.ctrl"
+    with pytest.raises(scenario.ScenarioError, match=r"controllers\.0\.node: no module mylab\.nope"):
+        scenario.load("standing_push", [extra("node: mylab.nope, source: lab, priority: 5")])
+
+
+@pytest.mark.parametrize("entries, message", [
+    (["node: locomotion, source: estop, priority: 5"],
+     r"controllers\.0: source 'estop' \(priority 5\) clashes with the built-in source 'estop' \(priority 20\)"),
+    (["node: locomotion, source: mine, priority: 30"],
+     r"controllers\.0: priority 30 \(source 'mine'\) clashes with the built-in source 'safe_fall' \(priority 30\)"),
+    (["node: locomotion, source: a, priority: 5", "node: locomotion, source: b, priority: 5"],
+     r"controllers\.1: priority 5 \(source 'b'\) clashes with controllers\.0 \(source 'a', priority 5\)"),
+    (["node: locomotion, source: a, priority: 5", "node: locomotion, source: a, priority: 6"],
+     r"controllers\.1: source 'a' \(priority 6\) clashes with controllers\.0 \(source 'a', priority 5\)"),
+    (["node: locomotion, source: Bad-Name, priority: 5"], r"controllers\.0\.source: 'Bad-Name' is not a source name"),
+    (["node: no_such_node, source: a, priority: 5"], r"controllers\.0\.node: no module humfall_ros\.nodes\.no_such_node"),
+    (["node: 'a b', source: a, priority: 5"], r"controllers\.0\.node: 'a b' is not a node name"),
+    (["node: locomotion, source: a"], r"controllers\.0\.priority: required key missing"),
+    (["node: locomotion, source: a, priority: 5.5"], r"controllers\.0\.priority: expected an integer"),
+    (["node: locomotion, source: a, priority: 5, prio: 3"], r"unknown key controllers\.0\.prio"),
+])
+def test_conflicting_or_bad_controllers_are_refused(entries, message):
+    with pytest.raises(scenario.ScenarioError, match=message):
+        scenario.load("standing_push", [extra(*entries)])
+
+
+@pytest.mark.parametrize("module", ["humfall_ros.scenario", "humfall_ros.launch"])
+def test_scenario_and_launcher_import_neither_rclpy_nor_pybullet(module):
+    """Issue 9 item 6: validating a scenario (pushes, links, joints, controllers) needs no ROS and no simulator."""
+    code = (f"import sys, {module}\n"
+            "from humfall_ros import scenario\n"
+            "scenario.load('standing_push', ['controllers=[{node: locomotion, source: x, priority: 5}]',"
+            " 'robot.initial_posture.l_knee=0.3'])\n"
+            "print(sorted(m for m in ('rclpy', 'pybullet', 'humfall_ros.sim.world') if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=60,
+                         cwd=paths.share_dir())
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
+def test_validate_push_lives_in_a_pure_module():
+    from humfall_ros.sim import push, world
+
+    assert world.validate_push is push.validate_push and world.MAX_PUSH_FORCE == push.MAX_PUSH_FORCE
+    assert push.validate_push([0, 0, 0], [0, 0, 0], 0.1) is None
+    assert "exceeds" in push.validate_push([push.MAX_PUSH_FORCE * 0.6] * 3, [0, 0, 0], 0.1)  # |f| = 1.04 * max
+
+
+def test_gait_defaults_are_the_walking_controllers():
+    from humfall_ros import params
+
+    loco = params.defaults("locomotion")
+    walk = scenario.validate({})["walk"]
+    for key in ("step_period", "double_support"):
+        if key in loco:
+            assert walk[key] == loco[key]
+    if "double_support" in loco:
+        lo, _ = params.declarations("locomotion")["double_support"].bounds
+        with pytest.raises(scenario.ScenarioError, match=r"walk\.double_support: .* \(locomotion's double_support\)"):
+            scenario.validate({"walk": {"double_support": lo / 2}})
