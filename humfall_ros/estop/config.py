@@ -1,0 +1,103 @@
+"""The e-stop's configuration, built from ``config/estop_planner.yaml`` (one source per parameter)."""
+from __future__ import annotations
+
+import dataclasses
+
+from humfall_ros import params
+
+BETA_POLICIES = ("clamp", "supremum")
+FALLBACKS = ("min_n3_crouch", "none")
+
+
+@dataclasses.dataclass(frozen=True)
+class TriggerPhase:
+    """A gait phase for a scheduled trigger (scenario ``estop.at.phase``).
+
+    Attributes:
+        kind: ``ds_start`` (first tick of a double support), ``ds_mid`` (its middle) or ``ss``.
+        fraction: for ``ss``, the fraction of the single support elapsed, in [0, 1].
+    """
+
+    kind: str
+    fraction: float = 0.0
+
+    @staticmethod
+    def parse(text: str) -> TriggerPhase:
+        text = text.strip()
+        if text in ("ds_start", "ds_mid"):
+            return TriggerPhase(text)
+        if text.startswith("ss:"):
+            try:
+                f = float(text[3:])
+            except ValueError:
+                f = float("nan")
+            if not 0.0 <= f <= 1.0:
+                raise ValueError(f"trigger_phase {text!r}: the single-support fraction must be in [0, 1]")
+            return TriggerPhase("ss", f)
+        raise ValueError(f"trigger_phase {text!r} is not ds_start, ds_mid or ss:<fraction>")
+
+
+@dataclasses.dataclass(frozen=True)
+class EstopConfig:
+    """Every parameter of the estop_planner node (units and meaning in config/estop_planner.yaml)."""
+
+    omega_f: float = 25.0
+    cog_height_min: float = 0.5
+    cog_height_max: float = 1.0
+    max_cog_speed: float = 1.5
+    minor_lqr_weights: tuple[float, float, float] = (1.0, 10.0, 1.0)
+    minor_lqr_input_weight: float = 0.1
+    lqr_cog_height: float = 0.74
+    major_beta: float = -100.0
+    beta_policy: str = "clamp"
+    beta_margin: float = 0.05
+    zmp_margin: float = 0.015
+    samples: int = 96
+    settle_speed: float = 0.01
+    terminal_tolerance: float = 1e-5
+    joint_margin: float = 0.02
+    ik_max_iterations: int = 60
+    ik_dt: float = 0.05
+    ik_tolerance: float = 1e-3
+    crouch_min_cog_height: float = 0.6
+    crouch_clearance: float = 0.01
+    crouch_duration: float = 0.8
+    fallback: str = "min_n3_crouch"
+    joint_stop_time: float = 0.3
+    home_duration: float = 1.5
+    trigger_time: float = -1.0
+    trigger_step: int = -1
+    trigger_phase: str = "ds_start"
+
+    def __post_init__(self):
+        if self.beta_policy not in BETA_POLICIES:
+            raise ValueError(f"beta_policy {self.beta_policy!r} is not one of {', '.join(BETA_POLICIES)}")
+        if self.fallback not in FALLBACKS:
+            raise ValueError(f"fallback {self.fallback!r} is not one of {', '.join(FALLBACKS)}")
+        if len(self.minor_lqr_weights) != 3 or min(self.minor_lqr_weights) < 0:
+            raise ValueError(f"minor_lqr_weights must be 3 numbers >= 0, got {self.minor_lqr_weights}")
+        if not self.cog_height_min < self.cog_height_max:
+            raise ValueError("cog_height_min must be below cog_height_max")
+        object.__setattr__(self, "minor_lqr_weights", tuple(float(w) for w in self.minor_lqr_weights))
+        TriggerPhase.parse(self.trigger_phase)
+
+    @property
+    def phase(self) -> TriggerPhase:
+        return TriggerPhase.parse(self.trigger_phase)
+
+    @staticmethod
+    def from_params(d: dict) -> EstopConfig:
+        """From a dict of parameter names (e.g. ``params.defaults("estop_planner")``); unknown keys are refused."""
+        names = {f.name for f in dataclasses.fields(EstopConfig)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"EstopConfig: unknown keys {sorted(unknown)}")
+        return EstopConfig(**d)
+
+    @staticmethod
+    def defaults(**overrides) -> EstopConfig:
+        """The declared defaults (config/estop_planner.yaml), with ``overrides``."""
+        return EstopConfig.from_params({**params.defaults("estop_planner"), **overrides})
+
+
+__all__ = ["BETA_POLICIES", "FALLBACKS", "EstopConfig", "TriggerPhase"]
