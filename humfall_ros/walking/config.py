@@ -1,0 +1,76 @@
+"""The locomotion node's settings as a typed dataclass, built from ``config/locomotion.yaml``."""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+from humfall_ros import params
+
+
+@dataclasses.dataclass(frozen=True)
+class LocomotionConfig:
+    """Standing and walking settings (units in brackets; meanings in config/locomotion.yaml)."""
+
+    ankle_kp: float = 0.3                 # rad/m, standing balance
+    ankle_kd: float = 0.05                # rad s/m
+    ankle_max_offset: float = 0.12        # rad
+    resume_time: float = 1.0              # s, standing: blend back from the measured posture
+    step_period: float = 0.8              # s
+    double_support: float = 0.1           # s
+    com_height: float = 0.70              # m
+    swing_apex: float = 0.05              # m
+    step_width_offset: float = 0.0        # m
+    crouch_duration: float = 1.0          # s
+    start_duration: float = 0.8           # s
+    stop_duration: float = 0.8            # s
+    settle_duration: float = 1.0          # s
+    max_speed_kmh: float = 2.5            # km/h
+    max_turn_rate_deg_s: float = 20.0     # deg/s
+    preview_horizon: float = 1.6          # s
+    preview_q: float = 1.0
+    preview_r: float = 1e-7
+    multibody_correction: bool = True
+    multibody_horizon: float = 0.6        # s
+    dcm_gain: float = 1.0                 # m/m
+    com_feedback_max: float = 0.03        # m
+    cop_damping_gain: float = 2.0         # rad/(m s)
+    cop_damping_time_constant: float = 0.2  # s
+    walk_ankle_max_offset: float = 0.05   # rad
+    velocity_fraction: float = 0.9
+    knee_margin: float = 0.1              # rad
+    hip_extension_margin: float = 0.02    # rad
+
+    @classmethod
+    def from_params(cls, d: dict[str, Any] | None = None) -> LocomotionConfig:
+        """From a locomotion parameter dict (defaults: ``params.defaults("locomotion")``); unknown keys
+        are refused, missing ones take the declared default."""
+        values = params.defaults("locomotion")
+        if d:
+            values.update(params.check_overrides("locomotion", d))
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(values) - names
+        if unknown:
+            raise params.ParamError(f"locomotion: parameters without a LocomotionConfig field: {sorted(unknown)}")
+        cfg = cls(**values)
+        if cfg.double_support >= cfg.step_period:
+            raise params.ParamError("locomotion: double_support must be shorter than step_period")
+        return cfg
+
+    @property
+    def single_support(self) -> float:
+        """T_ss [s]."""
+        return self.step_period - self.double_support
+
+    @property
+    def max_speed(self) -> float:
+        """[m/s]."""
+        return self.max_speed_kmh / 3.6
+
+    @property
+    def max_turn_rate(self) -> float:
+        """[rad/s]."""
+        return math.radians(self.max_turn_rate_deg_s)
+
+
+__all__ = ["LocomotionConfig"]

@@ -1,0 +1,373 @@
+"""LocomotionController: stands, and walks on a walking command (controller contract, source "locomotion").
+
+No rclpy, no simulator. Standing is :class:`humfall_ros.control.standing.StandingController`
+(the ankle strategy, with its bumpless hand-back). A walking command (``set_walk_command`` or
+``observation.inputs["cmd_walk"]``, a :class:`WalkCommand` or ``(speed [m/s], yaw_rate [rad/s])``)
+starts a walk: the command is checked (finite; speed and turn rate clamped to their limits with a
+warning; the kinematics checked on a short offline rehearsal before the first step) and a
+:class:`WalkingPattern` is started from the measured posture. Each tick: pattern step (preview
+control), optional multi-body correction, stabiliser (measured capture point and CoP), whole-body
+IK (both soles hard, CoM, trunk orientation, posture) -> joint targets with velocities. A zero
+command plans the stop; when the stop has settled the robot stands where it stopped.
+
+``observation.inputs.get("fall_event")`` (truthy) or an active ``inputs.get("estop")`` (truthy, or
+an object whose ``active`` is true) releases the robot (``step`` returns None) and drops the
+pattern; when they clear, or when ``observation.active_source`` shows another source drove the
+robot, the standing controller resumes from the measured posture. Log lines for the node (warnings,
+refusals with their reasons) are appended to ``messages``; :attr:`state` is the
+:class:`WalkingState` of the last tick (the ``walking/state`` message).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pinocchio as pin
+
+from humfall_ros.control.contract import JointTargets, Observation
+from humfall_ros.control.standing import StandingController
+from humfall_ros.model.humanoid import SIDES, HumanoidModel
+from humfall_ros.model.ik import (
+    ComTask,
+    FrameTask,
+    OrientationTask,
+    PostureTask,
+    WholeBodyIK,
+)
+from humfall_ros.walking.config import LocomotionConfig
+from humfall_ros.walking.footsteps import Footstep, WalkCommand, step_width
+from humfall_ros.walking.pattern import PatternSample, SupportPhase, WalkingPattern
+from humfall_ros.walking.stabilizer import WalkingStabilizer
+
+
+@dataclasses.dataclass
+class WalkingState:
+    """What ``walking/state`` carries every tick (pattern world frame = the estimator's world, z up).
+
+    Attributes:
+        stamp_ns: the tick [ns].
+        walking: a walk pattern is running (False: standing or released).
+        released: the controller has released the robot (fall event / e-stop).
+        support: "double", "single_left" or "single_right".
+        phase_fraction: elapsed fraction of the current support phase [0, 1).
+        step_index: 0 before the first swing, j during and after step j.
+        com_ref: reference CoM [m] (3,); com_velocity_ref [m/s] (3,).
+        zmp_ref: reference ZMP [m] (3,), z = 0.
+        capture_point_ref: reference capture point [m] (3,), z = 0.
+        multibody_zmp: ZMP of the planned whole-body motion [m] (3,) (NaN when not computed).
+        left_foot, right_foot: current reference sole poses (x, y, z [m], yaw [rad]).
+        next_footsteps: upcoming footsteps, (side "l"/"r", x [m], y [m], yaw [rad]), in flight first.
+        speed, yaw_rate: the command in force [m/s], [rad/s].
+    """
+
+    stamp_ns: int = 0
+    walking: bool = False
+    released: bool = False
+    support: str = "double"
+    phase_fraction: float = 0.0
+    step_index: int = 0
+    com_ref: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    com_velocity_ref: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    zmp_ref: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    capture_point_ref: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    multibody_zmp: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
+    left_foot: tuple = (0.0, 0.0, 0.0, 0.0)
+    right_foot: tuple = (0.0, 0.0, 0.0, 0.0)
+    next_footsteps: list = dataclasses.field(default_factory=list)
+    speed: float = 0.0
+    yaw_rate: float = 0.0
+
+
+def _estop_active(x) -> bool:
+    if x is None:
+        return False
+    if hasattr(x, "active"):
+        return bool(x.active)
+    return bool(x)
+
+
+def yaw_of(R: np.ndarray) -> float:
+    return math.atan2(R[1, 0], R[0, 0])
+
+
+def rot_z(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+class LocomotionController:
+    """Stand and walk (module docstring). ``dt`` is the control period [s]."""
+
+    source = "locomotion"
+
+    def __init__(self, model: HumanoidModel, config: LocomotionConfig | None = None, dt: float = 0.002):
+        self.m = model
+        self.cfg = config or LocomotionConfig.from_params()
+        self.dt = float(dt)
+        c = self.cfg
+        self.standing_posture = model.joint_vector(model.standing_posture)
+        # posture weights: the upper body is held (the CoM is moved by the base and legs, not by
+        # flinging the arms); the legs are fixed by the hard sole tasks anyway
+        legs = np.array([n[:2] in ("l_", "r_") and any(k in n for k in ("hip", "knee", "ankle"))
+                         for n in model.joint_names])
+        self.posture_weight = np.where(legs, 1e-4, 0.05)
+        self.ik = WholeBodyIK(model, velocity_fraction=c.velocity_fraction)
+        self.width = step_width(model) + c.step_width_offset
+        corners = model.sole_corners_local["l"]
+        self.zmp_offset_x = float(0.5 * (corners[:, 0].max() + corners[:, 0].min()))
+        self.stabilizer = WalkingStabilizer(model, dt, c.dcm_gain, c.com_feedback_max, c.cop_damping_gain,
+                                            c.cop_damping_time_constant, c.walk_ankle_max_offset)
+        self.messages: list[str] = []
+        self.reset()
+
+    # ------------------------------------------------------------------ contract
+    def reset(self) -> None:
+        c = self.cfg
+        self.standing = StandingController(self.m, self.m.standing_posture, c.ankle_kp, c.ankle_kd,
+                                           c.ankle_max_offset, c.resume_time, self.source)
+        self.pattern: WalkingPattern | None = None
+        self.q_ik: np.ndarray | None = None
+        self.sample: PatternSample | None = None
+        self.command = WalkCommand()
+        self.pending: WalkCommand | None = None
+        self.n_steps: int | None = None
+        self.released = False
+        self.heading = 0.0          # the feet's yaw in the estimator's world (the observation has no yaw)
+        self.state = WalkingState()
+        self._last_input = None
+        self.stabilizer.reset()
+        self.last_stabilizer = None
+
+    def set_walk_command(self, speed: float, yaw_rate: float = 0.0, n_steps: int | None = None) -> str | None:
+        """Ask for a walk [m/s, rad/s]; ``n_steps`` walks that many steps then stops. Returns the reason
+        if refused (also logged to ``messages``); a clamp is a warning, not a refusal."""
+        if not (math.isfinite(speed) and math.isfinite(yaw_rate)):
+            return self._log(f"walk command refused: non-finite speed {speed!r} or yaw rate {yaw_rate!r}")
+        if speed < 0:
+            return self._log(f"walk command refused: backward walking ({speed:.3f} m/s) is not supported")
+        if n_steps is not None and n_steps < 1:
+            return self._log(f"walk command refused: n_steps {n_steps} < 1")
+        if self.released:
+            return self._log("walk command ignored: the robot is released (fall event or e-stop)")
+        c = self.cfg
+        if speed > c.max_speed + 1e-9:
+            self._log(f"walk speed {speed * 3.6:.2f} km/h clamped to {c.max_speed_kmh:.2f} km/h")
+            speed = c.max_speed
+        if abs(yaw_rate) > c.max_turn_rate + 1e-9:
+            self._log(f"yaw rate {math.degrees(yaw_rate):.1f} deg/s clamped to {c.max_turn_rate_deg_s:.1f} deg/s")
+            yaw_rate = math.copysign(c.max_turn_rate, yaw_rate)
+        cmd = WalkCommand(speed, yaw_rate)
+        if not cmd.is_zero:
+            reason = self.check_feasibility(cmd)
+            if reason:
+                return self._log(f"walk command refused: {reason}")
+        self.pending = cmd
+        self.n_steps = n_steps
+        return None
+
+    def _log(self, text: str) -> str:
+        self.messages.append(text)
+        return text
+
+    def step(self, observation: Observation) -> JointTargets | None:
+        inp = observation.inputs
+        if inp.get("fall_event") or _estop_active(inp.get("estop")):
+            if not self.released:
+                self._log("released: " + ("fall event" if inp.get("fall_event") else "e-stop"))
+            self.released = True
+            self._drop_walk()
+            self.state = dataclasses.replace(WalkingState(), stamp_ns=observation.stamp_ns, released=True)
+            return None
+        if self.released:  # control comes back: stand from the measured posture
+            self.released = False
+            self._resume_standing(observation)
+        cmd_in = inp.get("cmd_walk")
+        if cmd_in is not None and cmd_in is not self._last_input:
+            self._last_input = cmd_in
+            sp, yr = (cmd_in.speed, cmd_in.yaw_rate) if isinstance(cmd_in, WalkCommand) else cmd_in
+            self.set_walk_command(float(sp), float(yr))
+        active = observation.active_source
+        if self.pattern is not None and active not in ("", "none", self.source):
+            self._log(f"walk stopped: {active} drives the robot")
+            self._drop_walk()
+        if self.pending is not None:
+            cmd, self.pending = self.pending, None
+            if self.pattern is None:
+                if not cmd.is_zero:
+                    self._start_walk(observation, cmd)
+            else:
+                self.pattern.set_command(cmd)
+            self.command = cmd
+        if self.pattern is None:
+            out = self.standing.step(observation)
+            self.state = WalkingState(stamp_ns=observation.stamp_ns)
+            return out
+        return self._walk_tick(observation)
+
+    # ------------------------------------------------------------------ walking
+    def _drop_walk(self) -> None:
+        self.pattern = None
+        self.q_ik = None
+        self.command = WalkCommand()
+        self.pending = None
+        self.stabilizer.reset()
+
+    def _resume_standing(self, observation: Observation) -> None:
+        c = self.cfg
+        self.standing = StandingController(self.m, self.m.standing_posture, c.ankle_kp, c.ankle_kd,
+                                           c.ankle_max_offset, c.resume_time, self.source)
+        # as if another source had driven: it starts from the measured posture and blends back
+        self.standing.step(dataclasses.replace(observation, active_source="other"))
+
+    def reference_configuration(self, joints, heading: float, feet_center_xy) -> np.ndarray:
+        """Full configuration (nq,) for measured ``joints`` with the soles flat on z = 0, their mean
+        yaw ``heading`` [rad] and the ankles' mid-point at ``feet_center_xy`` [m]."""
+        m = self.m
+        q = m.configuration([0, 0, 0], [0, 0, 0, 1], joints)
+        m.forward(q)
+        Rl = m.frame_placement(m.sole_frame["l"]).rotation
+        Rr = m.frame_placement(m.sole_frame["r"]).rotation
+        # base rotation that makes the mean sole orientation flat with the given yaw
+        R_mean = pin.exp3(0.5 * pin.log3(Rl.T @ Rr))
+        R_sole = Rl @ R_mean
+        R_base = rot_z(heading) @ R_sole.T
+        q = m.configuration([0, 0, 0], pin.Quaternion(R_base).coeffs(), joints)
+        m.forward(q)
+        ankles = 0.5 * (m.frame_position(m.foot_link["l"]) + m.frame_position(m.foot_link["r"]))
+        soles_z = 0.5 * (m.frame_position(m.sole_frame["l"])[2] + m.frame_position(m.sole_frame["r"])[2])
+        q[0] = feet_center_xy[0] - ankles[0]
+        q[1] = feet_center_xy[1] - ankles[1]
+        q[2] = -soles_z
+        return q
+
+    def _feet_of(self, q) -> dict:
+        m = self.m
+        m.forward(q)
+        out = {}
+        for s in SIDES:
+            M = m.frame_placement(m.sole_frame[s])
+            out[s] = Footstep(s, float(M.translation[0]), float(M.translation[1]), yaw_of(M.rotation))
+        return out
+
+    def _start_walk(self, observation: Observation, cmd: WalkCommand) -> None:
+        q = self.reference_configuration(observation.joint_position, self.heading, observation.state.feet_center)
+        feet = self._feet_of(q)
+        com = self.m.com(q)
+        self.q_ik = q
+        self.pattern = WalkingPattern(self.cfg, self.dt, self.width, self.zmp_offset_x, feet, com, cmd, self.n_steps)
+        self.stabilizer.reset()
+        self._log(f"walk started: {cmd.speed * 3.6:.2f} km/h, {math.degrees(cmd.yaw_rate):.1f} deg/s"
+                  + (f", {self.n_steps} steps" if self.n_steps else ""))
+
+    def tasks(self, sample: PatternSample, com_target=None) -> list:
+        """IK tasks of a pattern sample: both soles hard, CoM, trunk yaw, posture."""
+        tasks = []
+        for s in SIDES:
+            f = sample.feet[s]
+            # the targets are the references at the end of this step (dead-beat): no feed-forward
+            tasks.append(FrameTask(self.m.sole_frame[s], pin.SE3(rot_z(f.yaw), f.position), hard=True))
+        yaw = math.atan2(math.sin(sample.feet["l"].yaw) + math.sin(sample.feet["r"].yaw),
+                         math.cos(sample.feet["l"].yaw) + math.cos(sample.feet["r"].yaw))
+        tasks.append(ComTask(sample.com if com_target is None else com_target, weight=100.0))
+        tasks.append(OrientationTask(self.m.trunk_link, rot_z(yaw), weight=1.0))
+        tasks.append(PostureTask(self.standing_posture, weight=self.posture_weight))
+        return tasks
+
+    def _walk_tick(self, observation: Observation) -> JointTargets:
+        p = self.pattern
+        sample = p.step()
+        self.sample = sample
+        s = observation.state
+        stance = None
+        if sample.support == SupportPhase.SINGLE_LEFT:
+            stance = "l"
+        elif sample.support == SupportPhase.SINGLE_RIGHT:
+            stance = "r"
+        ref_feet_center = 0.5 * (sample.feet["l"].position + sample.feet["r"].position)
+        stance_yaw = sample.feet[stance].yaw if stance else 0.5 * (sample.feet["l"].yaw + sample.feet["r"].yaw)
+        st = self.stabilizer.update(s.capture_point, s.cop, s.feet_center, sample.capture_point, sample.zmp,
+                                    ref_feet_center, stance, stance_yaw)
+        self.last_stabilizer = st
+        r = self.ik.solve(self.q_ik, self.tasks(sample, sample.com + st.com_offset), self.dt)
+        self.q_ik = r.q
+        q_cmd = self.stabilizer.apply(r.q[7:], st)
+        self.state = self._state(observation.stamp_ns, sample)
+        if sample.finished:
+            self._finish_walk(observation, r.q)
+        return JointTargets(q_cmd, r.v[6:].copy())
+
+    def _finish_walk(self, observation: Observation, q_final: np.ndarray) -> None:
+        """The stop has settled: stand in the posture the walk ended in (bumpless)."""
+        feet = self.pattern.sample().feet
+        self.heading = 0.5 * (feet["l"].yaw + feet["r"].yaw)
+        c = self.cfg
+        posture = dict(zip(self.m.joint_names, q_final[7:]))
+        self.standing = StandingController(self.m, posture, c.ankle_kp, c.ankle_kd, c.ankle_max_offset,
+                                           c.resume_time, self.source)
+        self._log(f"walk finished after {self.pattern.step_count} steps")
+        self.pattern = None
+        self.q_ik = None
+        self.command = WalkCommand()
+
+    def _state(self, stamp_ns: int, sample: PatternSample) -> WalkingState:
+        f = sample.feet
+        return WalkingState(
+            stamp_ns=stamp_ns, walking=True, released=False, support=sample.support.value,
+            phase_fraction=float(sample.phase_fraction), step_index=int(sample.step_index),
+            com_ref=sample.com.copy(), com_velocity_ref=sample.com_velocity.copy(), zmp_ref=sample.zmp.copy(),
+            capture_point_ref=sample.capture_point.copy(),
+            left_foot=(*map(float, f["l"].position), float(f["l"].yaw)),
+            right_foot=(*map(float, f["r"].position), float(f["r"].yaw)),
+            next_footsteps=[(n.side, n.x, n.y, n.yaw) for n in sample.next_footsteps],
+            speed=self.command.speed, yaw_rate=self.command.yaw_rate)
+
+    # ------------------------------------------------------------------ feasibility
+    def check_feasibility(self, cmd: WalkCommand, n_steps: int = 3, dt: float = 0.02) -> str | None:
+        """Rehearse ``n_steps`` of the command (start and stop included) on the kinematic model with the
+        IK at ``dt`` [s]; the reason the kinematics cannot do it, or None. Checks the knee margin, the
+        hip extension limit, joint speeds (the IK bounds them: a foot or the CoM falling behind its
+        reference by more than 5 mm / 1 cm is the symptom) and the other joint limits."""
+        m, c = self.m, self.cfg
+        q = self.reference_configuration(self.standing_posture, 0.0, (0.0, 0.0))
+        feet = self._feet_of(q)
+        # the rehearsal starts at the walking height: settle the IK there first
+        com = m.com(q)
+        com[2] = c.com_height
+        pat = WalkingPattern(c, dt, self.width, self.zmp_offset_x, feet, com, cmd, n_steps)
+        conv = self.ik.solve_to_convergence(q, self.tasks(pat.sample()), dt=0.05, tolerance=1e-3)
+        if not conv.converged:
+            return f"the walking CoM height {c.com_height:.3f} m is out of reach (errors {np.round(conv.errors, 4)})"
+        q = conv.q
+        knees = [m.joint_index(f"{s}_knee") for s in SIDES]
+        hips = [m.joint_index(f"{s}_hip_pitch") for s in SIDES]
+        worst_knee, worst_hip, worst_speed = math.inf, -math.inf, 0.0
+        ik = WholeBodyIK(m, velocity_fraction=c.velocity_fraction)
+        while True:
+            smp = pat.step()
+            r = ik.solve(q, self.tasks(smp), dt)
+            q = r.q
+            err = ik.task_errors(q, self.tasks(smp)[:3])
+            if max(err[:2]) > 0.005 or err[2] > 0.01:
+                speed = np.abs(r.v[6:]) / m.limits.velocity
+                j = int(np.argmax(speed))
+                return (f"at t={smp.time:.2f} s of the rehearsal the IK falls behind (feet {max(err[:2]) * 1e3:.1f} mm,"
+                        f" CoM {err[2] * 1e3:.1f} mm); fastest joint {m.joint_names[j]} at {speed[j]:.2f} of its"
+                        f" limit, knee {min(q[7:][knees]):.3f} rad, hip pitch {max(q[7:][hips]):.3f} rad")
+            worst_knee = min(worst_knee, float(min(q[7:][knees])))
+            worst_hip = max(worst_hip, float(max(q[7:][hips])))
+            worst_speed = max(worst_speed, float(np.max(np.abs(r.v[6:]) / m.limits.velocity)))
+            if smp.finished:
+                break
+        if worst_knee < c.knee_margin:
+            return f"a knee straightens to {worst_knee:.3f} rad (margin {c.knee_margin} rad)"
+        hip_lim = float(m.limits.upper[hips[0]]) - c.hip_extension_margin
+        if worst_hip > hip_lim:
+            return f"a hip extends to {worst_hip:.3f} rad (limit {hip_lim:.3f} rad with its margin)"
+        if worst_speed > c.velocity_fraction + 1e-6:
+            return f"a joint needs {worst_speed:.2f} of its speed limit"
+        self.last_feasibility = {"knee_min": worst_knee, "hip_pitch_max": worst_hip, "speed_ratio_max": worst_speed}
+        return None
+
+
+__all__ = ["LocomotionController", "WalkingState", "rot_z", "yaw_of"]

@@ -1,0 +1,86 @@
+"""The walking stabiliser: DCM feedback through the CoM reference plus stance-ankle CoP damping. No rclpy.
+
+The joints are stiff position servos, so neither the ZMP nor the ankle torque is commanded
+directly. Two loops act on the *measured* state (the estimator's values, never ground truth),
+all relative to the feet (leg odometry drifts in the world, the feet drift with it):
+
+1. **DCM (capture point) feedback to the CoM reference**: with the capture-point error
+   ``e = (xi - f)_measured - (xi - f)_reference`` (xi = c + dc/dt / omega, f = mid-point of the
+   ankles), the CoM handed to the IK is ``c_ref - k_dcm e`` (clipped to ``com_feedback_max``).
+   A stiff-jointed robot whose CoM reference moves against its capture-point error has to push
+   its ZMP the other way (the ZMP -> CoM relation of the LIPM, ``ddc = omega^2 (c - p)``), which is
+   the DCM control law ``p = p_ref + (1 + k / omega) e`` realised through the servos.
+2. **Ankle damping control of the CoP** (single support): the stance ankle pitch and roll are
+   offset by ``d(theta)/dt = k_cop (p_ref - p_measured) - theta / T`` (a leaky integral, so the
+   offset returns to 0 in double support and on the swing foot before it lands), clipped to
+   ``walk_ankle_max_offset``. Ankle pitch > 0 turns the toes down (CoP forward), ankle roll > 0
+   lifts the sole's +y edge (CoP towards -y); errors are taken in the stance sole's axes.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from humfall_ros.model.humanoid import SIDES, HumanoidModel
+
+
+@dataclasses.dataclass
+class StabilizerOutput:
+    """com_offset: added to the CoM reference [m] (3,); ankle: side -> (pitch, roll) offsets [rad]."""
+
+    com_offset: np.ndarray
+    ankle: dict
+    capture_point_error: np.ndarray   # [m] (2,), feet relative
+    zmp_error: np.ndarray             # measured CoP - reference ZMP, feet relative [m] (2,)
+
+
+class WalkingStabilizer:
+    """See the module docstring. Gains in :class:`LocomotionConfig` units."""
+
+    def __init__(self, model: HumanoidModel, dt: float, dcm_gain: float, com_feedback_max: float,
+                 cop_gain: float, cop_time_constant: float, ankle_max_offset: float):
+        self.dt = float(dt)
+        self.dcm_gain = float(dcm_gain)
+        self.com_feedback_max = float(com_feedback_max)
+        self.cop_gain = float(cop_gain)
+        self.tau = float(cop_time_constant)
+        self.ankle_max = float(ankle_max_offset)
+        self.pitch_index = {s: model.joint_index(f"{s}_ankle_pitch") for s in SIDES}
+        self.roll_index = {s: model.joint_index(f"{s}_ankle_roll") for s in SIDES}
+        self.reset()
+
+    def reset(self) -> None:
+        self.ankle = {s: np.zeros(2) for s in SIDES}
+
+    def update(self, measured_cp, measured_cop, measured_feet_center, ref_cp, ref_zmp, ref_feet_center,
+               stance: str | None, stance_yaw: float) -> StabilizerOutput:
+        """One tick. Positions [m] in their own frames (measured: the estimator's world, reference:
+        the pattern's); ``stance``: the single-support foot or None (double support)."""
+        mf = np.asarray(measured_feet_center, float)[:2]
+        rf = np.asarray(ref_feet_center, float)[:2]
+        e_cp = (np.asarray(measured_cp, float)[:2] - mf) - (np.asarray(ref_cp, float)[:2] - rf)
+        e_zmp = (np.asarray(measured_cop, float)[:2] - mf) - (np.asarray(ref_zmp, float)[:2] - rf)
+        off = np.clip(-self.dcm_gain * e_cp, -self.com_feedback_max, self.com_feedback_max)
+        c, s = math.cos(stance_yaw), math.sin(stance_yaw)
+        e_local = np.array([c * e_zmp[0] + s * e_zmp[1], -s * e_zmp[0] + c * e_zmp[1]])
+        for side in SIDES:
+            a = self.ankle[side]
+            rate = -a / self.tau
+            if side == stance:
+                rate = rate + self.cop_gain * np.array([-e_local[0], e_local[1]])
+            self.ankle[side] = np.clip(a + self.dt * rate, -self.ankle_max, self.ankle_max)
+        return StabilizerOutput(np.array([off[0], off[1], 0.0]), {k: v.copy() for k, v in self.ankle.items()},
+                                e_cp, e_zmp)
+
+    def apply(self, q_joints: np.ndarray, out: StabilizerOutput) -> np.ndarray:
+        """Joint targets with the ankle offsets added (a copy)."""
+        q = np.array(q_joints, float)
+        for side in SIDES:
+            q[self.pitch_index[side]] += out.ankle[side][0]
+            q[self.roll_index[side]] += out.ankle[side][1]
+        return q
+
+
+__all__ = ["StabilizerOutput", "WalkingStabilizer"]
