@@ -39,7 +39,7 @@ INTERFACE_SRC := $(wildcard interfaces/*/msg/*.msg interfaces/*/srv/*.srv interf
 $(VENV)/.interfaces-stamp: $(VENV)/.deps-stamp $(INTERFACE_SRC)
 	@$(PY) -c 'import tf2_msgs.msg' 2>/dev/null && [ ! -f $(VENV)/.tf2-vendored ] || \
 	  { tools/build_interface.sh tf2_msgs $(VENV) && touch $(VENV)/.tf2-vendored; }
-	tools/build_interface.sh humfall_interfaces $(VENV)
+	flock /tmp/humfall-interfaces.lock tools/build_interface.sh humfall_interfaces $(VENV)
 	touch $@
 
 interfaces: $(VENV)/.interfaces-stamp

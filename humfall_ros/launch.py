@@ -8,6 +8,7 @@ No rclpy here: results come from the bridge's metrics file and the bag.
 """
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import json
 import os
@@ -21,11 +22,25 @@ import yaml
 
 from humfall_ros import params as params_mod
 from humfall_ros import scenario as scenario_mod
+from humfall_ros.control.mux import DEFAULT_PRIORITIES, mux_order
 
-# Which node serves which fall controller (nodes of later issues plug in here).
+# Which nodes serve which fall controller (`controller:` of a scenario).
 CONTROLLER_NODES: dict[str, list[str]] = {"none": []}
-# Command sources each node answers in lockstep.
-LOCKSTEP_SOURCE = {"locomotion": "locomotion"}
+# The mux source each built-in controller node commands (joint_command/<source>), in lockstep.
+NODE_SOURCE = {"locomotion": "locomotion", "safe_fall_controller": "safe_fall", "estop_planner": "estop"}
+# Bridge parameters that come from the scenario file itself (its sim section and duration).
+SCENARIO_OWNED = {"physics_rate", "control_rate", "lockstep", "real_time_factor", "friction", "end_time"}
+
+
+@dataclasses.dataclass
+class NodeSpec:
+    """One process of a run: its name, how to start it, its parameters and the mux source it answers."""
+
+    name: str
+    module: str                  # python module (run with -m) or a .py file
+    params: dict
+    source: str | None = None
+    priority: int | None = None
 
 
 class RunError(RuntimeError):
@@ -89,46 +104,70 @@ def make_run_dir(runs_dir: pathlib.Path, name: str) -> pathlib.Path:
     return d
 
 
-def node_command(node: str, params: dict) -> list[str]:
-    cmd = [sys.executable, "-m", f"humfall_ros.nodes.{node}", "--ros-args"]
-    for k, v in params.items():
+def node_command(node: str | NodeSpec, params: dict | None = None) -> list[str]:
+    spec = node if isinstance(node, NodeSpec) else NodeSpec(node, f"humfall_ros.nodes.{node}", params or {})
+    mod = spec.module
+    cmd = [sys.executable, mod] if mod.endswith(".py") else [sys.executable, "-m", mod]
+    cmd.append("--ros-args")
+    for k, v in spec.params.items():
         cmd += ["-p", f"{k}:={ros_value(v)}"]
     return cmd
 
 
-def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[tuple[str, dict]]:
-    """(node, parameters) in start order; the bridge last so the others are listening."""
+def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[NodeSpec]:
+    """The run's processes in start order; the bridge last so the others are listening.
+
+    The command sources are registered from the controller nodes started (the built-in
+    ones and the scenario's ``controllers``), ordered by priority for the bridge's mux;
+    every one of them answers in lockstep.
+    """
     controller = sc["controller"]
     if controller not in CONTROLLER_NODES:
         raise RunError(f"controller {controller!r} is not available yet (available: {', '.join(CONTROLLER_NODES)})")
     extra = sc["params"]
-    nodes = []
+    nodes: list[NodeSpec] = []
     if record:
-        nodes.append(("recorder", {"output_dir": str(run_dir), "scenario": sc["name"]}))
-    control_nodes = ["state_estimator", "locomotion", *CONTROLLER_NODES[controller]]
-    for n in control_nodes:
-        nodes.append((n, {}))
-    s = sc["sim"]
-    nodes.append(("sim_bridge", {
+        nodes.append(NodeSpec("recorder", "humfall_ros.nodes.recorder",
+                              {"output_dir": str(run_dir), "scenario": sc["name"]}))
+    nodes.append(NodeSpec("state_estimator", "humfall_ros.nodes.state_estimator", {}))
+    builtin = getattr(scenario_mod, "BUILTIN_PRIORITIES", DEFAULT_PRIORITIES)
+    for n in ["locomotion", *CONTROLLER_NODES[controller]]:
+        src = NODE_SOURCE.get(n)
+        nodes.append(NodeSpec(n, f"humfall_ros.nodes.{n}", {}, src, builtin.get(src) if src else None))
+    for c in sc.get("controllers") or []:
+        node = c["node"]
+        mod = node if (node.endswith(".py") or "." in node) else f"humfall_ros.nodes.{node}"
+        name = pathlib.Path(node).stem if node.endswith(".py") else node.rsplit(".", 1)[-1]
+        nodes.append(NodeSpec(name, mod, dict(c.get("params") or {}), c["source"], int(c["priority"])))
+    sources = [n for n in nodes if n.source]
+    try:
+        order = mux_order([n.source for n in sources], {n.source: n.priority for n in sources})
+    except ValueError as e:
+        raise RunError(f"controllers: {e}") from None
+    names = [n.name for n in nodes]
+    if len(set(names)) != len(names):
+        raise RunError(f"two processes would have the same name: {names}")
+    bridge = NodeSpec("sim_bridge", "humfall_ros.nodes.sim_bridge", {
         "scenario": str(run_dir / "scenario.yaml"),
-        "end_time": float(sc["duration"]),
         "metrics_file": str(run_dir / "metrics.json"),
-        "lockstep": bool(s["lockstep"]),
-        "physics_rate": float(s["physics_rate"]),
-        "control_rate": float(s["control_rate"]),
-        "real_time_factor": float(s["real_time_factor"]),
-        "friction": float(s["friction"]),
-        "lockstep_sources": [LOCKSTEP_SOURCE[n] for n in control_nodes if n in LOCKSTEP_SOURCE] or [""],
+        "command_sources": order or [""],
+        "lockstep_sources": order or [""],
         "wait_for_nodes": ["recorder"] if record else [""],
-    }))
+    })
+    nodes.append(bridge)
     est = {**params_mod.defaults("state_estimator"), **extra.get("state_estimator", {})}
     if est.get("use_ground_truth") is True:
         # the estimator then waits for ground_truth/odom every tick
-        nodes[-1][1]["ground_truth_rate"] = float(s["control_rate"])
-    unknown = set(extra) - {n for n, _ in nodes}
+        bridge.params["ground_truth_rate"] = float(sc["sim"]["control_rate"])
+    declared = {n.name for n in nodes if not n.module.endswith(".py") and n.module.startswith("humfall_ros.nodes.")}
+    unknown = set(extra) - declared
     if unknown:
         raise RunError(f"params for nodes that are not in this run: {sorted(unknown)}")
-    return [(n, {**p, **check_node_params(n, extra.get(n, {}), owned=set(p))}) for n, p in nodes]
+    for n in nodes:
+        if n.name in declared:
+            owned = set(n.params) | (SCENARIO_OWNED if n.name == "sim_bridge" else set())
+            n.params = {**n.params, **check_node_params(n.name, extra.get(n.name, {}), owned=owned)}
+    return nodes
 
 
 def check_node_params(node: str, params: dict, owned: set[str]) -> dict:
@@ -193,11 +232,11 @@ def up(scenario: str, controller: str | None = None, overrides: list[str] | None
 
     old = signal.signal(signal.SIGINT, on_sigint)
     try:
-        for name, params in nodes:
-            if name == "sim_bridge":
+        for spec in nodes:
+            if spec.name == "sim_bridge":
                 time.sleep(1.0)  # let the others finish start-up before time starts
-            procs.append(Proc(name, node_command(name, params), env, log_dir))
-            say(f"  started {name} (pid {procs[-1].p.pid})")
+            procs.append(Proc(spec.name, node_command(spec), env, log_dir))
+            say(f"  started {spec.name} (pid {procs[-1].p.pid})")
         bridge = procs[-1]
         limit = timeout if timeout is not None else max(120.0, 60.0 * float(sc["duration"]))
         while not interrupted:

@@ -64,19 +64,20 @@ class Declaration:
         return self._scalar(base, value, where)
 
     def _scalar(self, base: str, v: Any, where: str) -> Any:
+        like = f" like {self.default!r}" if self.default is not None else ""
         if base == "bool":
             if not isinstance(v, bool):
-                raise ParamError(f"{where}: expected a bool, got {v!r}")
+                raise ParamError(f"{where}: expected bool{like}, got {v!r}")
             return v
         if base == "string":
             if not isinstance(v, str):
-                raise ParamError(f"{where}: expected a string, got {v!r}")
+                raise ParamError(f"{where}: expected string{like}, got {v!r}")
             return v
         if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise ParamError(f"{where}: expected {'an integer' if base == 'int' else 'a number'}, got {v!r}")
+            raise ParamError(f"{where}: expected {'int' if base == 'int' else 'double (a number)'}{like}, got {v!r}")
         if base == "int":
             if not isinstance(v, int):
-                raise ParamError(f"{where}: expected an integer, got {v!r}")
+                raise ParamError(f"{where}: expected int{like}, got {v!r}")
         else:
             v = float(v)
             if not math.isfinite(v):

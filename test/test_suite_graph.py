@@ -118,7 +118,7 @@ def test_scenario_errors_are_refused_before_anything_starts(in_ros_domain, tmp_p
     assert p.returncode == 2 and "no such key push.0.strength" in p.stderr
     for override, why in (("params.nobody.x=1", "not in this run"),
                           ("params.locomotion.ankle_kpp=0.5", "locomotion has no parameter 'ankle_kpp'"),
-                          ("params.locomotion.ankle_kp=abc", "expected float"),
+                          ("params.locomotion.ankle_kp=abc", "expected double (a number) like 0.3"),
                           ("params.sim_bridge.end_time=0", "set by the launcher")):
         p = subprocess.run(cmd + ["--scenario", "small_push", "--set", override], env=env,
                            capture_output=True, text=True, timeout=60)
@@ -216,6 +216,7 @@ def test_bridge_mux_switches_by_priority_and_reports_it(in_ros_domain):
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import JointState
+    from humfall_interfaces.msg import MuxState
     from std_msgs.msg import String
 
     from humfall_ros.model.humanoid import load_model
@@ -232,13 +233,16 @@ def test_bridge_mux_switches_by_priority_and_reports_it(in_ros_domain):
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         node.create_subscription(String, "active_controller", lambda m: active.append(m.data), latched)
+        holding = []
+        node.create_subscription(MuxState, "mux/state", lambda m: holding.append(m.holding), 50)
         reliable = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE)
         pubs = {s: node.create_publisher(JointState, f"joint_command/{s}", reliable) for s in ("estop", "locomotion")}
         joints = load_model().joint_names
 
-        def run_for(seconds, sources, release=()):
-            end = time.monotonic() + seconds
-            while time.monotonic() < end:
+        def run_until(done, sources, release=(), at_least=0.3, at_most=15.0):
+            """Command as given until done() holds (after at_least s); False if at_most s pass first."""
+            start = time.monotonic()
+            while time.monotonic() - start < at_most:
                 rclpy.spin_once(node, timeout_sec=0.005)
                 if now["t"] is None:
                     continue
@@ -250,18 +254,21 @@ def test_bridge_mux_switches_by_priority_and_reports_it(in_ros_domain):
                     cmd = JointState()
                     cmd.header.stamp = now["t"]
                     pubs[s].publish(cmd)
+                if time.monotonic() - start > at_least and done():
+                    return True
+            return False
 
         deadline = time.monotonic() + 30
         while now["t"] is None and time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.05)
-        run_for(1.0, ["locomotion"])
+        assert run_until(lambda: active and active[-1] == "locomotion", ["locomotion"])
+        assert run_until(lambda: active[-1] == "estop", ["locomotion", "estop"])
+        assert run_until(lambda: active[-1] == "locomotion", ["locomotion"], release=["estop"])
+        # locomotion goes silent: it is engaged, so the bridge holds its last targets (never "none")
+        assert run_until(lambda: holding and holding[-1], [], at_least=1.0)
         assert active[-1] == "locomotion"
-        run_for(1.0, ["locomotion", "estop"])
-        assert active[-1] == "estop"
-        run_for(1.0, ["locomotion"], release=["estop"])
-        assert active[-1] == "locomotion"
-        run_for(1.0, [])  # nobody commands: stale after the timeout
-        assert active[-1] == "none"
+        # only an explicit release disengages
+        assert run_until(lambda: active[-1] == "none", [], release=["locomotion"])
         assert bridge.poll() is None
     finally:
         node.destroy_node()

@@ -110,6 +110,17 @@ class Observation:
         return self.stamp_ns * 1e-9
 
 
+@dataclasses.dataclass(frozen=True)
+class Obstacle:
+    """A box in the world (the ``obstacles`` topic): centre [m], full extents [m], yaw [rad]."""
+
+    name: str
+    position: tuple[float, float, float]
+    size: tuple[float, float, float]
+    yaw: float = 0.0
+    is_target: bool = False
+
+
 @dataclasses.dataclass
 class JointTargets:
     """A joint command in model order: position targets [rad], optional velocity targets [rad/s]."""
@@ -134,5 +145,5 @@ def stamp_ns_of(t: float) -> int:
     return int(round(t * 1e9))
 
 
-__all__ = ["CentroidalObservation", "Controller", "JointTargets", "Observation", "centroidal_from_estimate",
+__all__ = ["CentroidalObservation", "Controller", "JointTargets", "Observation", "Obstacle", "centroidal_from_estimate",
            "stamp_ns_of"]

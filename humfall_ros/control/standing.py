@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.model.humanoid import SIDES, HumanoidModel
 
 
@@ -51,3 +52,58 @@ class StandingBalance:
         q[self._pitch] += d_pitch
         q[self._roll] += d_roll
         return np.clip(q, self.m.limits.lower, self.m.limits.upper)
+
+
+class StandingController:
+    """The standing balance as a contract controller (humfall_ros.control.contract), source "locomotion".
+
+    Bumpless transfer: while another source drives the robot (``observation.active_source``
+    is not this source and not "none"), the controller tracks the measured posture, so
+    the command it would give equals where the joints are; once it drives again it
+    blends its nominal posture from that measured one back to the standing posture
+    over ``resume_time`` [s] (a cosine ramp), with the ankle balance on top. At the
+    start of a run ("none" active) it starts from the standing posture directly.
+
+    Args:
+        model: the robot model.
+        posture: joint name -> angle [rad] of the standing posture (``model.standing_posture``).
+        kp, kd, max_offset: ankle balance gains (see StandingBalance) [rad/m, rad s/m, rad].
+        resume_time: blend time back to the standing posture after regaining control [s].
+        source: mux source name.
+    """
+
+    def __init__(self, model: HumanoidModel, posture: dict, kp: float, kd: float, max_offset: float,
+                 resume_time: float = 1.0, source: str = "locomotion"):
+        self.source = source
+        self.model = model
+        self.balance = StandingBalance(model, posture, kp, kd, max_offset)
+        self.standing = self.balance.nominal.copy()
+        self.resume_time = float(resume_time)
+        self.reset()
+
+    def reset(self) -> None:
+        self.balance.reset()
+        self.balance.nominal = self.standing.copy()
+        self._resume_from: np.ndarray | None = None
+        self._resume_start: float | None = None
+        self._tracking = False
+
+    def step(self, observation: Observation) -> JointTargets:
+        s = observation.state
+        active = observation.active_source
+        if active not in ("", "none", self.source):
+            # someone else drives: follow the measured posture, so a hand-back is bumpless
+            self._tracking = True
+            self._resume_from = np.asarray(observation.joint_position, float).copy()
+            self.balance.nominal = self._resume_from.copy()
+            self.balance.reset()
+        elif self._tracking and self._resume_from is not None:
+            if self._resume_start is None:
+                self._resume_start = observation.time
+            a = min(1.0, (observation.time - self._resume_start) / max(self.resume_time, 1e-9))
+            w = 0.5 - 0.5 * np.cos(np.pi * a)
+            self.balance.nominal = (1.0 - w) * self._resume_from + w * self.standing
+            if a >= 1.0:
+                self._tracking, self._resume_from, self._resume_start = False, None, None
+        q = self.balance.command(s.com, s.com_velocity, s.support_polygon, s.feet_center)
+        return JointTargets(q)

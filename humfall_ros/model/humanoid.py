@@ -20,6 +20,16 @@ from humfall_ros import paths
 from humfall_ros.dynamics.pendulum import GRAVITY
 
 SIDES = ("l", "r")
+# The nominal standing posture (joints not named are 0): bent knees put the CoM over the
+# ankles and keep the knees away from the singular straight leg.
+STANDING_POSTURE = {
+    "l_hip_pitch": -0.35, "l_knee": 0.70, "l_ankle_pitch": -0.35,
+    "r_hip_pitch": -0.35, "r_knee": 0.70, "r_ankle_pitch": -0.35,
+    "l_shoulder_pitch": 0.1, "r_shoulder_pitch": 0.1,
+    "l_shoulder_roll": 0.15, "r_shoulder_roll": -0.15,
+    "l_elbow": -0.5, "r_elbow": -0.5,
+}
+TRUNK_LINK = "chest"  # the upper-body link: pushed in the scenarios, its tilt is the trunk tilt
 CORNER_NAMES = ("toe_left", "toe_right", "heel_right", "heel_left")  # counter-clockwise seen from above
 
 
@@ -52,6 +62,8 @@ class HumanoidModel:
         self.foot_link = {s: f"{s}_foot" for s in SIDES}
         self.hand_frame = {s: f"{s}_hand" for s in SIDES}
         self.imu_frame = "imu_link"
+        self.trunk_link = TRUNK_LINK
+        self.standing_posture = dict(STANDING_POSTURE)
         self.corner_frames = {s: [f"{s}_sole_{c}" for c in CORNER_NAMES] for s in SIDES}
         # sole rectangle in the foot (ankle) frame, from the corner frames
         q0 = self.neutral()
@@ -75,6 +87,17 @@ class HumanoidModel:
         root = ET.parse(self.urdf_path).getroot()
         return [(j.get("name"), j.find("parent").get("link"), j.find("child").get("link"), j.get("type") == "fixed")
                 for j in root.findall("joint")]
+
+    @functools.cached_property
+    def push_point(self) -> np.ndarray:
+        """The trunk link's centre of mass in its own frame [m] (URDF inertial origin): where pushes act."""
+        import xml.etree.ElementTree as ET
+
+        link = ET.parse(self.urdf_path).getroot().find(f"link[@name='{self.trunk_link}']")
+        origin = link.find("inertial/origin") if link is not None else None
+        if origin is None:
+            return np.zeros(3)
+        return np.array([float(x) for x in origin.get("xyz", "0 0 0").split()])
 
     @property
     def root_link(self) -> str:

@@ -26,7 +26,7 @@ import rclpy
 import rclpy.executors
 from builtin_interfaces.msg import Time as TimeMsg
 from geometry_msgs.msg import TransformStamped, WrenchStamped
-from humfall_interfaces.msg import Obstacle, ObstacleArray
+from humfall_interfaces.msg import MuxState, Obstacle, ObstacleArray
 from humfall_interfaces.srv import Push, SetObstacles
 from nav_msgs.msg import Odometry
 from rclpy.event_handler import SubscriptionEventCallbacks
@@ -38,7 +38,7 @@ from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
 
 from humfall_ros import scenario as scenario_mod
-from humfall_ros.control.mux import CommandMux, JointCommand, validate_command
+from humfall_ros.control.mux import CommandMux, JointCommand, MuxDecision, validate_command
 from humfall_ros.nodes.common import (
     NO_PUB_EVENTS,
     QOS_CLOCK,
@@ -103,6 +103,24 @@ class SimBridge(Node):
             raise ValueError(f"lockstep_sources {sorted(unknown)} are not command_sources")
 
         self.scenario = scenario_mod.load(self.scenario_name) if self.scenario_name else scenario_mod.validate({})
+        if self.scenario_name:
+            # the scenario's sim section and duration rule, unless a parameter was given explicitly
+            sim = self.scenario["sim"]
+            for param, attr, value in (("physics_rate", "physics_rate", float(sim["physics_rate"])),
+                                       ("control_rate", "control_rate", float(sim["control_rate"])),
+                                       ("lockstep", "lockstep", bool(sim["lockstep"])),
+                                       ("real_time_factor", "rtf_target", float(sim["real_time_factor"])),
+                                       ("friction", None, float(sim["friction"])),
+                                       ("end_time", "end_time", float(self.scenario["duration"]))):
+                if param in P.overridden:
+                    if P.values[param] != value:
+                        self.get_logger().info(f"parameter {param}={P.values[param]!r} overrides the scenario's "
+                                               f"{'duration' if param == 'end_time' else 'sim.' + param}={value!r}")
+                    continue
+                if attr is None:
+                    friction = value
+                else:
+                    setattr(self, attr, value)
         posture = None
         if self.scenario["robot"]["initial_posture"]:
             posture = {**STANDING_POSTURE, **self.scenario["robot"]["initial_posture"]}
@@ -120,6 +138,7 @@ class SimBridge(Node):
         self.pub_odom = self.create_publisher(Odometry, "ground_truth/odom", QOS_RELIABLE,
                                               event_callbacks=NO_PUB_EVENTS)
         self.pub_active = self.create_publisher(String, "active_controller", QOS_LATCHED)
+        self.pub_mux = self.create_publisher(MuxState, "mux/state", QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
         self.pub_rtf = self.create_publisher(Float64, "sim/real_time_factor", QOS_RELIABLE)
         self.pub_obstacles = self.create_publisher(ObstacleArray, "obstacles", QOS_LATCHED)
         self.pub_result = self.create_publisher(String, "sim/result", QOS_LATCHED)
@@ -137,6 +156,9 @@ class SimBridge(Node):
         self.mux = CommandMux(self.sources, self.model.joint_names, self.command_timeout)
         self.answered: set[str] = set()
         self.rejected_commands = 0
+        self.holding_ticks = 0
+        self.stalled: tuple[str, float] | None = None  # (sources, sim time) of a lockstep stall
+        self.decision = MuxDecision(None)
         self.uncontrolled_ticks = 0
         # Commands arrive every tick: they get a node of their own with nothing else on it,
         # so the hot loop waits on 3 subscriptions instead of every service, parameter
@@ -171,6 +193,7 @@ class SimBridge(Node):
         self._odom = Odometry()
         self._odom.header.frame_id, self._odom.child_frame_id = "odom", "waist"
         self._tf_msgs: dict[bool, TFMessage] = {}
+        self._mux_msg = MuxState()
 
     # ------------------------------------------------------------ scenario
     def _apply_scenario(self) -> None:
@@ -184,8 +207,13 @@ class SimBridge(Node):
             self.get_logger().warning(f"joint_command/{source} refused: {reason}",
                                       throttle_duration_sec=1.0)
             msg = JointState(header=msg.header)  # counts as a release for this tick
-        self.mux.update(source, JointCommand(seconds(msg.header.stamp), list(msg.name), list(msg.position),
-                                             list(msg.velocity)))
+        why = self.mux.update(source, JointCommand(seconds(msg.header.stamp), list(msg.name), list(msg.position),
+                                                   list(msg.velocity)), now=self.world.time)
+        if why:
+            # from the future, or a second different answer to a tick: refused, the tick still waits
+            self.rejected_commands += 1
+            self.get_logger().warning(f"joint_command/{source} refused: {why}", throttle_duration_sec=1.0)
+            return
         if stamp_key(msg.header.stamp) == self.tick_key:
             self.answered.add(source)
 
@@ -311,6 +339,11 @@ class SimBridge(Node):
         w = self.world
         st = stamp_of(w.time)
         self._pub(self.pub_clock, Clock(clock=st))
+        mux = self._mux_msg
+        mux.header.stamp = st
+        mux.active, mux.holding = self.decision.source or "none", self.decision.holding
+        mux.engaged = [s for s in self.mux.sources if self.mux.engaged[s]]
+        self._pub(self.pub_mux, mux)
         r = self.sensors.read()
         js = self._js
         js.header.stamp = st
@@ -356,17 +389,26 @@ class SimBridge(Node):
 
     def _mux(self) -> None:
         w = self.world
-        source, q, v = self.mux.targets(w.time, w.targets, w.target_velocities)
-        self._publish_active(source or "none")
-        if source is not None:
+        d, q, v = self.mux.targets(w.time, w.targets, w.target_velocities)
+        self.decision = d
+        self._publish_active(d.source or "none")
+        if d.source is not None and not d.holding:
             w.set_joint_targets(q, v)
         else:
             self.uncontrolled_ticks += 1  # e.g. free-run with controllers that cannot keep up
+            if d.holding:
+                self.holding_ticks += 1
+                self.get_logger().warning(f"t={w.time:.3f}: {d.source} took over and is silent: holding its "
+                                          "last targets (never handing back to a lower source)",
+                                          throttle_duration_sec=1.0)
 
     def result(self) -> dict:
         r = self.truth.metrics.result()
         r.update(sim_duration_s=round(self.world.time, 6), rejected_commands=self.rejected_commands,
                  stalled_ticks=self.stalled_ticks, uncontrolled_ticks=self.uncontrolled_ticks,
+                 holding_ticks=self.holding_ticks,
+                 stalled_source=self.stalled[0] if self.stalled else None,
+                 stalled_at_s=round(self.stalled[1], 6) if self.stalled else None,
                  ticks=int(round(self.world.time * self.control_rate)), published=dict(self.published))
         return r
 
@@ -430,10 +472,14 @@ class SimBridge(Node):
                         break
                     if now - waited_since > self.stall_timeout:
                         missing = sorted(set(self.lockstep_sources) - self.answered)
-                        self.get_logger().error(f"t={self.world.time:.3f}: no command from {missing} after "
-                                                f"{self.stall_timeout:.0f} s; stepping without it")
+                        self.get_logger().error(f"lockstep stalled at t={self.world.time:.3f} s (tick "
+                                                f"{int(round(self.world.time * self.control_rate))}): no command from "
+                                                f"{', '.join(missing)} after {self.stall_timeout:.0f} s; ending the run")
                         self.stalled_ticks += 1
+                        self.stalled = (",".join(missing), self.world.time)
                         break
+                if self.stalled is not None:
+                    break
                 if first_tick:  # time (and the real-time factor) starts once the loop is closed
                     first_tick = False
                     wall0 = rtf_wall = time.monotonic()
@@ -526,6 +572,8 @@ def main(args=None) -> int:
             node.command_node.destroy_node()
             node.destroy_node()
         rclpy.try_shutdown()
+    if node is not None and node.stalled is not None:
+        return 3  # a stalled lockstep run is not a result: `humfall up` reports it with the log tail
     return 0
 
 

@@ -14,10 +14,11 @@ import math
 import numpy as np
 import pybullet as pb
 
+from humfall_ros.dynamics.pendulum import GRAVITY
 from humfall_ros.model.humanoid import SIDES, HumanoidModel, load_model, quat_matrix
+from humfall_ros.model.humanoid import STANDING_POSTURE as _STANDING_POSTURE
+from humfall_ros.sim.push import MAX_PUSH_FORCE, validate_push  # noqa: F401 - MAX_PUSH_FORCE re-exported
 
-GRAVITY = 9.81
-MAX_PUSH_FORCE = 5000.0  # N; anything above is a typo, not a push
 
 
 @dataclasses.dataclass
@@ -41,30 +42,7 @@ class Push:
         return self.start <= t < self.start + self.duration - 1e-12
 
 
-def validate_push(force, point, duration) -> str | None:
-    """None if the push is sane, else the reason it is refused."""
-    vals = list(force) + list(point) + [duration]
-    if not all(math.isfinite(float(v)) for v in vals):
-        return "push has a non-finite value (NaN or inf)"
-    mag = float(np.linalg.norm(force))
-    if mag > MAX_PUSH_FORCE:
-        return f"push force {mag:.0f} N exceeds the {MAX_PUSH_FORCE:.0f} N limit"
-    if duration <= 0 or duration > 10:
-        return f"push duration {duration} s must be in (0, 10]"
-    if float(np.linalg.norm(point)) > 2.0:
-        return "push application point is more than 2 m from the link origin"
-    return None
-
-
-# A standing posture with bent knees: the CoM sits over the ankles and the knees
-# keep away from the singular straight-leg configuration.
-STANDING_POSTURE = {
-    "l_hip_pitch": -0.35, "l_knee": 0.70, "l_ankle_pitch": -0.35,
-    "r_hip_pitch": -0.35, "r_knee": 0.70, "r_ankle_pitch": -0.35,
-    "l_shoulder_pitch": 0.1, "r_shoulder_pitch": 0.1,
-    "l_shoulder_roll": 0.15, "r_shoulder_roll": -0.15,
-    "l_elbow": -0.5, "r_elbow": -0.5,
-}
+STANDING_POSTURE = _STANDING_POSTURE  # the model's (kept importable from here)
 
 
 class SimWorld:
@@ -294,7 +272,7 @@ class SimWorld:
 
     def trunk_tilt(self) -> float:
         """Angle (rad) between the chest's z axis and the vertical."""
-        _, orn = self._link_frame(self.link_ids["chest"])
+        _, orn = self._link_frame(self.link_ids[self.model.trunk_link])
         return math.acos(float(np.clip(quat_matrix(orn)[2, 2], -1.0, 1.0)))
 
     def base_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -1,0 +1,186 @@
+"""A contract controller (humfall_ros.control.contract) as a lockstep command source on the graph.
+
+Every controller node of the suite is one of these: it gathers the tick's
+``centroidal_state``, ``joint_states`` and ``mux/state`` (plus any further
+per-tick inputs, e.g. ``ftb/status``) in the shared tick gate, builds the same
+:class:`Observation` the in-process loop builds, calls ``controller.step`` and
+publishes ``joint_command/<source>`` stamped like the tick (an empty JointState
+is a release). A retransmitted tick is answered with the last command; time going
+back resets the controller. A controller that raises never kills the node: a
+source that had taken over repeats its last targets (never leaves the robot
+without a command), one that had not releases.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable
+
+import numpy as np
+from humfall_interfaces.msg import CentroidalState, MuxState, ObstacleArray
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+
+from humfall_ros.control.contract import CentroidalObservation, Controller, JointTargets, Observation, Obstacle
+from humfall_ros.control.tick_gate import Action, TickGate
+from humfall_ros.model.humanoid import HumanoidModel, load_model
+from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_LATCHED, QOS_RELIABLE, HotLoop, Params, stamp_key
+
+
+@dataclasses.dataclass
+class Input:
+    """A further input of a controller node.
+
+    Attributes:
+        name: key in ``observation.inputs``.
+        msg_type, topic: what to subscribe to.
+        convert: message -> the functional core's value.
+        per_tick: the tick waits for it (its messages are stamped like the tick);
+            otherwise the latest value is kept (latched events, commands).
+        qos: subscription QoS (default: reliable per-tick, transient-local otherwise).
+    """
+
+    name: str
+    msg_type: type
+    topic: str
+    convert: Callable[[Any], Any]
+    per_tick: bool = False
+    qos: Any = None
+
+
+def centroidal_from_msg(msg: CentroidalState) -> CentroidalObservation:
+    """The message's numbers, exactly (float64 all the way: the same as in process)."""
+    def v(p):
+        return np.array([p.x, p.y, p.z])
+
+    poly = np.array([[p.x, p.y] for p in msg.support_polygon], dtype=float).reshape(-1, 2)
+    return CentroidalObservation(
+        com=v(msg.com), com_velocity=v(msg.com_velocity), cop=v(msg.cop), capture_point=v(msg.capture_point),
+        angular_momentum=v(msg.angular_momentum), support_polygon=poly, feet_center=v(msg.feet_center),
+        lean_angle=msg.lean_angle, lean_direction=msg.lean_direction, normal_force=msg.normal_force,
+        left_contact=msg.left_contact, right_contact=msg.right_contact, cop_on_edge=msg.cop_on_edge)
+
+
+def obstacles_from_msg(msg: ObstacleArray) -> list[Obstacle]:
+    out = []
+    for o in msg.obstacles:
+        q = o.pose.orientation
+        yaw = float(np.arctan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z)))
+        p, s = o.pose.position, o.size
+        out.append(Obstacle(o.name, (p.x, p.y, p.z), (s.x, s.y, s.z), yaw, o.is_target))
+    return out
+
+
+OBSTACLES = Input("obstacles", ObstacleArray, "obstacles", obstacles_from_msg)
+
+
+class ControllerNode(Node):
+    """Runs one contract controller as a lockstep source.
+
+    Args:
+        name: node name (its parameters: ``config/<name>.yaml``).
+        make_controller: (declared parameter values, model) -> the controller.
+        inputs: further inputs (per tick or latched).
+    """
+
+    def __init__(self, name: str, make_controller: Callable[[dict, HumanoidModel], Controller],
+                 inputs: list[Input] | None = None, config_name: str | None = None):
+        super().__init__(name)
+        self.params = Params(self, config_name).declare_all()
+        self.model = load_model()
+        self.controller = make_controller(self.params, self.model)
+        self.source = self.controller.source
+        self.extra = list(inputs or [])
+        self.pub = self.create_publisher(JointState, f"joint_command/{self.source}", QOS_RELIABLE,
+                                         event_callbacks=NO_PUB_EVENTS)
+        per_tick = [i for i in self.extra if i.per_tick]
+        self.gate = TickGate({"centroidal_state", "joint_states", "mux", *(i.name for i in per_tick)},
+                             trigger="centroidal_state")
+        self.hot_loop = HotLoop(self, on_batch=self._on_batch)
+        self.hot_loop.subscribe(CentroidalState, "centroidal_state", lambda m: self._offer("centroidal_state", m))
+        self.hot_loop.subscribe(JointState, "joint_states", lambda m: self._offer("joint_states", m))
+        self.hot_loop.subscribe(MuxState, "mux/state", lambda m: self._offer("mux", m))
+        for i in per_tick:
+            self.hot_loop.subscribe(i.msg_type, i.topic, lambda m, i=i: self._offer(i.name, m), i.qos)
+        self.latched: dict[str, Any] = {}
+        for i in self.extra:
+            if not i.per_tick:
+                self.create_subscription(i.msg_type, i.topic, lambda m, i=i: self._on_latched(i, m),
+                                         i.qos or QOS_LATCHED)
+        self.last_cmd: JointState | None = None
+        self.engaged = False
+        self.failures = 0
+        self.get_logger().info(f"controller {type(self.controller).__name__} as source {self.source!r}; "
+                               f"tick inputs {sorted(self.gate.required)}")
+
+    # ------------------------------------------------------------ inputs
+    def _on_latched(self, inp: Input, msg) -> None:
+        try:
+            self.latched[inp.name] = inp.convert(msg)
+        except Exception as e:  # noqa: BLE001 - a bad message never kills the node
+            self.get_logger().error(f"{inp.topic}: refused ({e})", throttle_duration_sec=1.0)
+
+    def _offer(self, kind: str, msg) -> None:
+        action = self.gate.offer(kind, stamp_key(msg.header.stamp), msg)
+        if action is Action.RETRANSMIT:
+            if self.last_cmd is not None:
+                self.pub.publish(self.last_cmd)  # the bridge resent the tick: answer it again
+            return
+        if action is Action.RESET:
+            self.get_logger().info(f"sim time went back to {stamp_key(msg.header.stamp) * 1e-9:.3f} s: "
+                                   f"controller reset")
+            self.controller.reset()
+            self.last_cmd, self.engaged = None, False
+        if not self.hot_loop.batching:  # callbacks from a plain executor: answer at once
+            self._on_batch()
+
+    def observation(self, stamp_ns: int, inputs: dict) -> Observation:
+        js: JointState = inputs["joint_states"]
+        if list(js.name) != self.model.joint_names:
+            idx = {n: i for i, n in enumerate(js.name)}
+            order = [idx[n] for n in self.model.joint_names]  # KeyError: a joint is missing
+            q, v = np.array(js.position)[order], np.array(js.velocity)[order]
+        else:
+            q, v = np.array(js.position), np.array(js.velocity)
+        extra = dict(self.latched)
+        for i in self.extra:
+            if i.per_tick:
+                extra[i.name] = i.convert(inputs[i.name])
+        return Observation(stamp_ns, q, v, centroidal_from_msg(inputs["centroidal_state"]), inputs["mux"].active,
+                           extra)
+
+    # ------------------------------------------------------------ the tick
+    def _on_batch(self) -> None:
+        tick = self.gate.poll()
+        if tick is None:
+            return
+        stamp = tick.inputs["centroidal_state"].header.stamp
+        try:
+            obs = self.observation(tick.stamp_ns, tick.inputs)
+            targets = self.controller.step(obs)
+            cmd = self._command(targets)
+            self.after_step(obs, targets)
+        except Exception as e:  # noqa: BLE001 - never die on a bad tick; never leave a taken-over robot
+            self.failures += 1
+            self.get_logger().error(f"tick {tick.stamp_ns * 1e-9:.3f} s failed: {e!r}; "
+                                    + ("repeating the last targets" if self.engaged else "releasing"),
+                                    throttle_duration_sec=1.0)
+            cmd = JointState(name=list(self.last_cmd.name), position=list(self.last_cmd.position)) \
+                if self.engaged and self.last_cmd is not None else JointState()
+        cmd.header.stamp = stamp
+        self.pub.publish(cmd)
+        self.last_cmd = cmd
+        self.engaged = bool(cmd.name)
+
+    def _command(self, targets: JointTargets | None) -> JointState:
+        if targets is None:
+            return JointState()
+        q = np.asarray(targets.positions, float)
+        if q.shape != (self.model.njoints,) or not np.all(np.isfinite(q)):
+            raise ValueError(f"controller returned bad positions (shape {q.shape})")
+        cmd = JointState(name=self.model.joint_names, position=q.tolist())
+        if targets.velocities is not None:
+            cmd.velocity = np.asarray(targets.velocities, float).tolist()
+        return cmd
+
+    def after_step(self, observation: Observation, targets: JointTargets | None) -> None:
+        """Hook for subclasses: publish the controller's own per-tick state (e.g. walking/state)."""
