@@ -1,0 +1,218 @@
+"""Campaigns (issue 13): spec validation, designs, bisection, store/resume, timeouts, report. No ROS, no Ray."""
+from __future__ import annotations
+
+import json
+import math
+import time
+
+import pyarrow as pa
+import pytest
+import yaml
+
+from humfall_ros import scenario as scenario_mod
+from humfall_ros.campaign import cli, design, spec as spec_mod
+from humfall_ros.campaign.report import thresholds, write_report
+from humfall_ros.campaign.runner import RunOptions, make_row, prepare, run_campaign
+from humfall_ros.campaign.server import SERVER_TAG_ENV, TrialRequest, TrialServer, tagged_pids
+from humfall_ros.campaign.store import ResultStore, ResumeError, load_results
+from humfall_ros.campaign.studies import ThresholdMap
+
+
+def tiny(tmp_path, **over) -> dict:
+    d = {"name": "tiny", "base_scenario": "standing_push", "set": ["obstacles=[]", "duration=0.3"],
+         "design": {"grid": {"push.0.direction_deg": [0.0, 90.0], "push.0.magnitude_n": [50.0]}},
+         "trial": {"time_limit_s": 60}, "output": {"dir": str(tmp_path / "out")}}
+    d.update(over)
+    return d
+
+
+def write_spec(tmp_path, d, name="spec.yaml"):
+    p = tmp_path / name
+    p.write_text(yaml.safe_dump(d))
+    return str(p)
+
+
+# ---------------------------------------------------------------------------- spec refusals
+@pytest.mark.parametrize("change, path", [
+    ({"colour": "red"}, "colour"),
+    ({"design": {"grid": {"push.0.time": [1.0]}, "bogus": 1}}, "design.bogus"),
+    ({"study": {"type": "threshold-map", "low": 1, "high": 2, "tolerence": 5}}, "study.tolerence"),
+    ({"trial": {"time_limit": 3}}, "trial.time_limit"),
+])
+def test_unknown_key_refused_with_dotted_path(tmp_path, change, path):
+    with pytest.raises(spec_mod.CampaignSpecError) as e:
+        spec_mod.from_dict(tiny(tmp_path, **change))
+    assert str(e.value).startswith(f"{path}: unknown key"), str(e.value)
+
+
+@pytest.mark.parametrize("des", [
+    {"grid": {}},
+    {"grid": {"push.0.direction_deg": []}},
+    {"grid": {"push.0.direction_deg": {"linspace": [0, 1, 0]}}},
+    {"random": {"n": 0, "keys": {"push.0.time": {"uniform": [0, 1]}}}},
+    {"random": {"n": 5, "keys": {}}},
+    {},
+])
+def test_empty_design_refused(tmp_path, des):
+    with pytest.raises(spec_mod.CampaignSpecError) as e:
+        spec_mod.from_dict(tiny(tmp_path, design=des))
+    assert str(e.value).startswith("design"), str(e.value)
+
+
+def test_bad_scenario_key_refused_before_anything_starts(tmp_path):
+    d = tiny(tmp_path, design={"grid": {"push.0.forse": [[1, 2, 3]]}})
+    assert cli.main([write_spec(tmp_path, d), "--local"]) == 2
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(spec_mod.CampaignSpecError, match=r"^design\.grid\.push\.0\.forse: .*no such key"):
+        prepare(spec_mod.from_dict(d), RunOptions())
+    # a value the scenario refuses (a 9 kN push) is caught by the sampled check, also before running
+    d = tiny(tmp_path, design={"grid": {"push.0.magnitude_n": [100.0, 9000.0]}})
+    with pytest.raises(spec_mod.CampaignSpecError, match=r"^design\.grid.*exceeds"):
+        prepare(spec_mod.from_dict(d), RunOptions())
+    d = tiny(tmp_path, study={"type": "threshold-map", "key": "push.3.magnitude_n", "low": 100, "high": 300})
+    with pytest.raises(spec_mod.CampaignSpecError, match=r"^study\.key"):
+        prepare(spec_mod.from_dict(d), RunOptions())
+
+
+# ---------------------------------------------------------------------------- designs
+def test_push_keys_become_force_and_point():
+    base = scenario_mod.load("standing_push")
+    ov = design.overrides_for({"push.0.direction_deg": 90.0, "push.0.magnitude_n": 200.0,
+                               "push.0.height_m": 0.3, "duration": 1.0}, base)
+    sc = base
+    for o in ov:
+        sc = scenario_mod.apply_override(sc, o)
+    f = sc["push"][0]["force"]
+    assert f[0] == pytest.approx(0.0, abs=1e-6) and f[1] == pytest.approx(200.0) and f[2] == base["push"][0]["force"][2]
+    assert sc["push"][0]["point"][2] == pytest.approx(0.3)
+    assert sc["duration"] == 1.0
+    # direction alone keeps the base magnitude (|(300, -75)|)
+    (o,) = design.overrides_for({"push.0.direction_deg": 180.0}, base)
+    fx, fy, _ = json.loads(o.split("=", 1)[1])
+    assert math.hypot(fx, fy) == pytest.approx(math.hypot(300, 75)) and fx < 0 and abs(fy) < 1e-6
+
+
+def test_random_design_is_seeded(tmp_path):
+    def pts(seed):
+        return design.design_points(spec_mod.from_dict(tiny(tmp_path, design={"random": {
+            "n": 20, "seed": seed, "keys": {"push.0.magnitude_n": {"uniform": [100, 200]},
+                                            "push.0.duration": {"choice": [0.1, 0.2]}}}})))
+
+    a, b, c = pts(1), pts(1), pts(2)
+    assert a == b and a != c and len(a) == 20
+    assert all(100 <= p["push.0.magnitude_n"] <= 200 and p["push.0.duration"] in (0.1, 0.2) for p in a)
+
+
+def test_grid_is_the_cartesian_product_in_key_order(tmp_path):
+    s = spec_mod.from_dict(tiny(tmp_path, design={"grid": {"push.0.direction_deg": {"circle": 4},
+                                                           "push.0.height_m": [0.1, 0.3]}}))
+    pts = design.design_points(s)
+    assert [(p["push.0.direction_deg"], p["push.0.height_m"]) for p in pts] == \
+        [(d, h) for d in (0.0, 90.0, 180.0, 270.0) for h in (0.1, 0.3)]
+
+
+# ---------------------------------------------------------------------------- bisection (no simulation)
+def _bisect(study_over: dict, true_threshold: float | None, tmp_path):
+    d = tiny(tmp_path, design={"grid": {"push.0.direction_deg": [0.0, 90.0]}},
+             study={"type": "threshold-map", "low": 100.0, "high": 600.0, "tolerance": 5.0, **study_over})
+    spec, _, study, _ = prepare(spec_mod.from_dict(d), RunOptions())
+    assert isinstance(study, ThresholdMap)
+    todo, rows = list(study.start()), []
+    while todo:
+        t = todo.pop(0)
+        mag = t.settings["push.0.magnitude_n"]
+        # cell 1's threshold is 40 N higher: the cells must not mix
+        thr = None if true_threshold is None else true_threshold + 40.0 * t.tags["cell"]
+        fell = thr is not None and mag > thr
+        row = make_row(t, {"status": "ok", "metrics": {"fell": fell, "fall_direction_deg": 3.0}}, "inprocess")
+        rows.append(row)
+        todo += study.feed(t, row)
+    return spec, rows
+
+
+def test_threshold_bisection_brackets_to_tolerance(tmp_path):
+    spec, rows = _bisect({}, 237.0, tmp_path)
+    assert len(rows) == 2 * 7          # ceil(log2(500 / 5)) per cell
+    th = thresholds(pa.Table.from_pylist(rows), spec.model_dump(mode="json"))
+    for t, true in zip(th, (237.0, 277.0)):
+        assert t.status == "ok"
+        assert t.low <= true < t.high and t.high - t.low <= 5.0
+        assert abs(t.threshold - true) <= 2.5
+        assert t.point["push.0.direction_deg"] in (0.0, 90.0)
+
+
+def test_threshold_outside_range_is_flagged(tmp_path):
+    spec, rows = _bisect({}, 50.0, tmp_path)      # everything falls
+    th = thresholds(pa.Table.from_pylist(rows), spec.model_dump(mode="json"))
+    assert th[0].status == "below_range" and th[0].threshold is None
+    spec, rows = _bisect({}, None, tmp_path)      # nothing falls
+    th = thresholds(pa.Table.from_pylist(rows), spec.model_dump(mode="json"))
+    assert {t.status for t in th} == {"above_range"}
+
+
+# ---------------------------------------------------------------------------- trial server
+def test_failed_and_hung_trials_are_recorded_and_killed(tmp_path):
+    s = TrialServer(str(tmp_path))
+    try:
+        r = s.run(TrialRequest("bad", "standing_push", ["push.0.forse=[1,2,3]"], "inprocess", 30.0, None))
+        assert r["status"] == "failed" and "forse" in r["error"] and "Traceback" in r["log_tail"]
+        tag = s.tag
+        t0 = time.monotonic()
+        r = s.run(TrialRequest("hang", "standing_push", ["duration=600"], "inprocess", 1.5, None))
+        assert r["status"] == "timeout" and "time limit" in r["error"]
+        assert 1.4 < time.monotonic() - t0 < 10.0
+        assert "start hang" in r["log_tail"]
+        assert tagged_pids(SERVER_TAG_ENV, tag) == []          # the hung server is gone
+        r = s.run(TrialRequest("next", "standing_push", ["duration=0.1"], "inprocess", 60.0, None))
+        assert r["status"] == "ok" and r["metrics"]["fell"] is False   # a fresh server took over
+    finally:
+        s.close()
+    assert tagged_pids(SERVER_TAG_ENV, s.tag) == []
+
+
+# ---------------------------------------------------------------------------- runs, resume, report
+def test_campaign_runs_resumes_and_refuses_another_spec(tmp_path):
+    d = tiny(tmp_path, design={"grid": {"push.0.direction_deg": [0.0, 90.0, 180.0],
+                                        "push.0.magnitude_n": [60.0]}})
+    d["design"]["grid"]["push.0.direction_deg"] = [0.0, 90.0, 180.0]
+    spec = spec_mod.from_dict(d)
+    # a crash after one trial: only its fragment is on disk
+    _, base0, study, digest = prepare(spec, RunOptions())
+    store = ResultStore(tmp_path / "out")
+    store.open(spec.model_dump(mode="json"), digest, base0)
+    first = study.start()[1]
+    store.add(make_row(first, {"status": "ok", "metrics": {"fell": False, "marker": 42.0}}, "inprocess"))
+    store.flush()
+
+    s = run_campaign(spec, RunOptions(executor="local", workers=2, progress=False))
+    assert (s.ran, s.resumed, s.status_counts) == (2, 1, {"ok": 2})
+    table, meta = load_results(s.results)
+    assert table.column("trial_id").to_pylist() == ["t000000", "t000001", "t000002"]
+    # the resumed row is the stored one, not a rerun
+    assert table.column("m.marker").to_pylist() == [None, 42.0, None]
+    assert all(w > 0 for w in table.column("wall_s").to_pylist()[::2])
+    assert meta["spec_hash"] == digest and len(meta["sessions"]) == 2
+
+    s2 = run_campaign(spec, RunOptions(executor="local", workers=1, progress=False))
+    assert (s2.ran, s2.resumed) == (0, 3)
+
+    other = spec_mod.from_dict({**d, "set": ["obstacles=[]", "duration=0.4"]})
+    with pytest.raises(ResumeError, match="another spec"):
+        run_campaign(other, RunOptions(executor="local", workers=1, progress=False))
+    assert cli.main([write_spec(tmp_path, other.model_dump(mode="json")), "--local"]) == 2
+
+    html_path = write_report(tmp_path / "out")
+    text = html_path.read_text()
+    assert "<h2>Status</h2>" in text and "data:image/png;base64," in text
+    assert cli.main(["report", str(tmp_path / "out" / "results.parquet"), "-o", str(tmp_path / "r.html")]) == 0
+    assert (tmp_path / "r.html").stat().st_size > 1000
+
+
+def test_timeout_row_is_kept_in_the_table(tmp_path):
+    d = tiny(tmp_path, design={"grid": {"duration": [0.2, 300.0]}}, trial={"time_limit_s": 2.0})
+    s = run_campaign(spec_mod.from_dict(d), RunOptions(executor="local", workers=2, progress=False))
+    table, _ = load_results(s.results)
+    rows = {r["set.duration"]: r for r in table.to_pylist()}
+    assert rows[0.2]["status"] == "ok"
+    assert rows[300.0]["status"] == "timeout" and "time limit" in rows[300.0]["error"]
+    assert rows[300.0]["log_tail"]
