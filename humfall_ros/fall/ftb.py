@@ -1,0 +1,441 @@
+"""The fall trigger boundary (FTB, paper 1 §II-B) over features of the centroidal state.
+
+Features (per control tick, from ``CentroidalObservation`` alone):
+
+* for every edge of the support polygon, the 2-D pendulum of the CoM about it
+  (``dynamics.toppling.edge_pendulum``): lean theta, rate theta', energy ratio
+  e = E / E_crest and the signed separatrix margin (> 0: the pendulum falls over that
+  edge; ``toppling.separatrix_margin``); the **leading edge** is the one with the largest
+  margin, a **leading corner** when the CoM's projection lies beyond that edge's ends;
+* the lean angle of P->G and the capture point's signed distance to the polygon
+  (reported only: both cross their textbook limits in pushes this robot survives,
+  see DESIGN.md "Measured facts for the controllers").
+
+Trigger modes (``FtbConfig.mode``):
+
+* ``ftb`` (ours): outside the boundary when the leading edge's separatrix margin exceeds
+  ``margin_threshold`` for ``debounce_ms`` (the energy over the leading edge separates
+  falls from recoveries), or the lean exceeds the ``lean_backstop_deg`` backstop;
+* ``fixed`` (paper 1 §V-A): the fall starts ``fixed_delay_s`` after the push ends; the
+  push end time is an input (``observation.inputs["push_end_time"]`` [s]).
+
+While walking (``observation.inputs["walking/state"]`` with ``walking`` true, see
+:class:`GaitReference`), the capture point leaves the stance foot in every normal step, so
+the boundary is referenced to the gait: outside when the measured capture point is more than
+``walking_capture_point_error`` from the gait's reference capture point (debounced), or when
+the energy margin is positive over an edge of the *reference* support (the hook; walking is
+being built, the reference fields are the contract).
+
+The state machine is data (:data:`TRANSITIONS`): BALANCED -> FALLING (the trigger, with
+the :class:`FallEvent` published once, on the edge) -> FALLEN (lean beyond
+``fallen_lean_deg`` or ``falling_timeout_s`` in FALLING); FALLEN and FALLING leave only
+through :meth:`FtbMonitor.reset` (``ftb/reset``) or sim time going back.
+"""
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from humfall_ros.control.contract import CentroidalObservation, Observation
+from humfall_ros.dynamics.pendulum import GRAVITY
+from humfall_ros.dynamics.toppling import FallOutcome, edge_pendulum, energy_ratio, separatrix_margin, time_to_lean
+from humfall_ros.fall.geometry import PolygonEdges, polygon_edges
+from humfall_ros.model.humanoid import point_in_polygon_margin
+
+
+class FtbState(enum.Enum):
+    BALANCED = "balanced"
+    FALLING = "falling"
+    FALLEN = "fallen"
+
+
+class TriggerMode(enum.Enum):
+    FTB = "ftb"
+    FIXED = "fixed"
+
+
+@dataclasses.dataclass(frozen=True)
+class Transition:
+    """One row of the FTB state machine: ``source`` -> ``target`` when ``condition`` holds."""
+
+    source: FtbState
+    target: FtbState
+    condition: str
+    description: str
+
+
+TRANSITIONS: tuple[Transition, ...] = (
+    Transition(FtbState.BALANCED, FtbState.FALLING, "outside_boundary",
+               "trigger condition of the mode held for debounce_ms (ftb) / push end + fixed_delay_s (fixed)"),
+    Transition(FtbState.BALANCED, FtbState.FALLEN, "fallen", "lean beyond fallen_lean_deg without a trigger"),
+    Transition(FtbState.FALLING, FtbState.FALLEN, "fallen", "lean beyond fallen_lean_deg"),
+    Transition(FtbState.FALLING, FtbState.FALLEN, "falling_timeout", "falling_timeout_s spent in FALLING"),
+    Transition(FtbState.FALLING, FtbState.BALANCED, "reset", "ftb/reset or sim time went back"),
+    Transition(FtbState.FALLEN, FtbState.BALANCED, "reset", "ftb/reset or sim time went back"),
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class FtbConfig:
+    """FTB parameters (declared in ``config/ftb_monitor.yaml``; units in the names)."""
+
+    mode: TriggerMode = TriggerMode.FTB
+    margin_threshold: float = 0.0
+    debounce_ms: float = 10.0
+    lean_backstop_deg: float = 25.0
+    fallen_lean_deg: float = 60.0
+    falling_timeout_s: float = 3.0
+    fixed_delay_s: float = 0.05
+    theta_threshold_deg: float = 15.0
+    min_normal_force_fraction: float = 0.3
+    walking_capture_point_error: float = 0.08
+    robot_weight: float = 0.0   # [N]; 0: taken as the first observations' normal force
+
+    @classmethod
+    def from_params(cls, d: dict[str, Any]) -> FtbConfig:
+        """From ``params.defaults("ftb_monitor")``-shaped dict; unknown keys are refused."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"ftb_monitor: unknown parameters {sorted(unknown)}")
+        kw = dict(d)
+        if "mode" in kw:
+            kw["mode"] = TriggerMode(kw["mode"])
+        return cls(**kw)
+
+
+@runtime_checkable
+class GaitReference(Protocol):
+    """What the FTB reads from ``walking/state`` (the walking engineer's message, as a dataclass).
+
+    Attributes:
+        walking: a gait is running (False: standing, the plain boundary applies).
+        support: "double", "left" or "right".
+        reference_capture_point: the gait's capture point at this tick [m], (3,).
+        reference_support_polygon: the support the gait plans for this tick [m], (k, 2).
+    """
+
+    walking: bool
+    support: str
+    reference_capture_point: np.ndarray
+    reference_support_polygon: np.ndarray
+
+
+@dataclasses.dataclass
+class FtbFeatures:
+    """The FTB's feature vector of one tick.
+
+    Attributes:
+        energy_ratio: e over the leading edge [-] (1 = crest).
+        separatrix_margin: signed |e - 1| over the leading edge, > 0 falls [-].
+        theta, theta_dot: edge-pendulum lean [rad] and rate [rad/s] about the leading edge.
+        pendulum_length: leading-edge pivot to CoM [m].
+        lean_angle: P->G lean [rad] (reported).
+        capture_point_margin: signed distance of Q to the polygon, > 0 inside [m] (reported).
+        capture_point_error: |Q - Q_ref| while walking [m] (NaN standing).
+        edge_start, edge_end: the leading edge [m], (2,) each (equal for a corner).
+        edge_normal: its outward normal [-], (2,).
+        on_corner: the CoM projects beyond the leading edge's ends (or a one-point polygon).
+        valid: enough normal force and a non-empty polygon for the features to mean anything.
+    """
+
+    energy_ratio: float = math.nan
+    separatrix_margin: float = math.nan
+    theta: float = math.nan
+    theta_dot: float = math.nan
+    pendulum_length: float = math.nan
+    lean_angle: float = math.nan
+    capture_point_margin: float = math.nan
+    capture_point_error: float = math.nan
+    edge_start: np.ndarray = dataclasses.field(default_factory=lambda: np.full(2, np.nan))
+    edge_end: np.ndarray = dataclasses.field(default_factory=lambda: np.full(2, np.nan))
+    edge_normal: np.ndarray = dataclasses.field(default_factory=lambda: np.full(2, np.nan))
+    on_corner: bool = False
+    valid: bool = False
+
+
+@dataclasses.dataclass
+class FallEvent:
+    """Published once when the state leaves the FTB (the latched ``fall_event``).
+
+    Attributes:
+        stamp_ns: tick of the trigger [ns].
+        trigger_mode: "ftb" or "fixed".
+        reason: which condition fired.
+        leading_edge_start, leading_edge_end: the leading edge [m], (3,), z = 0 (equal: a corner).
+        leading_corner: the robot topples about a corner.
+        cop: CoP P [m], (3,).
+        reference_point: Q, the capture point (eq. 1-2) [m], (3,).
+        fall_direction: heading of the leading edge's outward normal [rad].
+        control_duration: time to ``theta_threshold`` by the edge pendulum [s] (inf: never, by the model).
+        theta_threshold: the lean that ends the control duration [rad].
+        energy_ratio: e over the leading edge at the trigger [-].
+        separatrix_margin: its signed margin [-].
+        lean_angle: P->G lean [rad].
+        com, com_velocity: G [m] and dG/dt [m/s], (3,).
+        support_polygon: the polygon at the trigger [m], (k, 2).
+        walking: the boundary was referenced to the gait.
+    """
+
+    stamp_ns: int
+    trigger_mode: str
+    reason: str
+    leading_edge_start: np.ndarray
+    leading_edge_end: np.ndarray
+    leading_corner: bool
+    cop: np.ndarray
+    reference_point: np.ndarray
+    fall_direction: float
+    control_duration: float
+    theta_threshold: float
+    energy_ratio: float
+    separatrix_margin: float
+    lean_angle: float
+    com: np.ndarray
+    com_velocity: np.ndarray
+    support_polygon: np.ndarray
+    walking: bool = False
+
+    @property
+    def time(self) -> float:
+        return self.stamp_ns * 1e-9
+
+
+@dataclasses.dataclass
+class FtbStatus:
+    """``ftb/status`` of one tick: the state, the features, and the event on the tick it fires."""
+
+    stamp_ns: int
+    state: FtbState
+    mode: str
+    features: FtbFeatures
+    time_in_state: float
+    reason: str = ""
+    event: FallEvent | None = None
+
+
+def polygon_width(poly) -> float:
+    """Smallest extent of a convex polygon across any of its edges [m] (0 for a segment)."""
+    p = np.asarray(poly, float).reshape(-1, 2)
+    if len(p) < 3:
+        return 0.0
+    edges = polygon_edges(p)
+    depth = np.einsum("kj,ij->ki", edges.normal, p) - np.sum(edges.normal * edges.start, axis=1)[:, None]
+    return float(np.min(-np.min(depth, axis=1)))
+
+
+def _strip_edge(poly, feet_center, qxy) -> PolygonEdges:
+    """A thin polygon (the feet rocking on one line of corners) as one pivot line.
+
+    The outward side is the one away from the ankles' mid-point (the rest of the soles is
+    behind the line: the robot rocks back onto it rather than toppling that way); when the
+    mid-point is on the line, the side the capture point is on.
+    """
+    c = poly.mean(axis=0)
+    u, _, vt = np.linalg.svd(poly - c)
+    axis = vt[0]
+    t = (poly - c) @ axis
+    a, b = poly[int(np.argmin(t))], poly[int(np.argmax(t))]
+    n = np.array([-axis[1], axis[0]])
+    side = float((c - feet_center) @ n)
+    if abs(side) < 0.01:
+        side = float((qxy - c) @ n)
+    if side < 0:
+        n = -n
+    return PolygonEdges(a[None], b[None], n[None])
+
+
+def features_of(s: CentroidalObservation, polygon=None, g: float = GRAVITY,
+                thin_width: float = 0.02, inner_edge_tolerance: float = 0.01) -> FtbFeatures:
+    """The FTB features of one centroidal state (vectorised over the polygon's edges).
+
+    Args:
+        s: the centroidal state.
+        polygon: the support to topple about [m], (k, 2), CCW; default ``s.support_polygon``
+            (the touching corners). The loaded soles' hull is the better choice when known.
+
+    The leading edge is the edge the capture point lies furthest beyond (largest
+    (Q - a) . n): with the touching corners only, a foot rocking on its toes gives a strip a
+    few mm deep whose back edge has the CoM "beyond" it, and choosing by the largest margin
+    would pick that back edge (measured: it fires at 250 N). The pendulum is then taken
+    about the leading edge alone. A polygon thinner than ``thin_width`` [m] (the feet on
+    their toe corners: three or four nearly collinear points) is one pivot line whose
+    outward side is away from ``s.feet_center`` (:func:`_strip_edge`). Edges with the ankles'
+    mid-point more than ``inner_edge_tolerance`` [m] beyond them (one foot's inner edge while
+    the other is unloaded) are not leading-edge candidates.
+    """
+    poly = np.asarray(s.support_polygon if polygon is None else polygon, float).reshape(-1, 2)
+    f = FtbFeatures(lean_angle=float(s.lean_angle))
+    if len(poly) == 0 or not np.all(np.isfinite(poly)) or not np.all(np.isfinite(s.com)) \
+            or not np.all(np.isfinite(s.com_velocity)) or not np.all(np.isfinite(s.capture_point)):
+        return f
+    qxy = np.asarray(s.capture_point, float)[:2]
+    f.capture_point_margin = point_in_polygon_margin(qxy, poly)
+    edges = polygon_edges(poly)
+    fc = np.asarray(s.feet_center, float)[:2]
+    com = np.asarray(s.com, float)
+    vel = np.asarray(s.com_velocity, float)
+    if len(poly) >= 2 and polygon_width(poly) < thin_width:
+        edges = _strip_edge(poly, fc, qxy)
+    if len(poly) == 1:  # one corner: the robot topples away from the rest of its soles (the ankles)
+        off = poly[0] - fc
+        if np.hypot(*off) < 0.01:
+            off = qxy - poly[0]
+        normal = off / max(float(np.hypot(*off)), 1e-12)
+        i = 0
+    else:
+        beyond = np.sum((qxy - edges.start) * edges.normal, axis=1)
+        # an edge with the ankles' mid-point beyond it is the inner edge of one loaded foot: the
+        # other foot is right there, so the CoM "beyond" it rocks back onto that foot (measured:
+        # 0.9x pushes at 30-150 deg fired on it)
+        inner = np.sum((fc - edges.start) * edges.normal, axis=1) > inner_edge_tolerance
+        if not np.all(inner):
+            beyond = np.where(inner, -np.inf, beyond)
+        i = int(np.argmax(beyond))
+        normal = edges.normal[i]
+    rel = com[:2] - edges.start[i]
+    d = float(rel @ normal)
+    h = float(com[2])
+    length = math.hypot(d, h)
+    theta = math.atan2(d, h)
+    theta_dot = (float(normal @ vel[:2]) * h - float(vel[2]) * d) / (length * length)
+    e = float(energy_ratio(theta, theta_dot, length, 1.0, g))
+    f.energy_ratio, f.separatrix_margin = e, float(separatrix_margin(theta, theta_dot, e))
+    f.theta, f.theta_dot, f.pendulum_length = theta, theta_dot, length
+    a, b = edges.start[i], edges.end[i]
+    ev = b - a
+    t = float(rel @ ev / max(ev @ ev, 1e-18)) if len(poly) > 1 else 0.0
+    if len(poly) == 1 or t <= 0.0 or t >= 1.0:
+        corner = a if t <= 0.5 else b
+        f.edge_start = f.edge_end = corner.copy()
+        f.on_corner = True
+    else:
+        f.edge_start, f.edge_end = a.copy(), b.copy()
+    f.edge_normal = np.array(normal, float)
+    f.valid = True
+    return f
+
+
+class FtbMonitor:
+    """The FTB state machine (see the module docstring); ``step`` once per control tick."""
+
+    def __init__(self, config: FtbConfig | None = None):
+        self.config = config or FtbConfig()
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to BALANCED, timers and the latched event cleared (``ftb/reset``)."""
+        self.state = FtbState.BALANCED
+        self.state_since: float | None = None
+        self.outside_since: float | None = None
+        self.last_stamp: int | None = None
+        self.event: FallEvent | None = None
+        self.weight = self.config.robot_weight if self.config.robot_weight > 0 else None
+
+    # ---------------------------------------------------------------- conditions
+    def _outside(self, obs: Observation, f: FtbFeatures) -> str:
+        """The reason the state is outside the boundary this tick ("" inside)."""
+        c = self.config
+        t = obs.time
+        if c.mode is TriggerMode.FIXED:
+            end = obs.inputs.get("push_end_time")
+            if end is not None and math.isfinite(float(end)) and t >= float(end) + c.fixed_delay_s - 1e-9:
+                return f"fixed: {c.fixed_delay_s:.3f} s after the push ended at {float(end):.3f} s"
+            return ""
+        if not f.valid:
+            return ""
+        if f.lean_angle > math.radians(c.lean_backstop_deg):
+            return f"lean {math.degrees(f.lean_angle):.1f} deg beyond the {c.lean_backstop_deg:.0f} deg backstop"
+        gait = obs.inputs.get("walking/state")
+        if isinstance(gait, GaitReference) and gait.walking:
+            f.capture_point_error = float(np.linalg.norm(np.asarray(obs.state.capture_point, float)[:2]
+                                                         - np.asarray(gait.reference_capture_point, float)[:2]))
+            if f.capture_point_error > c.walking_capture_point_error:
+                return (f"walking: capture point {f.capture_point_error * 100:.1f} cm off the gait's reference "
+                        f"(limit {c.walking_capture_point_error * 100:.1f} cm)")
+            return ""
+        if f.separatrix_margin > c.margin_threshold:
+            return (f"energy over the leading edge {f.energy_ratio:.4f} of the crest "
+                    f"(separatrix margin {f.separatrix_margin:+.4f} > {c.margin_threshold:+.4f})")
+        return ""
+
+    def step(self, obs: Observation) -> FtbStatus:
+        """One tick: features, transitions, and the event on the tick the state leaves the boundary."""
+        c = self.config
+        if self.last_stamp is not None and obs.stamp_ns < self.last_stamp:
+            self.reset()  # sim time went back: a new run
+        self.last_stamp = obs.stamp_ns
+        t = obs.time
+        if self.state_since is None:
+            self.state_since = t
+        s = obs.state
+        sole = obs.inputs.get("sole_polygon", getattr(s, "sole_polygon", None))
+        f = features_of(s, sole if sole is not None and len(sole) else None)
+        if self.weight is None and s.normal_force > 0 and math.isfinite(s.normal_force):
+            self.weight = float(s.normal_force)
+        loaded = self.weight is None or s.normal_force >= c.min_normal_force_fraction * self.weight
+        if not loaded:
+            f.valid = False
+        reason = ""
+        event = None
+        fallen = math.isfinite(f.lean_angle) and f.lean_angle > math.radians(c.fallen_lean_deg)
+        if self.state is FtbState.BALANCED:
+            why = self._outside(obs, f)
+            if why:
+                if self.outside_since is None:
+                    self.outside_since = t
+                held = (t - self.outside_since) * 1e3 >= c.debounce_ms - 1e-6 or c.mode is TriggerMode.FIXED
+                if held:
+                    event = self._event(obs, f, why)
+                    self._enter(FtbState.FALLING, t)
+                    reason = why
+            else:
+                self.outside_since = None
+            if event is None and fallen:
+                self._enter(FtbState.FALLEN, t)
+                reason = "fallen without a trigger"
+        elif self.state is FtbState.FALLING:
+            if fallen:
+                self._enter(FtbState.FALLEN, t)
+                reason = f"lean beyond {c.fallen_lean_deg:.0f} deg"
+            elif t - self.state_since >= c.falling_timeout_s:
+                self._enter(FtbState.FALLEN, t)
+                reason = f"{c.falling_timeout_s:.1f} s in falling"
+        return FtbStatus(obs.stamp_ns, self.state, c.mode.value, f, t - self.state_since, reason, event)
+
+    def _enter(self, state: FtbState, t: float) -> None:
+        self.state = state
+        self.state_since = t
+
+    def _event(self, obs: Observation, f: FtbFeatures, reason: str) -> FallEvent:
+        c = self.config
+        s = obs.state
+        theta_thr = math.radians(c.theta_threshold_deg)
+        duration = math.inf
+        if f.valid and math.isfinite(f.theta):
+            r = time_to_lean(f.theta, f.theta_dot, theta_thr, f.pendulum_length)
+            duration = r.time if r.outcome is FallOutcome.FALLS else math.inf
+        gait = obs.inputs.get("walking/state")
+        start = np.append(f.edge_start, 0.0) if f.valid else np.asarray(s.cop, float).copy()
+        end = np.append(f.edge_end, 0.0) if f.valid else np.asarray(s.cop, float).copy()
+        direction = math.atan2(f.edge_normal[1], f.edge_normal[0]) if f.valid else float(s.lean_direction)
+        self.event = FallEvent(
+            obs.stamp_ns, c.mode.value, reason, start, end, bool(f.on_corner), np.asarray(s.cop, float).copy(),
+            np.asarray(s.capture_point, float).copy(), direction, float(duration), theta_thr,
+            float(f.energy_ratio), float(f.separatrix_margin), float(s.lean_angle), np.asarray(s.com, float).copy(),
+            np.asarray(s.com_velocity, float).copy(), np.asarray(s.support_polygon, float).reshape(-1, 2).copy(),
+            bool(isinstance(gait, GaitReference) and gait.walking))
+        return self.event
+
+
+def edge_pendulum_of(s: CentroidalObservation, f: FtbFeatures):
+    """The leading edge's pendulum (``toppling.EdgePendulum``) for a state and its features."""
+    return edge_pendulum(s.com, s.com_velocity, np.append(f.edge_start, 0.0), f.edge_normal)
+
+
+__all__ = ["TRANSITIONS", "FallEvent", "FtbConfig", "FtbFeatures", "FtbMonitor", "FtbState", "FtbStatus",
+           "GaitReference", "Transition", "TriggerMode", "edge_pendulum_of", "features_of"]
