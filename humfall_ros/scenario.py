@@ -437,7 +437,7 @@ class Robot(_Section):
 class ControllerNode(_Section):
     """An extra lockstep controller node: its mux source name and priority (higher wins), its parameters."""
 
-    node: String                     # a node of humfall_ros.nodes, or a dotted module path with a main()
+    node: String                     # a node of humfall_ros.nodes, a dotted module path or a .py file, with a main()
     source: String                   # joint_command/<source>
     priority: Integer
     params: Mapping = Field(default_factory=dict)
@@ -445,8 +445,12 @@ class ControllerNode(_Section):
     @field_validator("node")
     @classmethod
     def _node(cls, v: str) -> str:
+        if v.endswith(".py"):  # a script (e.g. a test-only controller node in test/)
+            if not os.path.isfile(v):
+                raise _Reason(f"no file {v} (looked from {os.getcwd()})")
+            return os.path.abspath(v)  # the launcher's children may start elsewhere
         if not MODULE_PATH.fullmatch(v):
-            raise _Reason(f"{v!r} is not a node name or a dotted module path")
+            raise _Reason(f"{v!r} is not a node name, a dotted module path or a .py file")
         why = _find_module(controller_module(v))
         if why:
             raise _Reason(why)

@@ -57,10 +57,12 @@ class Params:
     set explicitly on the command line or by a params file.
     """
 
-    def __init__(self, node: Node, config_name: str | None = None):
+    def __init__(self, node: Node, config_name: str | None = None,
+                 declarations: dict[str, params_mod.Declaration] | None = None):
         self.node = node
         self.config_name = config_name or node.get_name()
-        self.declarations = params_mod.declarations(self.config_name)
+        # a node outside the package (e.g. a test-only controller) may bring its own declarations
+        self.declarations = declarations if declarations is not None else params_mod.declarations(self.config_name)
         self.values: dict[str, Any] = {}
         overrides = getattr(node, "_parameter_overrides", None)  # rclpy keeps -p / params-file values here
         self._explicit = set(overrides) if isinstance(overrides, dict) else set()

@@ -83,9 +83,10 @@ class ControllerNode(Node):
     """
 
     def __init__(self, name: str, make_controller: Callable[[dict, HumanoidModel], Controller],
-                 inputs: list[Input] | None = None, config_name: str | None = None):
+                 inputs: list[Input] | None = None, config_name: str | None = None,
+                 declarations: dict | None = None):
         super().__init__(name)
-        self.params = Params(self, config_name).declare_all()
+        self.params = Params(self, config_name, declarations).declare_all()
         self.model = load_model()
         self.controller = make_controller(self.params, self.model)
         self.source = self.controller.source
