@@ -6,6 +6,8 @@ import dataclasses
 from humfall_ros import params
 
 BETA_POLICIES = ("clamp", "supremum")
+# the scenario's single-support phase names (humfall_ros.scenario.Phase) -> elapsed fraction (issue 12's trials)
+SS_PHASES = {"ss_start": 0.1, "ss_mid": 0.5, "ss_end": 0.95}
 FALLBACKS = ("min_n3_crouch", "none")
 
 
@@ -26,6 +28,8 @@ class TriggerPhase:
         text = text.strip()
         if text in ("ds_start", "ds_mid"):
             return TriggerPhase(text)
+        if text in SS_PHASES:
+            return TriggerPhase("ss", SS_PHASES[text])
         if text.startswith("ss:"):
             try:
                 f = float(text[3:])
@@ -34,7 +38,8 @@ class TriggerPhase:
             if not 0.0 <= f <= 1.0:
                 raise ValueError(f"trigger_phase {text!r}: the single-support fraction must be in [0, 1]")
             return TriggerPhase("ss", f)
-        raise ValueError(f"trigger_phase {text!r} is not ds_start, ds_mid or ss:<fraction>")
+        raise ValueError(f"trigger_phase {text!r} is not ds_start, ds_mid, ss_start, ss_mid, ss_end "
+                         "or ss:<fraction>")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,6 +68,9 @@ class EstopConfig:
     crouch_clearance: float = 0.01
     crouch_duration: float = 0.8
     fallback: str = "min_n3_crouch"
+    ankle_kp: float = 0.3
+    ankle_kd: float = 0.05
+    ankle_max_offset: float = 0.12
     joint_stop_time: float = 0.3
     home_duration: float = 1.5
     trigger_time: float = -1.0
@@ -100,4 +108,4 @@ class EstopConfig:
         return EstopConfig.from_params({**params.defaults("estop_planner"), **overrides})
 
 
-__all__ = ["BETA_POLICIES", "FALLBACKS", "EstopConfig", "TriggerPhase"]
+__all__ = ["BETA_POLICIES", "FALLBACKS", "SS_PHASES", "EstopConfig", "TriggerPhase"]

@@ -184,7 +184,8 @@ class StopPlan:
         minor, major: the per-axis plans.
         crouch: the vertical trajectory, or None.
         final_com: final CoG [m] (3,), world (Major n3, Minor 0, crouched height).
-        min_zmp_margin: smallest predicted distance of pbar and p inside the polygon [m] (< 0 outside).
+        min_zmp_margin: smallest predicted distance of pbar and p inside the polygon [m] (< 0 outside);
+            feasible needs it >= min(zmp_margin, the initial ZMP's margin).
         stop_time: predicted time the horizontal CoG speed falls below ``settle_speed`` [s].
         end_time: time after which the reference is the final point [s].
         feasible: ZMP inside by the margin and (once checked) the final posture reachable.
@@ -408,14 +409,18 @@ class EstopPlanner:
         lipm = pos - acc * (z / (GRAVITY + zdd))
         pts = np.vstack([plan.frame.to_world(pbar.T), plan.frame.to_world(lipm.T),
                          plan.final_com[None, :2]])
-        margin = float(polygon_margins(pts, plan.support_polygon).min())
+        margins = polygon_margins(pts, plan.support_polygon)
+        margin = float(margins.min())
+        # the stop starts where the ZMP is: if that is already nearer the edge than zmp_margin, the
+        # plan must not take it nearer still (the initial pbar is the first sample)
+        required = min(c.zmp_margin, float(margins[0]))
         speed = np.hypot(vel[0], vel[1])
         above = np.nonzero(speed >= c.settle_speed)[0]
         stop_time = float(t[min(above[-1] + 1, len(t) - 1)]) if len(above) else 0.0
         minor = dataclasses.replace(plan.minor, max_zmp=_extreme(pbar[0]), max_lipm_zmp=_extreme(lipm[0]))
-        feasible = margin >= c.zmp_margin
+        feasible = margin >= required - 1e-9
         reason = "" if feasible else (f"predicted ZMP {margin * 100:.1f} cm inside the double-support polygon "
-                                      f"(< margin {c.zmp_margin * 100:.1f} cm)")
+                                      f"(< margin {required * 100:.1f} cm)")
         return dataclasses.replace(plan, minor=minor, min_zmp_margin=margin, stop_time=stop_time,
                                    feasible=feasible, reason=reason)
 

@@ -11,8 +11,8 @@ quintic of the CoG height to ``clearance`` below the height the IK could reach, 
 ZMP prediction is redone with that vertical motion. If no crouch down to
 ``crouch_min_cog_height`` gives a reachable posture, or the ZMP leaves the polygon, the
 **fallback** ``min_n3_crouch`` plans with beta = -omega_f (the smallest n3 this model can give
-with -omega_f <= beta: n3 equals eq. 22's bound y0 + ydot0/omega_c) and the deepest crouch, and
-the plan says ``feasible=False``; ``fallback: none`` keeps the nominal plan (still
+with -omega_f <= beta: n3 equals eq. 22's bound y0 + ydot0/omega_c), with the crouch the posture
+needs or, if none suffices, the deepest one, and runs it with ``feasible=False``; ``fallback: none`` keeps the nominal plan (still
 ``feasible=False``), to show what the prediction predicted.
 """
 from __future__ import annotations
@@ -200,11 +200,12 @@ def settle_posture(planner, plan, q_seed: np.ndarray):
         return dataclasses.replace(p, posture=check, feasible=True, reason="")
     if c.fallback == "none":
         return dataclasses.replace(p, posture=check, feasible=False, reason=why)
-    # fallback min_n3_crouch: beta = -omega_f (n3 at eq. 22's bound), the deepest crouch, run anyway
-    deepest = Crouch(z0, c.crouch_min_cog_height, c.crouch_duration) if c.crouch_min_cog_height < z0 else None
-    fb = planner.plan(state, beta=-c.omega_f, crouch=deepest)
-    target = fb.final_com.copy()
-    check_fb = solver.solve(check.q, state.feet, target, ground)
+    # fallback min_n3_crouch: beta = -omega_f (n3 at eq. 22's bound); if the posture is still out of
+    # reach, the deepest crouch; run anyway, feasible=False
+    fb, check_fb, why_fb = attempt(planner.plan(state, beta=-c.omega_f))
+    if why_fb and not check_fb.reachable and c.crouch_min_cog_height < z0:
+        fb = planner.plan(state, beta=-c.omega_f, crouch=Crouch(z0, c.crouch_min_cog_height, c.crouch_duration))
+        check_fb = solver.solve(check_fb.q, state.feet, fb.final_com.copy(), ground)
     note = "; fallback min_n3_crouch: " + ("posture reachable" if check_fb.reachable else "posture NOT reachable")
     if not fb.feasible:
         note += f", {fb.reason}"

@@ -1,0 +1,500 @@
+"""EstopController: the e-stop as a controller-contract source ("estop"). No rclpy, no simulator.
+
+States (:class:`EstopState`; the transition rules are :data:`TRANSITIONS`, printable and tested):
+
+* ``idle`` -- releases every tick (``step`` returns None) and watches for a trigger:
+  ``observation.inputs["estop"]`` truthy (the latched ``estop`` topic), or the scheduled trigger
+  (``trigger_time``: the first tick stamped at or after it; ``trigger_step`` + ``trigger_phase``:
+  the first tick of that walking step in that phase, from ``inputs["walking/state"]``).
+* ``waiting`` -- triggered in single support: keeps releasing (walking plays its pattern) until
+  the first double-support tick, then plans from the pattern state of that tick.
+* ``stopping`` -- plans at once from the current pattern state (paper 3 §III-A: reference CoG and
+  velocity, reference ZMP, foot poses, CoG height; never the walking parameters or future steps)
+  and plays the plan: both feet held (hard IK tasks), the CoG on the plan's reference (velocity
+  feed-forward; the difference between the measured-posture CoG and the pattern's reference at
+  the start is blended out over ``BLEND_TIME`` so the first command is the measured posture), the
+  trunk upright, the other joints stopped by eq. 23 within ``joint_stop_time`` (shortened so no
+  joint passes a limit); joint targets through the shared whole-body IK, plus the ankle strategy
+  (``ankle_kp``, ``ankle_kd`` on the measured CoG's error to the reference, relative to the feet)
+  as the stabiliser that makes the executed ZMP follow (eq. 2's lag).
+* ``stopped`` -- the plan has reached its final point (velocity exactly 0): the upper body moves
+  home (``home_duration``), then ``holding``.
+* ``holding`` -- holds the final posture until a release (``inputs["estop_release"]`` truthy)
+  when the measured CoG is slower than ``settle_speed``; then ``idle`` (walking takes the robot
+  back from the measured posture; aligning the feet by stepping is walking's, §V step 3).
+* ``refused`` -- the state was outside the model's validity (CoG height, speed, non-finite,
+  omega_f vs omega_c): nothing was taken over, the robot stays with walking, the reason is in the
+  status; a new trigger (edge) is tried again.
+* ``yielded`` -- a fall event (``inputs["fall_event"]``): safe-fall has priority. Before a
+  takeover the e-stop does not take over; after one it keeps commanding its last targets (the
+  mux gives safe_fall precedence; if nobody else commands the robot still has this one).
+
+Bad input, each logged to ``messages``: a trigger before the state is known is kept pending and
+acted on at the first tick with a known state; a second trigger during a stop is ignored; a
+release while moving is refused (the robot is held); the e-stop never returns None once it
+has taken over, until a granted release.
+
+The pattern state comes from ``inputs["walking/state"]`` (``humfall_ros.walking.controller.WalkingState``;
+fields read: ``walking``, ``support``, ``phase_fraction``, ``step_index``, ``com_ref``,
+``com_velocity_ref``, ``zmp_ref``, ``left_foot``, ``right_foot`` -- sole poses ``(x, y, z, yaw)``)
+while walking, and from the centroidal state when standing (CoM, CoM velocity, measured CoP as the
+ZMP, the soles from walking's state or, without one, from the measured joints with the feet flat,
+their mean heading 0 and their ankles' mid-point at ``state.feet_center``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+
+import numpy as np
+import pinocchio as pin
+
+from humfall_ros.control.contract import JointTargets, Observation, stamp_ns_of
+from humfall_ros.estop.config import EstopConfig, TriggerPhase
+from humfall_ros.estop.frame import FootPose
+from humfall_ros.estop.planner import EstopInputError, EstopPlanner, PatternState, StopPlan
+from humfall_ros.estop.posture import configuration_from_feet
+from humfall_ros.estop.statespace import return_home, stop_duration_within_limits
+from humfall_ros.model.humanoid import SIDES, HumanoidModel
+from humfall_ros.model.ik import ComTask, FrameTask, OrientationTask, PostureTask, WholeBodyIK
+
+BLEND_TIME = 0.3          # s: the measured-posture CoG offset at the start is blended out over this
+
+
+class EstopState(str, enum.Enum):
+    IDLE = "idle"
+    WAITING = "waiting"
+    STOPPING = "stopping"
+    STOPPED = "stopped"
+    HOLDING = "holding"
+    REFUSED = "refused"
+    YIELDED = "yielded"
+
+
+TRANSITIONS: dict[EstopState, tuple[tuple[str, EstopState], ...]] = {
+    EstopState.IDLE: (("trigger in double support / standing", EstopState.STOPPING),
+                      ("trigger in single support", EstopState.WAITING),
+                      ("trigger, state invalid", EstopState.REFUSED),
+                      ("trigger while falling", EstopState.YIELDED)),
+    EstopState.WAITING: (("first double-support tick", EstopState.STOPPING),
+                         ("state invalid at double support", EstopState.REFUSED),
+                         ("fall event", EstopState.YIELDED)),
+    EstopState.STOPPING: (("plan reaches its end (velocity 0)", EstopState.STOPPED),
+                          ("fall event", EstopState.YIELDED)),
+    EstopState.STOPPED: (("upper body home", EstopState.HOLDING), ("fall event", EstopState.YIELDED)),
+    EstopState.HOLDING: (("release, CoG at rest", EstopState.IDLE), ("fall event", EstopState.YIELDED)),
+    EstopState.REFUSED: (("new trigger", EstopState.STOPPING), ("release", EstopState.IDLE)),
+    EstopState.YIELDED: (("release, not taken over", EstopState.IDLE),),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class EstopStatus:
+    """The ``estop/status`` message (units in brackets; NaN / empty before a plan).
+
+    Attributes:
+        stamp_ns: tick [ns].
+        state: :class:`EstopState` value.
+        active: the e-stop has taken over (walking must release; False while ``waiting``).
+        phase_at_trigger: walking's support at the trigger ("double", "single_left", "single_right",
+            "standing", "" before one).
+        step_at_trigger: walking's step index at the trigger (-1 before one).
+        phase_fraction_at_trigger: elapsed fraction of that support phase.
+        trigger_time, start_time: sim time of the trigger and of the stop's start [s].
+        omega_c, alpha, beta, omega_f: [1/s] (alpha = -omega_c at the trigger height).
+        gains_minor: k_x1..3 of eq. 4; gains_major: k_y1, k_y2 of eq. 12 (eq. 19-20).
+        poles_minor_re, poles_minor_im: Minor-axis poles [1/s].
+        n_major: n1, n2, n3 of eq. 16 [m]; n_minor_re/_im: residues of pbar_x at the poles [m].
+        max_zmp_minor, max_zmp_major: predicted ZMP (lagged, eq. 2) of largest displacement [m] (signed).
+        max_lipm_zmp_minor, max_lipm_zmp_major: the same for the generated CoG's LIPM ZMP [m].
+        n3_lower_bound: eq. 22, y0 + ydot0 / omega_c [m].
+        min_zmp_margin: smallest predicted ZMP distance inside the double-support polygon [m].
+        predicted_stop_time: when the predicted CoG speed falls below settle_speed [s after start].
+        crouch: the stop crouches; crouch_height: the final CoG height [m].
+        feasible: predicted feasible (ZMP margin and final posture); fallback: "" or the fallback run.
+        final_com: the planned final CoG [m] (3,), world.
+        reason: why infeasible / refused / yielded, or "".
+    """
+
+    stamp_ns: int = 0
+    state: str = EstopState.IDLE.value
+    active: bool = False
+    phase_at_trigger: str = ""
+    step_at_trigger: int = -1
+    phase_fraction_at_trigger: float = math.nan
+    trigger_time: float = math.nan
+    start_time: float = math.nan
+    omega_c: float = math.nan
+    alpha: float = math.nan
+    beta: float = math.nan
+    omega_f: float = math.nan
+    gains_minor: tuple = (math.nan,) * 3
+    gains_major: tuple = (math.nan,) * 2
+    poles_minor_re: tuple = (math.nan,) * 3
+    poles_minor_im: tuple = (math.nan,) * 3
+    n_major: tuple = (math.nan,) * 3
+    n_minor_re: tuple = (math.nan,) * 3
+    n_minor_im: tuple = (math.nan,) * 3
+    max_zmp_minor: float = math.nan
+    max_zmp_major: float = math.nan
+    max_lipm_zmp_minor: float = math.nan
+    max_lipm_zmp_major: float = math.nan
+    n3_lower_bound: float = math.nan
+    min_zmp_margin: float = math.nan
+    predicted_stop_time: float = math.nan
+    crouch: bool = False
+    crouch_height: float = math.nan
+    feasible: bool = False
+    fallback: str = ""
+    final_com: tuple = (math.nan,) * 3
+    reason: str = ""
+
+
+def status_from_plan(plan: StopPlan) -> dict:
+    """The plan's fields of :class:`EstopStatus` (a dict for ``dataclasses.replace``)."""
+    mi, ma = plan.minor, plan.major
+    return {
+        "omega_c": plan.omega_c, "alpha": plan.alpha, "beta": plan.beta, "omega_f": plan.omega_f,
+        "gains_minor": tuple(float(k) for k in mi.gains), "gains_major": tuple(float(k) for k in ma.gains),
+        "poles_minor_re": tuple(float(p.real) for p in mi.poles),
+        "poles_minor_im": tuple(float(p.imag) for p in mi.poles),
+        "n_major": tuple(float(n) for n in ma.n), "n_minor_re": tuple(float(n.real) for n in mi.n),
+        "n_minor_im": tuple(float(n.imag) for n in mi.n), "max_zmp_minor": mi.max_zmp, "max_zmp_major": ma.max_zmp,
+        "max_lipm_zmp_minor": mi.max_lipm_zmp, "max_lipm_zmp_major": ma.max_lipm_zmp,
+        "n3_lower_bound": ma.lower_bound, "min_zmp_margin": plan.min_zmp_margin,
+        "predicted_stop_time": plan.stop_time, "crouch": plan.crouch is not None,
+        "crouch_height": plan.crouch.end_height if plan.crouch else plan.state.cog_height,
+        "feasible": plan.feasible, "fallback": plan.fallback,
+        "final_com": tuple(float(c) for c in plan.final_com), "reason": plan.reason}
+
+
+# ---------------------------------------------------------------------- pattern-state adapters
+def _sole_to_ankle(model: HumanoidModel) -> dict[str, pin.SE3]:
+    """The fixed transform sole frame -> ankle (foot_link) frame per side."""
+    d = model.model.createData()
+    pin.framesForwardKinematics(model.model, d, model.neutral())
+    return {s: d.oMf[model.frame_ids[model.sole_frame[s]]].inverse() * d.oMf[model.frame_ids[model.foot_link[s]]]
+            for s in SIDES}
+
+
+def _yaw_matrix(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def feet_from_soles(model: HumanoidModel, soles: dict, offsets: dict | None = None) -> dict[str, FootPose]:
+    """Ankle-frame :class:`FootPose` per side from flat sole poses ``(x, y, z [m], yaw [rad])``."""
+    offsets = offsets or _sole_to_ankle(model)
+    out = {}
+    for s in SIDES:
+        x, y, z, yaw = (float(v) for v in soles[s])
+        M = pin.SE3(_yaw_matrix(yaw), np.array([x, y, z])) * offsets[s]
+        out[s] = FootPose(M.translation.copy(), M.rotation.copy())
+    return out
+
+
+def feet_from_joints(model: HumanoidModel, joints, feet_center_xy, heading: float = 0.0) -> dict[str, FootPose]:
+    """Flat feet on z = 0 from measured joints: mean sole yaw ``heading``, ankles' mid-point at ``feet_center_xy``."""
+    d = model.model.createData()
+    q = model.configuration([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], np.asarray(joints, float))
+    pin.framesForwardKinematics(model.model, d, q)
+    soles = {s: d.oMf[model.frame_ids[model.sole_frame[s]]] for s in SIDES}
+    ankles = {s: d.oMf[model.frame_ids[model.foot_link[s]]] for s in SIDES}
+    yaw = {s: math.atan2(soles[s].rotation[1, 0], soles[s].rotation[0, 0]) for s in SIDES}
+    mean_yaw = 0.5 * (yaw["l"] + yaw["r"])
+    R = _yaw_matrix(heading - mean_yaw)
+    mid = 0.5 * (ankles["l"].translation + ankles["r"].translation)
+    soles_flat = {}
+    for s in SIDES:
+        rel = R @ (soles[s].translation - mid)
+        soles_flat[s] = (float(feet_center_xy[0] + rel[0]), float(feet_center_xy[1] + rel[1]), 0.0,
+                         yaw[s] + heading - mean_yaw)
+    return feet_from_soles(model, soles_flat)
+
+
+def pattern_state_from_walking(model: HumanoidModel, ws, offsets: dict | None = None) -> PatternState:
+    """The planner's input from a ``WalkingState`` (fields in the module docstring)."""
+    feet = feet_from_soles(model, {"l": ws.left_foot, "r": ws.right_foot}, offsets)
+    ground = 0.5 * (float(ws.left_foot[2]) + float(ws.right_foot[2]))
+    com = np.asarray(ws.com_ref, float).copy()
+    return PatternState(com, np.asarray(ws.com_velocity_ref, float).copy(), np.asarray(ws.zmp_ref, float).copy(),
+                        feet, float(com[2] - ground))
+
+
+def _truthy(x) -> bool:
+    if x is None:
+        return False
+    if hasattr(x, "active"):
+        return bool(x.active)
+    return bool(x)
+
+
+class EstopController:
+    """The e-stop source (module docstring).
+
+    Args:
+        model: the robot model.
+        config: the node's parameters.
+        dt: control period [s] (the IK step).
+    """
+
+    source = "estop"
+
+    def __init__(self, model: HumanoidModel, config: EstopConfig | None = None, dt: float = 0.002):
+        self.m = model
+        self.cfg = config or EstopConfig.defaults()
+        self.dt = float(dt)
+        self.planner = EstopPlanner(model, self.cfg)
+        self.ik = WholeBodyIK(model)
+        self._offsets = _sole_to_ankle(model)
+        names = model.joint_names
+        self._legs = np.array([n[:2] in ("l_", "r_") and any(k in n for k in ("hip", "knee", "ankle"))
+                               for n in names])
+        self._posture_weight = np.where(self._legs, 1e-4, 10.0)
+        self._pitch = [model.joint_index(f"{s}_ankle_pitch") for s in SIDES]
+        self._roll = [model.joint_index(f"{s}_ankle_roll") for s in SIDES]
+        home = getattr(model, "standing_posture", None)
+        self._home = model.joint_vector(home) if isinstance(home, dict) else None
+        self._phase: TriggerPhase = self.cfg.phase
+        self.messages: list[str] = []
+        self.reset()
+
+    # ------------------------------------------------------------------ contract
+    def reset(self) -> None:
+        self.state = EstopState.IDLE
+        self.status = EstopStatus()
+        self.plan: StopPlan | None = None
+        self.pending = False            # a trigger waiting for a known state or a double support
+        self.taken_over = False
+        self.q_ik: np.ndarray | None = None
+        self.last_targets: JointTargets | None = None
+        self._trigger_seen = False      # edge detection of the latched trigger input
+        self._scheduled_done = False
+        self._t_start = math.nan
+        self._t_stopped = math.nan
+        self._offset0 = np.zeros(3)
+        self._upper0 = None
+        self._upper_v0 = None
+        self._t_b = 0.0
+        self._prev_ws = None
+        self.now = 0.0
+
+    def request_trigger(self) -> None:
+        """Trigger from code (what the ``estop`` topic does)."""
+        self._trigger_seen = False
+        self.pending = True
+
+    def _log(self, text: str) -> str:
+        self.messages.append(text)
+        return text
+
+    def _set(self, state: EstopState, stamp_ns: int, **fields) -> None:
+        if state != self.state:
+            self._log(f"estop: {self.state.value} -> {state.value}" + (f" ({fields['reason']})"
+                                                                       if fields.get("reason") else ""))
+        self.state = state
+        self.status = dataclasses.replace(self.status, stamp_ns=stamp_ns, state=state.value,
+                                          active=self.taken_over, **fields)
+
+    # ------------------------------------------------------------------ step
+    def step(self, observation: Observation) -> JointTargets | None:
+        inp = observation.inputs
+        ws = inp.get("walking/state")
+        stamp = observation.stamp_ns
+        triggered = self._trigger_edge(inp.get("estop"), observation, ws)
+        falling = _truthy(inp.get("fall_event"))
+        release = _truthy(inp.get("estop_release"))
+        self.status = dataclasses.replace(self.status, stamp_ns=stamp, active=self.taken_over)
+        out: JointTargets | None
+        if falling and self.state != EstopState.YIELDED and (self.taken_over or self.pending or triggered):
+            self.pending = False
+            self._set(EstopState.YIELDED, stamp, reason="fall event: safe-fall has priority")
+            triggered = False
+        if self.state == EstopState.YIELDED:
+            out = self.last_targets if self.taken_over else None
+            if release and not self.taken_over:
+                self._set(EstopState.IDLE, stamp, reason="")
+            self._prev_ws = ws
+            return out
+        if self.state in (EstopState.IDLE, EstopState.REFUSED):
+            if release and self.state == EstopState.REFUSED:
+                self._set(EstopState.IDLE, stamp, reason="")
+            if triggered:
+                self.pending = True
+                self.status = dataclasses.replace(self.status, trigger_time=observation.time)
+            if self.pending:
+                self._begin(observation, ws)
+        elif triggered:
+            self._log(f"estop: trigger ignored: already {self.state.value}")
+        if self.state == EstopState.WAITING and ws is not None and ws.support == "double":
+            self._start(observation, ws)
+        if self.state in (EstopState.STOPPING, EstopState.STOPPED, EstopState.HOLDING):
+            out = self._play(observation)
+            if release:
+                speed = float(np.hypot(*observation.state.com_velocity[:2]))
+                if self.state == EstopState.HOLDING and speed < self.cfg.settle_speed:
+                    self.taken_over = False
+                    self._set(EstopState.IDLE, stamp, reason="")
+                    self._log("estop: released; walking takes the robot back from the measured posture")
+                    out = None
+                else:
+                    self._log(f"estop: release refused: {self.state.value}, CoG speed {speed:.3f} m/s "
+                              f"(needs holding and < {self.cfg.settle_speed} m/s)")
+        else:
+            out = None
+        self._prev_ws = ws
+        self.last_targets = out if out is not None else self.last_targets
+        return out
+
+    # ------------------------------------------------------------------ triggers
+    def _trigger_edge(self, x, observation: Observation, ws) -> bool:
+        """A new trigger this tick: the latched input's rising edge or the scheduled tick."""
+        c = self.cfg
+        now = _truthy(x)
+        edge = now and not self._trigger_seen
+        self._trigger_seen = now
+        due = (c.trigger_time >= 0 and observation.stamp_ns >= stamp_ns_of(c.trigger_time)) or (
+            c.trigger_step >= 0 and ws is not None and self._at_phase(ws))
+        if due and not self._scheduled_done:
+            self._scheduled_done = True
+            edge = True
+        return edge
+
+    def _at_phase(self, ws) -> bool:
+        """This tick is the configured gait phase of step ``trigger_step`` (first tick that qualifies)."""
+        if not getattr(ws, "walking", True) or int(ws.step_index) != self.cfg.trigger_step:
+            return False
+        ph = self._phase
+        frac = float(ws.phase_fraction)
+        if ph.kind == "ds_start":
+            return ws.support == "double"
+        if ph.kind == "ds_mid":
+            return ws.support == "double" and frac >= 0.5
+        return ws.support.startswith("single") and frac >= ph.fraction
+
+    # ------------------------------------------------------------------ planning
+    def _pattern_state(self, observation: Observation, ws) -> PatternState | None:
+        """Walking's pattern state, or the centroidal one when standing; None if unknown."""
+        if ws is not None and getattr(ws, "walking", False):
+            return pattern_state_from_walking(self.m, ws, self._offsets)
+        st = observation.state
+        if st is None or not np.all(np.isfinite(st.com)) or st.normal_force <= 0:
+            return None
+        if ws is not None and np.any(np.asarray(ws.left_foot, float) != 0):
+            feet = feet_from_soles(self.m, {"l": ws.left_foot, "r": ws.right_foot}, self._offsets)
+        else:
+            feet = feet_from_joints(self.m, observation.joint_position, st.feet_center[:2])
+        ground = float(np.mean([feet[s].sole_corners(self.m, s)[:, 2].mean() for s in SIDES]))
+        return PatternState(np.asarray(st.com, float).copy(), np.asarray(st.com_velocity, float).copy(),
+                            np.asarray(st.cop, float).copy(), feet, float(st.com[2] - ground))
+
+    def _begin(self, observation: Observation, ws) -> None:
+        """A pending trigger: wait for double support, or start, or stay pending if the state is unknown."""
+        walking = ws is not None and getattr(ws, "walking", False)
+        phase = ws.support if walking else "standing"
+        self.status = dataclasses.replace(
+            self.status, phase_at_trigger=phase, step_at_trigger=int(ws.step_index) if walking else -1,
+            phase_fraction_at_trigger=float(ws.phase_fraction) if walking else math.nan)
+        if walking and ws.support != "double":
+            self.pending = False
+            self._set(EstopState.WAITING, observation.stamp_ns, reason="")
+            return
+        self._start(observation, ws)
+
+    def _start(self, observation: Observation, ws) -> None:
+        state = self._pattern_state(observation, ws)
+        if state is None:
+            if self.state != EstopState.WAITING:
+                self.pending = True
+                self._log("estop: trigger pending: the state is not known yet")
+            return
+        self.pending = False
+        feet_side = "r" if ws is None or not getattr(ws, "walking", False) else (
+            "l" if np.dot(state.feet["l"].position[:2] - state.feet["r"].position[:2],
+                          np.asarray(state.com_velocity[:2], float)) < 0 else "r")   # the rear foot
+        q_seed = configuration_from_feet(self.m, observation.joint_position, state.feet, feet_side)
+        try:
+            plan = self.planner.plan_with_posture(state, q_seed)
+        except EstopInputError as e:
+            self._set(EstopState.REFUSED, observation.stamp_ns, reason=f"refused: {e}")
+            return
+        self.plan = plan
+        self.taken_over = True
+        self._t_start = observation.time
+        self.q_ik = q_seed
+        self._offset0 = self.m.com(q_seed) - plan.sample(0.0).com
+        upper = ~self._legs
+        self._upper0 = np.asarray(observation.joint_position, float)[upper].copy()
+        self._upper_v0 = np.asarray(observation.joint_velocity, float)[upper].copy()
+        lim = self.m.limits
+        self._t_b = stop_duration_within_limits(self._upper0, self._upper_v0, lim.lower[upper], lim.upper[upper],
+                                                self.cfg.joint_stop_time)
+        if not plan.feasible:
+            self._log(f"estop: predicted infeasible: {plan.reason}")
+        self._set(EstopState.STOPPING, observation.stamp_ns, start_time=observation.time, **status_from_plan(plan))
+
+    # ------------------------------------------------------------------ execution
+    def _upper_targets(self, t: float) -> np.ndarray:
+        """Upper-body joints: eq. 23 stop over T_b, then (when stopped) a smooth move home."""
+        pos, _ = return_home(self._upper0, self._upper_v0, self._t_b, t)
+        if self.state in (EstopState.STOPPED, EstopState.HOLDING) and self._home is not None:
+            s = min(max((self.now - self._t_stopped) / self.cfg.home_duration, 0.0), 1.0)
+            blend = 10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5
+            pos = pos + blend * (self._home[~self._legs] - pos)
+            if s >= 1.0 and self.state == EstopState.STOPPED:
+                self._set(EstopState.HOLDING, self.status.stamp_ns, reason=self.status.reason)
+        elif self.state == EstopState.STOPPED:
+            self._set(EstopState.HOLDING, self.status.stamp_ns, reason=self.status.reason)
+        return pos
+
+    def _play(self, observation: Observation) -> JointTargets:
+        plan = self.plan
+        self.now = observation.time
+        t = observation.time - self._t_start
+        ref = plan.sample(t)
+        if ref.done and self.state == EstopState.STOPPING:
+            self._t_stopped = observation.time
+            self._set(EstopState.STOPPED, observation.stamp_ns, reason=self.status.reason)
+        blend = max(0.0, 1.0 - t / BLEND_TIME)
+        target = ref.com + blend * self._offset0
+        posture = self.q_ik[7:].copy()
+        posture[~self._legs] = self._upper_targets(t)
+        feet = plan.state.feet
+        yaw = math.atan2(*(sum(feet[s].rotation[:2, 0] for s in SIDES)[::-1]))
+        tasks = [FrameTask(self.m.foot_link[s], pin.SE3(feet[s].rotation, feet[s].position), hard=True)
+                 for s in SIDES]
+        tasks += [ComTask(target, weight=1000.0, velocity=None if ref.done else ref.com_velocity),
+                  OrientationTask(self.m.root_link, _yaw_matrix(yaw), weight=10.0),
+                  PostureTask(posture, weight=self._posture_weight)]
+        r = self.ik.solve(self.q_ik, tasks, self.dt)
+        self.q_ik = r.q
+        q = r.q[7:].copy()
+        # ankle strategy on the measured CoG relative to the feet (the stabiliser of the executed stop)
+        c = self.cfg
+        st = observation.state
+        mid = 0.5 * (feet["l"].position + feet["r"].position)
+        err = (np.asarray(st.com, float) - np.asarray(st.feet_center, float)) - (ref.com - mid)
+        verr = np.asarray(st.com_velocity, float) - ref.com_velocity
+        R = _yaw_matrix(yaw)
+        e_l, v_l = R.T @ err, R.T @ verr                      # in the feet's heading frame
+        d_pitch = float(np.clip(c.ankle_kp * e_l[0] + c.ankle_kd * v_l[0], -c.ankle_max_offset, c.ankle_max_offset))
+        d_roll = float(np.clip(-(c.ankle_kp * e_l[1] + c.ankle_kd * v_l[1]), -c.ankle_max_offset,
+                               c.ankle_max_offset))
+        q[self._pitch] += d_pitch
+        q[self._roll] += d_roll
+        q = np.clip(q, self.m.limits.lower, self.m.limits.upper)
+        return JointTargets(q, r.v[6:].copy())
+
+
+__all__ = [
+    "BLEND_TIME",
+    "TRANSITIONS",
+    "EstopController",
+    "EstopState",
+    "EstopStatus",
+    "feet_from_joints",
+    "feet_from_soles",
+    "pattern_state_from_walking",
+    "status_from_plan",
+]
