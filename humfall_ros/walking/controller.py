@@ -37,6 +37,7 @@ from humfall_ros.model.ik import (
 )
 from humfall_ros.walking.config import LocomotionConfig
 from humfall_ros.walking.footsteps import Footstep, WalkCommand, step_width
+from humfall_ros.walking.multibody import MomentumZmp, MultiBodyCorrection
 from humfall_ros.walking.pattern import PatternSample, SupportPhase, WalkingPattern
 from humfall_ros.walking.stabilizer import WalkingStabilizer
 
@@ -127,6 +128,8 @@ class LocomotionController:
         self.standing = StandingController(self.m, self.m.standing_posture, c.ankle_kp, c.ankle_kd,
                                            c.ankle_max_offset, c.resume_time, self.source)
         self.pattern: WalkingPattern | None = None
+        self.correction: MultiBodyCorrection | None = None
+        self.momentum_zmp = MomentumZmp(self.m, self.dt)
         self.q_ik: np.ndarray | None = None
         self.sample: PatternSample | None = None
         self.command = WalkCommand()
@@ -208,6 +211,7 @@ class LocomotionController:
     # ------------------------------------------------------------------ walking
     def _drop_walk(self) -> None:
         self.pattern = None
+        self.correction = None
         self.q_ik = None
         self.command = WalkCommand()
         self.pending = None
@@ -256,6 +260,12 @@ class LocomotionController:
         com = self.m.com(q)
         self.q_ik = q
         self.pattern = WalkingPattern(self.cfg, self.dt, self.width, self.zmp_offset_x, feet, com, cmd, self.n_steps)
+        self.correction = None
+        if self.cfg.multibody_correction:
+            lookahead = max(1, round(self.cfg.multibody_horizon / self.dt))
+            self.correction = MultiBodyCorrection(self.m, self.pattern, q, self.tasks, lookahead,
+                                                  WholeBodyIK(self.m, velocity_fraction=1.0))
+        self.momentum_zmp.reset()
         self.stabilizer.reset()
         self._log(f"walk started: {cmd.speed * 3.6:.2f} km/h, {math.degrees(cmd.yaw_rate):.1f} deg/s"
                   + (f", {self.n_steps} steps" if self.n_steps else ""))
@@ -275,8 +285,11 @@ class LocomotionController:
         return tasks
 
     def _walk_tick(self, observation: Observation) -> JointTargets:
-        p = self.pattern
-        sample = p.step()
+        if self.correction is not None:
+            cs = self.correction.step()
+            sample = cs.sample
+        else:
+            sample = self.pattern.step()
         self.sample = sample
         s = observation.state
         stance = None
@@ -292,14 +305,17 @@ class LocomotionController:
         r = self.ik.solve(self.q_ik, self.tasks(sample, sample.com + st.com_offset), self.dt)
         self.q_ik = r.q
         q_cmd = self.stabilizer.apply(r.q[7:], st)
+        p_mb = self.momentum_zmp.update(r.q, r.v)
         self.state = self._state(observation.stamp_ns, sample)
+        if p_mb is not None:
+            self.state.multibody_zmp = p_mb
         if sample.finished:
             self._finish_walk(observation, r.q)
         return JointTargets(q_cmd, r.v[6:].copy())
 
     def _finish_walk(self, observation: Observation, q_final: np.ndarray) -> None:
         """The stop has settled: stand in the posture the walk ended in (bumpless)."""
-        feet = self.pattern.sample().feet
+        feet = self.sample.feet
         self.heading = 0.5 * (feet["l"].yaw + feet["r"].yaw)
         c = self.cfg
         posture = dict(zip(self.m.joint_names, q_final[7:]))
@@ -307,6 +323,7 @@ class LocomotionController:
                                            c.resume_time, self.source)
         self._log(f"walk finished after {self.pattern.step_count} steps")
         self.pattern = None
+        self.correction = None
         self.q_ik = None
         self.command = WalkCommand()
 

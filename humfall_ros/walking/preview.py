@@ -23,6 +23,7 @@ recomputes them when it changes.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -57,9 +58,12 @@ def cart_table(dt: float, com_height: float, g: float = GRAVITY) -> tuple[np.nda
     return A, B, C
 
 
+@functools.lru_cache(maxsize=16)
 def preview_gains(dt: float, com_height: float, horizon: float, q_e: float = 1.0, q_x: float = 0.0,
                   r: float = 1e-6) -> PreviewGains:
-    """Preview-control gains (Kajita 2003 / Katayama 1985) from the discrete Riccati equation."""
+    """Preview-control gains (Kajita 2003 / Katayama 1985) from the discrete Riccati equation.
+
+    Cached by argument (a replan at the same CoM height reuses them; a new height computes new ones)."""
     A, B, C = cart_table(dt, com_height)
     At = np.zeros((4, 4))
     At[0, 0] = 1.0

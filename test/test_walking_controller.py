@@ -1,0 +1,98 @@
+"""LocomotionController: command checks, release on fall / e-stop, resume, and a kinematic walk."""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from humfall_ros.control.contract import CentroidalObservation, Observation
+from humfall_ros.model.humanoid import load_model
+from humfall_ros.params import ParamError
+from humfall_ros.walking.config import LocomotionConfig
+from humfall_ros.walking.controller import LocomotionController
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model()
+
+
+def observe(model, q, t, inputs=None, active="locomotion"):
+    """An exact observation of configuration q (as if the joints tracked perfectly)."""
+    model.forward(q)
+    com = model.com(q)
+    fc = 0.5 * (model.frame_position("l_foot") + model.frame_position("r_foot"))
+    ground = np.array([com[0], com[1], 0.0])
+    st = CentroidalObservation(com, np.zeros(3), ground, ground, np.zeros(3), np.zeros((0, 2)), fc, 0.0, 0.0,
+                               model.weight, True, True, False)
+    return Observation(round(t * 1e9), q[7:].copy(), np.zeros(model.njoints), st, active, inputs or {})
+
+
+def test_config_from_params_refuses_unknown():
+    assert LocomotionConfig.from_params() == LocomotionConfig()
+    with pytest.raises(ParamError):
+        LocomotionConfig.from_params({"no_such": 1.0})
+    with pytest.raises(ParamError):
+        LocomotionConfig.from_params({"double_support": 0.9})
+
+
+def test_bad_commands(model):
+    c = LocomotionController(model)
+    assert "non-finite" in c.set_walk_command(float("nan"), 0.0)
+    assert "non-finite" in c.set_walk_command(0.2, float("inf"))
+    assert "backward" in c.set_walk_command(-0.1, 0.0)
+    c.set_walk_command(5.0 / 3.6, math.radians(90))  # clamped first (the clamped walk may then be refused)
+    assert any("clamped to 2.50 km/h" in m for m in c.messages)
+    assert any("clamped to 20.0 deg/s" in m for m in c.messages)
+
+
+def test_infeasible_walk_refused_with_reason(model):
+    """Standing-height CoM with 2.5 km/h steps: the rear knee straightens; refused before the first step."""
+    cfg = dataclasses.replace(LocomotionConfig(), com_height=0.74)
+    c = LocomotionController(model, cfg)
+    reason = c.set_walk_command(2.5 / 3.6, 0.0)
+    assert reason is not None and "refused" in reason
+    assert c.pending is None
+
+
+def test_release_on_fall_and_estop_then_resume(model):
+    c = LocomotionController(model)
+    q = c.reference_configuration(c.standing_posture, 0.0, (0.0, 0.0))
+    assert c.step(observe(model, q, 0.0)) is not None
+    assert c.set_walk_command(1.0 / 3.6, 0.0, n_steps=2) is None
+    out = c.step(observe(model, q, 0.002))
+    assert c.pattern is not None and out.velocities is not None
+    assert c.step(observe(model, q, 0.004, {"fall_event": True})) is None
+    assert c.pattern is None and c.state.released
+    assert "ignored" in c.set_walk_command(1.0 / 3.6, 0.0)
+    assert c.step(observe(model, q, 0.006, {"estop": True})) is None
+    # released inputs cleared: stands again from the measured posture (bumpless: the command is the posture)
+    qm = q.copy()
+    qm[7:] += 0.01
+    out = c.step(observe(model, qm, 0.008, {}, active="estop"))
+    assert out is not None
+    assert np.max(np.abs(out.positions - qm[7:])) < 0.02
+
+
+def test_kinematic_walk_finishes_and_reports_state(model):
+    """With perfect tracking the controller walks 3 steps, the state follows the gait, and it stands after."""
+    c = LocomotionController(model, dataclasses.replace(LocomotionConfig(), dcm_gain=0.0, cop_damping_gain=0.0))
+    q = c.reference_configuration(c.standing_posture, 0.0, (0.0, 0.0))
+    assert c.set_walk_command(1.0 / 3.6, 0.0, n_steps=3) is None
+    t, supports, steps = 0.0, set(), []
+    peak = np.zeros(model.njoints)
+    for _ in range(5000):
+        out = c.step(observe(model, q if c.q_ik is None else c.q_ik, t))
+        t += c.dt
+        supports.add(c.state.support)
+        steps.append(c.state.step_index)
+        if out.velocities is not None:
+            peak = np.maximum(peak, np.abs(out.velocities))
+        if c.pattern is None:
+            break
+    assert c.pattern is None and any("finished" in m for m in c.messages)
+    assert supports == {"double", "single_left", "single_right"}
+    assert max(steps) == 4
+    assert np.all(peak <= c.cfg.velocity_fraction * model.limits.velocity + 1e-9)
