@@ -10,7 +10,8 @@ import pytest
 import yaml
 
 from humfall_ros import scenario as scenario_mod
-from humfall_ros.campaign import cli, design, spec as spec_mod
+from humfall_ros.campaign import cli, design
+from humfall_ros.campaign import spec as spec_mod
 from humfall_ros.campaign.report import thresholds, write_report
 from humfall_ros.campaign.runner import RunOptions, make_row, prepare, run_campaign
 from humfall_ros.campaign.server import SERVER_TAG_ENV, TrialRequest, TrialServer, tagged_pids
