@@ -29,6 +29,11 @@ States (:class:`EstopState`; the transition rules are :data:`TRANSITIONS`, print
   takeover the e-stop does not take over; after one it keeps commanding its last targets (the
   mux gives safe_fall precedence; if nobody else commands the robot still has this one).
 
+Bumpless take-over: ``inputs["joint_targets"]`` (the targets the mux applied last tick, model
+order), when given, seeds the IK instead of the measured joints: position servos sag under load,
+and commanding the measured posture relaxes every loaded joint at once (measured: a 100 N standing
+push, take-over at the toe, bounced both feet off the ground).
+
 Bad input, each logged to ``messages``: a trigger before the state is known is kept pending and
 acted on at the first tick with a known state; a second trigger during a stop is ignored; a
 release while moving is refused (the robot is held); the e-stop never returns None once it
@@ -222,6 +227,12 @@ def pattern_state_from_walking(model: HumanoidModel, ws, offsets: dict | None = 
                         feet, float(com[2] - ground))
 
 
+def _base_rotation(q: np.ndarray) -> np.ndarray:
+    """World rotation of the free-flyer of ``q`` (quaternion x, y, z, w at q[3:7])."""
+    x, y, z, w = (float(v) for v in q[3:7])
+    return pin.Quaternion(w, x, y, z).normalized().toRotationMatrix()
+
+
 def _truthy(x) -> bool:
     if x is None:
         return False
@@ -274,6 +285,7 @@ class EstopController:
         self._t_start = math.nan
         self._t_stopped = math.nan
         self._offset0 = np.zeros(3)
+        self._trunk0 = np.eye(3)
         self._upper0 = None
         self._upper_v0 = None
         self._t_b = 0.0
@@ -413,7 +425,11 @@ class EstopController:
         feet_side = "r" if ws is None or not getattr(ws, "walking", False) else (
             "l" if np.dot(state.feet["l"].position[:2] - state.feet["r"].position[:2],
                           np.asarray(state.com_velocity[:2], float)) < 0 else "r")   # the rear foot
-        q_seed = configuration_from_feet(self.m, observation.joint_position, state.feet, feet_side)
+        # bumpless: start from the joint targets in force if the loop gives them (a position-servoed
+        # joint sags under load, so commanding the measured posture would relax every loaded joint)
+        targets = observation.inputs.get("joint_targets")
+        joints = np.asarray(targets if targets is not None else observation.joint_position, float)
+        q_seed = configuration_from_feet(self.m, joints, state.feet, feet_side)
         try:
             plan = self.planner.plan_with_posture(state, q_seed)
         except EstopInputError as e:
@@ -424,6 +440,7 @@ class EstopController:
         self._t_start = observation.time
         self.q_ik = q_seed
         self._offset0 = self.m.com(q_seed) - plan.sample(0.0).com
+        self._trunk0 = _base_rotation(q_seed)
         upper = ~self._legs
         self._upper0 = np.asarray(observation.joint_position, float)[upper].copy()
         self._upper_v0 = np.asarray(observation.joint_velocity, float)[upper].copy()
@@ -464,8 +481,10 @@ class EstopController:
         yaw = math.atan2(*(sum(feet[s].rotation[:2, 0] for s in SIDES)[::-1]))
         tasks = [FrameTask(self.m.foot_link[s], pin.SE3(feet[s].rotation, feet[s].position), hard=True)
                  for s in SIDES]
+        upright = _yaw_matrix(yaw)        # the trunk goes upright from where it was, over BLEND_TIME too
+        trunk = self._trunk0 @ pin.exp3((1.0 - blend) * pin.log3(self._trunk0.T @ upright))
         tasks += [ComTask(target, weight=1000.0, velocity=None if ref.done else ref.com_velocity),
-                  OrientationTask(self.m.root_link, _yaw_matrix(yaw), weight=10.0),
+                  OrientationTask(self.m.root_link, trunk, weight=10.0),
                   PostureTask(posture, weight=self._posture_weight)]
         r = self.ik.solve(self.q_ik, tasks, self.dt)
         self.q_ik = r.q

@@ -1,0 +1,189 @@
+"""EstopController (humfall_ros/estop/controller.py): triggers, phases, bad input, hand-over; a standing stop in the sim."""
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+import pytest
+
+from humfall_ros.control.contract import CentroidalObservation, Observation, stamp_ns_of
+from humfall_ros.estop.config import EstopConfig
+from humfall_ros.estop.controller import TRANSITIONS, EstopController, EstopState, EstopStatus
+from humfall_ros.model.humanoid import load_model
+from humfall_ros.sim.world import STANDING_POSTURE
+
+M = load_model()
+DT = 0.002
+
+
+@dataclasses.dataclass
+class Pattern:
+    """The fields of walking's WalkingState the e-stop reads."""
+
+    walking: bool = True
+    support: str = "double"
+    phase_fraction: float = 0.0
+    step_index: int = 5
+    com_ref: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.06, -0.02, 0.742]))
+    com_velocity_ref: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.2, 0.05, 0.0]))
+    zmp_ref: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, -0.09, 0.0]))
+    left_foot: tuple = (0.15, 0.09, 0.0, 0.0)
+    right_foot: tuple = (0.0, -0.09, 0.0, 0.0)
+
+
+def obs(t: float, **inputs) -> Observation:
+    joints = M.joint_vector(STANDING_POSTURE)
+    st = CentroidalObservation(
+        com=np.array([0.06, -0.02, 0.742]), com_velocity=np.array([0.2, 0.05, 0.0]), cop=np.array([0.02, -0.09, 0.0]),
+        capture_point=np.zeros(3), angular_momentum=np.zeros(3), support_polygon=np.zeros((0, 2)),
+        feet_center=np.array([0.075, 0.0, 0.105]), lean_angle=0.0, lean_direction=0.0, normal_force=569.0,
+        left_contact=True, right_contact=True, cop_on_edge=False)
+    return Observation(stamp_ns_of(t), joints, np.zeros_like(joints), st, "locomotion", dict(inputs))
+
+
+def test_transition_table_names_every_state():
+    assert set(TRANSITIONS) == set(EstopState)
+    assert all(isinstance(dst, EstopState) for rules in TRANSITIONS.values() for _, dst in rules)
+
+
+def test_releases_until_the_scheduled_tick_then_commands():
+    ctl = EstopController(M, EstopConfig.defaults(trigger_time=0.01), DT)
+    outs = [ctl.step(obs(k * DT, **{"walking/state": Pattern()})) for k in range(8)]
+    assert all(o is None for o in outs[:5]) and all(o is not None for o in outs[5:])   # tick 5 is t = 0.01 s
+    s = ctl.status
+    assert s.state == "stopping" and s.active and s.phase_at_trigger == "double" and s.step_at_trigger == 5
+    assert s.trigger_time == pytest.approx(0.01) and s.start_time == pytest.approx(0.01)
+    assert s.alpha == pytest.approx(-s.omega_c) and s.beta < s.alpha and np.isfinite(s.n_major).all()
+    assert s.feasible and s.reason == ""
+    fields = {f.name for f in dataclasses.fields(EstopStatus)}
+    assert {"omega_f", "gains_minor", "gains_major", "n_minor_re", "max_zmp_minor", "max_zmp_major", "crouch"} <= fields
+
+
+def test_single_support_trigger_waits_for_double_support_and_starts_from_its_state():
+    ctl = EstopController(M, EstopConfig.defaults(), DT)
+    ss = Pattern(support="single_left", phase_fraction=0.5)
+    assert ctl.step(obs(0.0, estop=True, **{"walking/state": ss})) is None
+    assert ctl.state == EstopState.WAITING and not ctl.status.active
+    assert ctl.step(obs(DT, estop=True, **{"walking/state": ss})) is None
+    ds = Pattern(com_ref=np.array([0.08, -0.01, 0.742]))
+    assert ctl.step(obs(2 * DT, estop=True, **{"walking/state": ds})) is not None
+    assert ctl.state == EstopState.STOPPING and ctl.status.phase_at_trigger == "single_left"
+    np.testing.assert_allclose(ctl.plan.state.com, ds.com_ref)       # planned from the double-support tick
+    assert ctl.status.start_time == pytest.approx(2 * DT)
+
+
+def test_step_and_phase_trigger():
+    ctl = EstopController(M, EstopConfig.defaults(trigger_step=3, trigger_phase="ss_end"), DT)
+    for frac in (0.5, 0.9):
+        assert ctl.step(obs(0.0, **{"walking/state": Pattern(support="single_right", phase_fraction=frac,
+                                                             step_index=3)})) is None
+        assert ctl.state == EstopState.IDLE
+    ctl.step(obs(DT, **{"walking/state": Pattern(support="single_right", phase_fraction=0.96, step_index=3)}))
+    assert ctl.state == EstopState.WAITING and ctl.status.phase_fraction_at_trigger == pytest.approx(0.96)
+
+
+def test_bad_input_rules():
+    # a second trigger during a stop is ignored; a fall hands over to safe-fall but the robot keeps a command
+    ctl = EstopController(M, EstopConfig.defaults(), DT)
+    first = ctl.step(obs(0.0, estop=True, **{"walking/state": Pattern()}))
+    assert first is not None
+    ctl.step(obs(DT, estop=False, **{"walking/state": Pattern()}))
+    assert ctl.step(obs(2 * DT, estop=True, **{"walking/state": Pattern()})) is not None
+    assert any("ignored" in m for m in ctl.messages)
+    out = ctl.step(obs(3 * DT, fall_event=True, **{"walking/state": Pattern()}))
+    assert ctl.state == EstopState.YIELDED and out is not None and "safe-fall" in ctl.status.reason
+    # a trigger while falling does not take over
+    ctl = EstopController(M, EstopConfig.defaults(), DT)
+    assert ctl.step(obs(0.0, estop=True, fall_event=True, **{"walking/state": Pattern()})) is None
+    assert ctl.state == EstopState.YIELDED and not ctl.status.active
+    # a CoG height outside the model: refused, nothing taken over
+    ctl = EstopController(M, EstopConfig.defaults(), DT)
+    low = Pattern(com_ref=np.array([0.06, -0.02, 0.3]))
+    assert ctl.step(obs(0.0, estop=True, **{"walking/state": low})) is None
+    assert ctl.state == EstopState.REFUSED and "CoG height" in ctl.status.reason
+    # a trigger before the state is known stays pending and acts on the first known state
+    ctl = EstopController(M, EstopConfig.defaults(), DT)
+    unknown = obs(0.0, estop=True)
+    unknown.state.normal_force = 0.0
+    assert ctl.step(unknown) is None and ctl.pending
+    assert ctl.step(obs(DT, estop=True, **{"walking/state": Pattern()})) is not None
+
+
+def test_never_releases_while_moving_and_releases_when_held_still():
+    ctl = EstopController(M, EstopConfig.defaults(home_duration=0.2), DT)
+    ctl.step(obs(0.0, estop=True, **{"walking/state": Pattern()}))
+    assert ctl.step(obs(DT, estop=True, estop_release=True, **{"walking/state": Pattern()})) is not None
+    assert any("release refused" in m for m in ctl.messages)
+    t, k = 2 * DT, 2
+    end = ctl.plan.end_time + 0.3
+    while t < end:
+        assert ctl.step(obs(t, estop=True, **{"walking/state": Pattern()})) is not None
+        k += 1
+        t = k * DT
+    assert ctl.state == EstopState.HOLDING
+    still = obs(t, estop=True, estop_release=True, **{"walking/state": Pattern()})
+    still.state.com_velocity = np.zeros(3)
+    assert ctl.step(still) is None and ctl.state == EstopState.IDLE and not ctl.status.active
+
+
+def _standing_stop(push_force: float):
+    """Stand, push forward 0.2 s, trigger at the push's end; the e-stop stops the standing robot."""
+    from humfall_ros.control.contract import centroidal_from_estimate
+    from humfall_ros.control.standing import StandingBalance
+    from humfall_ros.model.estimation import CentroidalEstimator
+    from humfall_ros.model.humanoid import point_in_polygon_margin
+    from humfall_ros.sim.sensors import Sensors
+    from humfall_ros.sim.world import SimWorld
+
+    world = SimWorld(1000.0, 500.0, initial_posture=STANDING_POSTURE)
+    try:
+        sensors, est = Sensors(world), CentroidalEstimator(world.model)
+        balance = StandingBalance(world.model, STANDING_POSTURE)
+        ctl = EstopController(world.model, EstopConfig.defaults(trigger_time=0.7), DT)
+        world.add_push((push_force, 0.0, 0.0), duration=0.2, start=0.5)
+        rows = []
+        for _ in range(int(4.5 / DT)):
+            r = sensors.read()
+            e = est.update(world.time, r.joint_position, r.joint_velocity, r.imu_orientation, r.gyro, r.wrenches)
+            cmd = ctl.step(Observation(stamp_ns_of(world.time), r.joint_position, r.joint_velocity,
+                                       centroidal_from_estimate(e), inputs={"joint_targets": world.targets.copy()}))
+            if cmd is None:
+                world.set_joint_targets(balance.command(e.com, e.com_velocity, e.support_polygon, e.feet_center))
+            else:
+                world.set_joint_targets(cmd.positions, cmd.velocities)
+            rows.append((world.time, e.com - e.feet_center, np.hypot(*e.com_velocity[:2]),
+                         point_in_polygon_margin(e.cop, e.support_polygon), world.trunk_tilt(), cmd is not None))
+            world.step_control()
+        return ctl, rows
+    finally:
+        world.close()
+
+
+def test_standing_robot_stops_in_the_simulator():
+    t0 = time.perf_counter()
+    ctl, rows = _standing_stop(100.0)     # at the trigger the CoP is on the toe line, the CoG moving at 4 cm/s
+    wall = time.perf_counter() - t0
+    plan = ctl.plan
+    assert plan is not None and plan.feasible, plan and plan.reason
+    t = np.array([r[0] for r in rows])
+    taken = np.array([r[5] for r in rows])
+    start = t[np.argmax(taken)]
+    assert start == pytest.approx(0.7, abs=DT) and taken[t >= start].all()          # never released once taken
+    tilt = max(r[4] for r in rows)
+    assert tilt < np.radians(3.0)                                                      # no fall
+    margins = np.array([r[3] for r in rows])
+    # the feet stay down (a lone tick as the sole rocks back from the toe line reads no contact)
+    assert np.mean(np.isfinite(margins[t >= start])) > 0.99
+    # taken over with the CoP on the toe line, the soles rock for ~0.35 s (tilt <= 0.31 deg), then
+    # the CoP stays 1 cm inside the polygon
+    assert np.min(margins[t >= start + 0.5]) >= 0.01
+    speed = np.array([r[2] for r in rows])
+    v0 = float(np.hypot(*plan.state.com_velocity[:2]))
+    settle = start + np.log(max(v0, 0.011) / 0.01) / plan.omega_c + 0.3 + 0.5
+    assert np.all(speed[t >= settle] < 0.01)
+    # the final CoG relative to the feet: on the feet's centre line (Minor) and at n3 (Major)
+    mid_feet = 0.5 * (plan.state.feet["l"].position + plan.state.feet["r"].position)
+    final_rel = plan.final_com - mid_feet
+    np.testing.assert_allclose(rows[-1][1][:2], final_rel[:2], atol=0.01)
+    print(f"standing stop: v0 {v0:.3f} m/s, max tilt {np.degrees(tilt):.2f} deg, wall {wall:.1f} s")
