@@ -56,11 +56,16 @@ class StopFrame:
         origin: world xy of the origin [m], (2,).
         major: unit world xy of the Major axis y (right sole centre -> left sole centre), (2,).
         minor: unit world xy of the Minor axis x, (2,) (``minor x major`` = +z).
+        rotation: columns minor (x) and major (y) in world xy, (2, 2) (derived).
     """
 
     origin: np.ndarray
     major: np.ndarray
     minor: np.ndarray
+    rotation: np.ndarray = dataclasses.field(init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "rotation", np.column_stack([self.minor, self.major]))
 
     @staticmethod
     def from_feet(left_center, right_center, zmp) -> StopFrame:
@@ -76,11 +81,6 @@ class StopFrame:
         z = np.asarray(zmp, float)[:2]
         origin = rc + major * float((z - rc) @ major)
         return StopFrame(origin, major, minor)
-
-    @property
-    def rotation(self) -> np.ndarray:
-        """Columns: minor (x) and major (y) in world xy, (2, 2)."""
-        return np.column_stack([self.minor, self.major])
 
     def to_local(self, p) -> np.ndarray:
         """World xy (..., 2) -> (minor x, major y) [m]."""

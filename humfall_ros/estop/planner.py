@@ -305,6 +305,7 @@ class EstopPlanner:
         c = self.cfg
         nominal = MinorAxisModel(omega_of_height(c.lqr_cog_height), c.omega_f)
         self.minor_poles = lqr_poles(nominal, c.minor_lqr_weights, c.minor_lqr_input_weight)
+        self._grid = np.linspace(0.0, 1.0, c.samples) ** 2      # StopPlan.time_grid's spacing
         self._posture_solver = None
 
     @property
@@ -404,7 +405,7 @@ class EstopPlanner:
     def _assess(self, plan: StopPlan) -> StopPlan:
         """Sample the prediction: per-axis Minor maxima, ZMP margins, the stop time, feasibility."""
         c = self.cfg
-        t = plan.time_grid(c.samples)
+        t = plan.end_time * self._grid
         pos, vel, acc, pbar, z, _, zdd = _evaluate(plan, t)
         lipm = pos - acc * (z / (GRAVITY + zdd))
         pts = np.vstack([plan.frame.to_world(pbar.T), plan.frame.to_world(lipm.T),

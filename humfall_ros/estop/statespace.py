@@ -60,9 +60,11 @@ class ModalResponse:
     def __call__(self, t) -> np.ndarray:
         """Outputs at times ``t`` [s] (scalar or (k,)): (n_out,) or (n_out, k)."""
         t = np.asarray(t, float)
-        e = np.exp(np.multiply.outer(self.rates, t))          # (m, ...) complex
-        out = np.tensordot(self.coefficients, e, axes=(1, 0)).real
-        return out + self.constant.reshape((-1,) + (1,) * t.ndim)
+        if t.ndim == 0:
+            return (self.coefficients @ np.exp(self.rates * float(t))).real + self.constant
+        e = np.exp(np.multiply.outer(self.rates, t.ravel()))   # (m, k) complex
+        out = (self.coefficients @ e).real + self.constant[:, None]
+        return out.reshape((-1,) + t.shape)
 
     def derivative(self, order: int = 1) -> ModalResponse:
         """The response of the time derivative (the constant drops)."""
@@ -83,18 +85,20 @@ def _residue_response(num_coeffs: np.ndarray, den_roots, constant_root: bool) ->
     roots = [complex(r) for r in den_roots]
     scale = max(1.0, max(abs(r) for r in roots))
     num = np.asarray(num_coeffs, float)
-    coefficients = np.empty((num.shape[0], len(roots)), complex)
+    rows = num.tolist()
+    coefficients = np.empty((len(rows), len(roots)), complex)
     for i, lam in enumerate(roots):
-        dprime = lam if constant_root else 1.0      # D'(lam) of the monic (s) D(s)
+        dprime = lam if constant_root else 1.0 + 0j    # D'(lam) of the monic (s) D(s)
         for j, other in enumerate(roots):
             if j != i:
                 if abs(lam - other) < 1e-6 * scale:
                     raise StateSpaceError(f"repeated poles {roots}: the closed form needs distinct poles")
                 dprime *= lam - other
-        value = np.zeros(num.shape[0], complex)
-        for c in num.T:                              # Horner on every numerator at once
-            value = value * lam + c
-        coefficients[:, i] = value / dprime
+        for o, row in enumerate(rows):
+            value = 0j
+            for c in row:                              # Horner
+                value = value * lam + c
+            coefficients[o, i] = value / dprime
     if constant_root:
         prod = 1.0 + 0j
         for r in roots:
