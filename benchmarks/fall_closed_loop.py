@@ -67,15 +67,15 @@ def run(sc: dict, controller=None, ftb_config: FtbConfig | None = None, duration
         if controller is not None:
             controller.reset()
         push_end = max((p["time"] + p["duration"] for p in sc["push"]), default=None)
-        obstacles = [dict(name=o["name"], position=list(o["position"]), size=list(o["size"]), yaw=o["yaw"],
-                          is_target=o["is_target"]) for o in sc["obstacles"]]
+        obstacles = [{"name": o["name"], "position": list(o["position"]), "size": list(o["size"]), "yaw": o["yaw"],
+                          "is_target": o["is_target"]} for o in sc["obstacles"]]
         inputs: dict = {"obstacles": obstacles}
         if push_end is not None:
             inputs["push_end_time"] = push_end
         statuses, decisions, trace = [], [], []
         event = None
         active = "locomotion"
-        ticks = int(round((duration or sc["duration"]) * s["control_rate"]))
+        ticks = round((duration or sc["duration"]) * s["control_rate"])
         for _ in range(ticks):
             r = sensors.read()
             e = est.update(world.time, r.joint_position, r.joint_velocity, r.imu_orientation, r.gyro, r.wrenches)
@@ -150,8 +150,93 @@ def quiet(duration: float = 60.0, noise: SensorNoise | None = None) -> dict:
             "ftb_final_state": rec.metrics["ftb_final_state"], "wall_s": round(time.perf_counter() - t0, 1)}
 
 
-def prediction_vs_outcome(rec: LoopRecord) -> dict:
-    return rec.controller_info.get("prediction", {})
+class Outcome:
+    """Ground-truth facts of a controlled run the metrics module lacks: touchdown, landing pose, alpha2."""
+
+    def __init__(self):
+        self.swing = None
+        self.lifted = False
+        self.touchdown_time = None
+        self.landing_pose = None
+        self.cops_after = []
+        self.touchdown_tilt_deg = None
+
+    def __call__(self, world, obs, st, controller):
+        import pinocchio as pin
+
+        from humfall_ros.fall.stepping_zone import sole_pose_2d
+
+        side = getattr(controller, "swing_side", None)
+        if side is None or controller.decision is None or controller.chosen.landing is None:
+            return
+        self.swing = side
+        link = world.foot_links[side]
+        touching = any(cp[3] == link for cp in world.ground_contacts())
+        if not touching:
+            self.lifted = True
+        elif self.lifted and self.touchdown_time is None:
+            self.touchdown_time = world.time
+            m = world.model
+            m.forward(world.pinocchio_configuration())
+            M = m.frame_placement(m.sole_frame[side])
+            self.landing_pose = sole_pose_2d(M)
+            self.touchdown_tilt_deg = math.degrees(float(np.linalg.norm(pin.log3(
+                pin.rpy.rpyToMatrix(0, 0, self.landing_pose[2]).T @ M.rotation))))
+        if self.touchdown_time is not None and self.touchdown_time + 0.05 <= world.time <= self.touchdown_time + 0.15:
+            c = world.ground_truth_cop()
+            if c is not None:
+                self.cops_after.append(c[:2])
+
+
+def standing_push(kind: str, push_scale: float = 1.0, noise: SensorNoise | None = None, duration: float = 3.0,
+                  ftb_mode: str = "ftb") -> dict:
+    """standing_push with controller none / stepping / stepping_inertia; metrics and prediction vs outcome."""
+    from humfall_ros.fall.controller import SafeFallConfig, SafeFallController
+    from humfall_ros.sim.metrics import avoidance_angle_deg
+
+    sc = scenario.load("standing_push")
+    sc["push"][0]["force"] = [f * push_scale for f in sc["push"][0]["force"]]
+    ctrl = None
+    if kind != "none":
+        d = params.defaults("safe_fall_controller")
+        d["inertia_shaping"] = kind == "stepping_inertia"
+        ctrl = SafeFallController(config=SafeFallConfig.from_params(d))
+    out = Outcome()
+    fcfg = params.defaults("ftb_monitor")
+    fcfg["mode"] = ftb_mode
+    t0 = time.perf_counter()
+    rec = run(sc, ctrl, FtbConfig.from_params(fcfg), duration=duration, noise=noise,
+              on_tick=(lambda w, o, st: out(w, o, st, ctrl)) if ctrl else None)
+    m = dict(rec.metrics)
+    m["wall_s"] = round(time.perf_counter() - t0, 1)
+    target = np.array(sc["obstacles"][0]["position"][:2])
+    if ctrl is not None and ctrl.decision is not None:
+        d = ctrl.decision
+        m["decision"] = {"case": d.case, "alpha1_deg": math.degrees(d.alpha1),
+                         "predicted_avoidance_deg": None if not math.isfinite(d.alpha2) else math.degrees(d.alpha2),
+                         "captured": d.captured, "p1": d.p1.tolist(), "q1": d.q1.tolist(), "p2": d.p2.tolist(),
+                         "q2": d.q2.tolist(), "landing": d.landing.tolist(), "control_duration_s": d.control_duration,
+                         "touchdown_time_s": d.touchdown_time, "zone_half_extent": d.zone_half_extent.tolist(),
+                         "zone_size_m": d.zone_size.tolist(), "gamma": d.gamma.tolist(), "cells": d.cell_count,
+                         "search_ms": d.search_time * 1e3, "ik_reachable": d.ik_reachable, "reason": d.reason,
+                         "case_alpha2_deg": {k: (None if not math.isfinite(v) else math.degrees(v))
+                                             for k, v in d.case_alpha2.items()}}
+        m["predicted_avoidance_deg"] = m["decision"]["predicted_avoidance_deg"]
+        m["captured"] = d.captured
+        pred_td = ctrl.predicted_touchdown_time
+        m["outcome"] = {"touchdown_time_s": out.touchdown_time, "predicted_touchdown_s": pred_td,
+                        "touchdown_error_s": None if out.touchdown_time is None else out.touchdown_time - pred_td,
+                        "landing_pose": None if out.landing_pose is None else out.landing_pose.tolist(),
+                        "landing_tilt_deg": out.touchdown_tilt_deg}
+        if out.landing_pose is not None and np.all(np.isfinite(d.landing)):
+            m["outcome"]["landing_error_m"] = float(np.linalg.norm(out.landing_pose[:2] - d.landing[:2]))
+            m["outcome"]["landing_yaw_error_deg"] = math.degrees(abs(out.landing_pose[2] - d.landing[2]))
+        if out.cops_after and m.get("landing_com") is not None:
+            p2 = np.mean(out.cops_after, axis=0)
+            m["measured_p2"] = p2.tolist()
+            m["avoidance_angle_p2_deg"] = avoidance_angle_deg(p2, m["landing_com"], target)
+        m["reasons"] = ctrl.reasons
+    return m
 
 
 def main(argv: list[str]) -> None:
@@ -162,6 +247,10 @@ def main(argv: list[str]) -> None:
         from humfall_ros.sim.sensors import TYPICAL_NOISE
 
         out = {"exact": quiet(), "typical_noise": quiet(noise=TYPICAL_NOISE)}
+    elif what == "push":
+        scale = float(argv[1]) if len(argv) > 1 else 1.0
+        kinds = argv[2].split(",") if len(argv) > 2 else ["none", "stepping", "stepping_inertia"]
+        out = {k: standing_push(k, scale) for k in kinds}
     else:
         raise SystemExit(f"unknown experiment {what!r}")
     print(json.dumps(out, default=str))

@@ -289,12 +289,12 @@ def simulate_spherical(r0, v0, duration: float, theta_threshold: float | None = 
     return SphericalResult(t, y[:3].copy(), y[3:].copy(), hit)
 
 
-def spherical_rk4(r0, v0, duration, steps: int = 25, g: float = GRAVITY) -> tuple[np.ndarray, np.ndarray]:
+def spherical_rk4(r0, v0, duration, steps: int = 8, g: float = GRAVITY) -> tuple[np.ndarray, np.ndarray]:
     """Batched spherical pendulums at a fixed time: classic RK4, ``steps`` steps (vectorised over cases).
 
     Used by the per-tick decision where ``solve_ivp``'s Python overhead (~1 ms a case) would not fit;
-    ``test_toppling`` checks it against :func:`simulate_spherical`. The rod length is restored after
-    each step (the constraint drifts by O(dt^5) otherwise).
+    ``test_toppling`` checks it against :func:`simulate_spherical` (8 steps over 0.45 s: 5 um, 0.1 mm/s).
+    The rod length is restored at the end (the constraint drifts by O(dt^5)).
 
     Args:
         r0: CoM relative to each pivot [m], (k, 3).
@@ -305,27 +305,33 @@ def spherical_rk4(r0, v0, duration, steps: int = 25, g: float = GRAVITY) -> tupl
     """
     r = np.array(r0, float, ndmin=2)
     v = np.array(v0, float, ndmin=2)
-    length = np.linalg.norm(r, axis=1, keepdims=True)
-    v = v - r * np.sum(v * r, axis=1, keepdims=True) / length ** 2
-    dt = (np.broadcast_to(np.asarray(duration, float), (len(r),)) / steps)[:, None]
-    gv = np.array([0.0, 0.0, -g])
+    k = len(r)
+    length2 = np.einsum("ij,ij->i", r, r)[:, None]
+    v = v - r * (np.einsum("ij,ij->i", v, r)[:, None] / length2)
+    dt = (np.broadcast_to(np.asarray(duration, float), (k,)) / steps)[:, None]
+    y = np.hstack([r, v])
+    gz = np.zeros((k, 6))
+    gz[:, 5] = -g
+    inv_l2 = 1.0 / length2
 
-    def acc(r, v):
-        lam = (g * r[:, 2:3] - np.sum(v * v, axis=1, keepdims=True)) / np.sum(r * r, axis=1, keepdims=True)
-        return gv + lam * r
+    def f(y):
+        # lam = (g z - |v|^2) / L^2 keeps |r| = L (rod force per unit mass)
+        lam = (g * y[:, 2:3] - np.einsum("ij,ij->i", y[:, 3:], y[:, 3:])[:, None]) * inv_l2
+        out = np.empty_like(y)
+        out[:, :3] = y[:, 3:]
+        out[:, 3:] = lam * y[:, :3]
+        return out + gz
 
+    h2, h6 = 0.5 * dt, dt / 6.0
     for _ in range(steps):
-        a1 = acc(r, v)
-        r2, v2 = r + 0.5 * dt * v, v + 0.5 * dt * a1
-        a2 = acc(r2, v2)
-        r3, v3 = r + 0.5 * dt * v2, v + 0.5 * dt * a2
-        a3 = acc(r3, v3)
-        r4, v4 = r + dt * v3, v + dt * a3
-        a4 = acc(r4, v4)
-        r = r + dt / 6.0 * (v + 2 * v2 + 2 * v3 + v4)
-        v = v + dt / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
-        r *= length / np.linalg.norm(r, axis=1, keepdims=True)
-        v -= r * np.sum(v * r, axis=1, keepdims=True) / length ** 2
+        k1 = f(y)
+        k2 = f(y + h2 * k1)
+        k3 = f(y + h2 * k2)
+        k4 = f(y + dt * k3)
+        y = y + h6 * (k1 + 2.0 * (k2 + k3) + k4)
+    r, v = y[:, :3], y[:, 3:]
+    r = r * np.sqrt(length2 / np.einsum("ij,ij->i", r, r)[:, None])
+    v = v - r * (np.einsum("ij,ij->i", v, r)[:, None] / length2)
     return r, v
 
 

@@ -236,7 +236,7 @@ def _strip_edge(poly, feet_center, qxy) -> PolygonEdges:
     mid-point is on the line, the side the capture point is on.
     """
     c = poly.mean(axis=0)
-    u, _, vt = np.linalg.svd(poly - c)
+    _u, _, vt = np.linalg.svd(poly - c)
     axis = vt[0]
     t = (poly - c) @ axis
     a, b = poly[int(np.argmin(t))], poly[int(np.argmax(t))]

@@ -1,0 +1,410 @@
+"""The safe-fall controller of paper 1: optimal protective step, then inertia shaping (controller contract).
+
+``SafeFallController.step`` releases (returns None) until ``observation.inputs["fall_event"]``
+arrives; then it takes over and never releases:
+
+1. the decision (one tick): the edge pendulum's control duration (``dynamics.toppling``),
+   the touchdown time (the control duration clipped to [min_swing_s, max_swing_s]), the
+   stepping zones (``fall.stepping_zone``), the search of eq. 4 (``fall.step_search``), then the
+   eq.-9 IK check of the chosen landing at the predicted landed stance foot;
+2. the swing (``fall.step_control``, eq. 9-10) to the landing pose, foot flat;
+3. from touchdown, inertia shaping (``fall.inertia_shaping``, eq. 11-14) when enabled.
+
+Inputs (``observation.inputs``): ``fall_event`` (``fall.ftb.FallEvent``), ``obstacles`` (a list
+of boxes: dicts or objects with name, position (3,), size (3,), yaw, is_target), ``imu``
+(orientation x, y, z, w and gyro, a tuple or an object with ``orientation``/``angular_velocity``).
+
+Bad input never raises and never leaves the robot commandless once taken over: a target with
+NaN or inside the robot, or no target, gives no step (hold the posture; the reason is in the
+decision); a fall event stamped in the future (sim time went back) is ignored; an old or
+inconsistent one is noted and the decision is made from the current state; a landing the IK
+cannot reach falls back to the next case that needs no IK (lift or no change); any exception in
+the decision or a tick holds the last command (or the measured posture) with the reason.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+import traceback
+from typing import Any
+
+import numpy as np
+
+from humfall_ros.control.contract import JointTargets, Observation
+from humfall_ros.dynamics.toppling import FallOutcome, time_to_lean
+from humfall_ros.fall import step_search as ss
+from humfall_ros.fall.ftb import features_of
+from humfall_ros.fall.inertia_shaping import ShapingConfig, shaping_velocities
+from humfall_ros.fall.step_control import (
+    StepControlConfig,
+    StepController,
+    configuration_from_sensors,
+    predicted_stance_placement,
+)
+from humfall_ros.fall.stepping_zone import stepping_zone
+from humfall_ros.model.humanoid import SIDES, HumanoidModel, load_model
+
+
+@dataclasses.dataclass(frozen=True)
+class SafeFallConfig:
+    """``config/safe_fall_controller.yaml`` (flat keys; units in the names)."""
+
+    inertia_shaping: bool = True
+    stepping: bool = True
+    theta_threshold_deg: float = 15.0
+    min_swing_s: float = 0.25
+    max_swing_s: float = 0.45
+    stale_event_s: float = 0.1
+    inconsistent_com_m: float = 0.3
+    min_target_distance_m: float = 0.25
+    control_period_s: float = 0.002
+    zone_velocity_fraction: float = 1.0
+    reach_fraction: float = 0.98
+    hip_drop_m: float = 0.08
+    cell_xy: float = 0.04
+    cell_yaw: float = 0.15
+    capture_margin: float = 0.02
+    obstacle_clearance: float = 0.03
+    swing_clearance: float = 0.05
+    press_depth: float = 0.01
+    swing_gain: float = 0.5
+    ik_velocity_fraction: float = 0.95
+    shaping_gain: float = 0.05
+    shaping_damping: float = 1e-4
+
+    @classmethod
+    def from_params(cls, d: dict[str, Any]) -> SafeFallConfig:
+        """From a ``params.defaults("safe_fall_controller")``-shaped dict; unknown keys are refused."""
+        unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ValueError(f"safe_fall_controller: unknown parameters {sorted(unknown)}")
+        return cls(**d)
+
+    @property
+    def search(self) -> ss.SearchConfig:
+        return ss.SearchConfig(self.cell_xy, self.cell_yaw, self.capture_margin, obstacle_clearance=self.obstacle_clearance)
+
+    @property
+    def step(self) -> StepControlConfig:
+        return StepControlConfig(clearance=self.swing_clearance, press_depth=self.press_depth,
+                                 swing_gain=self.swing_gain, velocity_fraction=self.ik_velocity_fraction)
+
+    @property
+    def shaping(self) -> ShapingConfig:
+        return ShapingConfig(gain=self.shaping_gain, damping=self.shaping_damping)
+
+
+@dataclasses.dataclass
+class SafeFallDecision:
+    """``safe_fall/decision``: what the controller decided at take-over (world frame, ground z = 0).
+
+    Attributes:
+        stamp_ns: tick of the decision [ns].
+        case: ``StepCase`` value ("step_left", "lift_right", "no_change", "no_target", ...).
+        swing_side: "l", "r" or "".
+        p1, q1: CoP and reference point (capture point) at the decision [m], (2,).
+        p2, q2: the chosen candidate's new CoP (nearest point of its support polygon to Q2) and
+            predicted reference point at touchdown [m], (2,).
+        target: T [m], (2,) (NaN: none).
+        alpha1: avoidance angle at the decision, angle(Q1 P1 T) [rad].
+        alpha2: predicted avoidance angle of the choice, angle(Q2 P2 T) [rad] (NaN for a capture).
+        captured: Q2 inside the new support polygon (no fall predicted).
+        control_duration: time to theta_threshold about the leading edge [s] (inf: never by the model).
+        touchdown_time: predicted time from the decision to touchdown [s].
+        theta_threshold: [rad].
+        landing: landing sole (x [m], y [m], yaw [rad]) (NaN without a step).
+        zone_half_extent: eq. 8's (D_x [m], D_y [m], D_beta [rad]) of the chosen swing side.
+        zone_size: the capped zone's bounding box (x, y) [m].
+        gamma: eq. 8's equivalent common joint speed (x, y, beta rows) [rad/s].
+        cell_count: cells evaluated over the step cases [-].
+        search_time: wall time of pendulum + zone + search [s].
+        ik_reachable: the eq.-9 IK check passed (True when no IK was needed).
+        case_alpha2: best predicted alpha2 per case [rad] (NaN: capture or case absent).
+        reason: why this choice (fallbacks, bad input).
+    """
+
+    stamp_ns: int
+    case: str
+    swing_side: str
+    p1: np.ndarray
+    q1: np.ndarray
+    p2: np.ndarray
+    q2: np.ndarray
+    target: np.ndarray
+    alpha1: float
+    alpha2: float
+    captured: bool
+    control_duration: float
+    touchdown_time: float
+    theta_threshold: float
+    landing: np.ndarray
+    zone_half_extent: np.ndarray
+    zone_size: np.ndarray
+    gamma: np.ndarray
+    cell_count: int
+    search_time: float
+    ik_reachable: bool
+    case_alpha2: dict
+    reason: str = ""
+
+
+def _get(o, key, default=None):
+    return o.get(key, default) if isinstance(o, dict) else getattr(o, key, default)
+
+
+def _imu_quat(imu) -> np.ndarray | None:
+    if imu is None:
+        return None
+    q = imu[0] if isinstance(imu, (tuple, list)) else _get(imu, "orientation")
+    q = np.asarray(q, float).reshape(-1)
+    return q if q.shape == (4,) and np.all(np.isfinite(q)) and np.linalg.norm(q) > 0.5 else None
+
+
+class SafeFallController:
+    """Paper 1's fall controller (module docstring); ``source = "safe_fall"``."""
+
+    source = "safe_fall"
+
+    def __init__(self, model: HumanoidModel | None = None, config: SafeFallConfig | None = None):
+        self.m = model or load_model()
+        self.config = config or SafeFallConfig()
+        self.stepper = StepController(self.m, self.config.step)
+        self._sole_local = self.m.sole_corners_local["l"][:, :2].copy()
+        self.reset()
+
+    def reset(self) -> None:
+        self.taken_over = False
+        self.decision: SafeFallDecision | None = None
+        self.search_result: ss.StepDecision | None = None
+        self.phase = "released"
+        self.hold: np.ndarray | None = None
+        self.last_command: np.ndarray | None = None
+        self.touchdown_at: float | None = None
+        self.swing_side: str | None = None
+        self.target: np.ndarray | None = None
+        self.reasons: list[str] = []
+        self.ignored_events = 0
+
+    # ------------------------------------------------------------------ contract
+    def step(self, obs: Observation) -> JointTargets | None:
+        if not self.taken_over:
+            ev = obs.inputs.get("fall_event")
+            if ev is None:
+                return None
+            stamp = _get(ev, "stamp_ns", obs.stamp_ns)
+            if stamp > obs.stamp_ns:
+                self.ignored_events += 1
+                return None   # from the future: sim time went back, the event belongs to another run
+            self.taken_over = True
+            self.hold = np.asarray(obs.joint_position, float).copy()
+            self.last_command = self.hold.copy()
+            try:
+                self._take_over(obs, ev)
+            except Exception as exc:  # noqa: BLE001 - never crash a falling robot: hold the posture
+                self.phase = "hold"
+                self.reasons.append(f"decision failed ({type(exc).__name__}: {exc}); holding the posture")
+                self._note_failure()
+        try:
+            return self._tick(obs)
+        except Exception as exc:  # noqa: BLE001
+            self.phase = "hold"
+            self.reasons.append(f"tick failed ({type(exc).__name__}: {exc}); holding the last command")
+            self._note_failure()
+            return JointTargets(self.last_command.copy())
+
+    def _note_failure(self) -> None:
+        self._traceback = traceback.format_exc()
+        if self.decision is not None:
+            self.decision.reason = "; ".join(self.reasons)
+
+    # ------------------------------------------------------------------ decision
+    def _target(self, obs: Observation, soles: dict) -> tuple[np.ndarray | None, str]:
+        obstacles = obs.inputs.get("obstacles") or []
+        targets = [o for o in obstacles if bool(_get(o, "is_target", False))]
+        if not targets:
+            return None, "no target to avoid: no step"
+        t = np.asarray(_get(targets[0], "position", [math.nan] * 3), float).reshape(-1)[:2]
+        if t.shape != (2,) or not np.all(np.isfinite(t)):
+            return None, "target position is not finite: ignored, no step"
+        com = np.asarray(obs.state.com, float)[:2]
+        hull = np.vstack([soles["l"], soles["r"]])
+        from humfall_ros.model.humanoid import point_in_polygon_margin, support_polygon
+
+        if np.linalg.norm(t - com) < self.config.min_target_distance_m or \
+                point_in_polygon_margin(t, support_polygon(hull)) > 0:
+            return None, f"target at {t.round(3).tolist()} is inside the robot: ignored, no step"
+        return t, ""
+
+    def _obstacle_footprints(self, obs: Observation) -> list[ss.Footprint]:
+        out = []
+        for o in obs.inputs.get("obstacles") or []:
+            p = np.asarray(_get(o, "position", [math.nan] * 3), float).reshape(-1)
+            s = np.asarray(_get(o, "size", [math.nan] * 3), float).reshape(-1)
+            yaw = float(_get(o, "yaw", 0.0) or 0.0)
+            if p.size >= 2 and s.size >= 2 and np.all(np.isfinite(p[:2])) and np.all(np.isfinite(s[:2])) \
+                    and math.isfinite(yaw):
+                out.append(ss.Footprint(p[:2].copy(), 0.5 * s[:2], yaw))
+        return out
+
+    def _take_over(self, obs: Observation, ev) -> None:
+        c = self.config
+        t_dec = time.perf_counter()
+        s = obs.state
+        notes = []
+        ev_time = _get(ev, "stamp_ns", obs.stamp_ns) * 1e-9
+        if obs.time - ev_time > c.stale_event_s:
+            notes.append(f"fall event {obs.time - ev_time:.3f} s old: deciding from the current state")
+        ev_com = _get(ev, "com")
+        if ev_com is not None and np.all(np.isfinite(ev_com)) and \
+                np.linalg.norm(np.asarray(ev_com, float) - np.asarray(s.com, float)) > c.inconsistent_com_m:
+            notes.append("fall event inconsistent with the state (CoM moved): deciding from the current state")
+        quat = _imu_quat(obs.inputs.get("imu"))
+        if quat is None:
+            raise ValueError("no IMU orientation in the inputs")
+        q = configuration_from_sensors(self.m, obs.joint_position, quat, s.com)
+        self.q_decision = q
+        self.m.forward(q)
+        soles = {sd: self.m.sole_corners(sd)[:, :2] for sd in SIDES}
+        placements = {sd: self.m.frame_placement(self.m.sole_frame[sd]).copy() for sd in SIDES}
+        target, why = self._target(obs, soles)
+        self.target = target
+        if why:
+            notes.append(why)
+        f = features_of(s)
+        theta_thr = math.radians(c.theta_threshold_deg)
+        dT = math.inf
+        if f.valid:
+            r = time_to_lean(f.theta, f.theta_dot, theta_thr, f.pendulum_length)
+            dT = r.time if r.outcome is FallOutcome.FALLS else math.inf
+            edge = (f.edge_start, f.edge_end)
+            normal = f.edge_normal
+        else:
+            edge = (np.asarray(s.cop, float)[:2], np.asarray(s.cop, float)[:2])
+            normal = np.asarray(s.capture_point, float)[:2] - np.asarray(s.cop, float)[:2]
+        touchdown = float(np.clip(dT, c.min_swing_s, c.max_swing_s))
+        from humfall_ros.fall.stepping_zone import sole_pose_2d
+
+        sit = ss.FallSituation(np.asarray(s.com, float), np.asarray(s.com_velocity, float), np.asarray(s.cop, float),
+                               np.asarray(s.capture_point, float), edge, normal, soles,
+                               {sd: sole_pose_2d(placements[sd]) for sd in SIDES}, target, touchdown, dT,
+                               obstacles=self._obstacle_footprints(obs))
+        scfg = c.search
+        stance_sides, pivots = ss.case_pivots(sit, scfg)
+        G, _, Q = ss.predict_touchdown(s.com, s.com_velocity, pivots, touchdown, scfg.rk4_steps)
+        zones = {}
+        lift_pred = {}
+        for k, stance in enumerate(stance_sides, start=1):
+            swing = "l" if stance == "r" else "r"
+            lift_pred[swing] = (pivots[k], G[k], Q[k])
+            if c.stepping and target is not None:
+                zones[swing] = stepping_zone(self.m, q, swing, touchdown, Q[k] - pivots[k].mean(axis=0), G[k],
+                                             c.zone_velocity_fraction, c.reach_fraction, hip_drop=c.hip_drop_m)
+        sit.zones = zones
+        res = ss.search(sit, self._sole_local, scfg, prediction=(G, Q))
+        search_time = time.perf_counter() - t_dec
+        self.search_result = res
+        ranked = sorted(res.cases.values(), key=lambda cr: cr.score, reverse=True)
+        if not c.stepping:
+            ranked = [cr for cr in ranked if cr.landing is None and cr.case.swing is None] or ranked
+        chosen, reachable = None, True
+        for cr in ranked:
+            if cr.landing is None:
+                chosen = cr
+                break
+            swing = cr.case.swing
+            piv, G_td, _ = lift_pred[swing]
+            stance = "r" if swing == "l" else "l"
+            pv = piv.mean(axis=0)
+            st_landed = predicted_stance_placement(placements[stance], pv, s.com - np.append(pv, 0.0),
+                                                   G_td - np.append(pv, 0.0))
+            landing = StepController.landing_placement(*cr.landing)
+            ok, err = self.stepper.reachable(q, swing, st_landed, landing)
+            if ok:
+                chosen = cr
+                break
+            reachable = False
+            notes.append(f"{cr.case.value} to {np.round(cr.landing, 3).tolist()} not reachable by the IK "
+                         f"({err * 100:.1f} cm off): next case")
+        if chosen is None:
+            chosen = ranked[-1]
+        self.chosen = chosen
+        case = chosen.case
+        swing = case.swing if case in (ss.StepCase.STEP_LEFT, ss.StepCase.STEP_RIGHT, ss.StepCase.LIFT_LEFT,
+                                       ss.StepCase.LIFT_RIGHT) else None
+        self.swing_side = swing
+        if swing is not None:
+            if chosen.landing is not None:
+                landing = StepController.landing_placement(*chosen.landing)
+            else:  # keep it lifted: straight up, flat
+                lp = placements[swing]
+                yaw = math.atan2(lp.rotation[1, 0], lp.rotation[0, 0])
+                landing = StepController.landing_placement(lp.translation[0], lp.translation[1], yaw,
+                                                           0.10 + self.stepper.config.press_depth)
+            self.stepper.start(q, swing, landing, obs.time, touchdown)
+            self.phase = "swing"
+        else:
+            self.phase = "hold"
+        zone = zones.get(swing) if swing else None
+        nan2 = np.full(2, np.nan)
+        self.reasons.extend(notes)
+        self.decision = SafeFallDecision(
+            obs.stamp_ns, case.value, swing or "", res.p1.copy(), res.q1.copy(), np.asarray(chosen.p2, float)[:2],
+            np.asarray(chosen.q2, float)[:2], target if target is not None else nan2, res.alpha1, chosen.alpha2,
+            chosen.captured, dT, touchdown, theta_thr,
+            np.asarray(chosen.landing, float) if chosen.landing is not None else np.full(3, np.nan),
+            zone.half_extent_eq8.copy() if zone else np.full(3, np.nan),
+            np.array(zone.size) if zone else nan2, zone.gamma.copy() if zone else np.full(3, np.nan),
+            res.cell_count, search_time, reachable,
+            {k.value: v.alpha2 for k, v in res.cases.items()}, "; ".join(self.reasons))
+        self.predicted_touchdown_time = obs.time + touchdown
+
+    # ------------------------------------------------------------------ ticks
+    def _tick(self, obs: Observation) -> JointTargets:
+        c = self.config
+        if self.phase == "swing":
+            p = self.stepper.plan
+            tau = (obs.time - p.start_time) / p.duration
+            landed = tau > 0.6 and (obs.state.left_contact if p.swing == "l" else obs.state.right_contact)
+            is_lift = self.chosen.landing is None
+            if (landed and not is_lift) or tau > 1.3:
+                if not is_lift:
+                    self.touchdown_at = obs.time
+                self.phase = "shaping" if c.inertia_shaping and self.target is not None and not is_lift else "hold"
+                self.hold = self.last_command.copy()
+            else:
+                quat = _imu_quat(obs.inputs.get("imu"))
+                if quat is None:
+                    self.reasons.append("IMU lost during the swing: holding the last command")
+                    self.phase = "hold"
+                    return JointTargets(self.last_command.copy())
+                q = configuration_from_sensors(self.m, obs.joint_position, quat, obs.state.com)
+                pos, vel, _ = self.stepper.command(q, obs.time, c.control_period_s)
+                self.last_command = pos
+                return JointTargets(pos, vel)
+        if self.phase == "shaping":
+            quat = _imu_quat(obs.inputs.get("imu"))
+            if quat is not None:
+                q = configuration_from_sensors(self.m, obs.joint_position, quat, obs.state.com)
+                q[7:] = self.last_command  # shape from the commanded posture (position-controlled joints lag)
+                qd, _ = shaping_velocities(self.m, q, obs.state.cop, self.target, c.control_period_s,
+                                           cfg=c.shaping)
+                pos = np.clip(self.last_command + qd * c.control_period_s, self.m.limits.lower, self.m.limits.upper)
+                self.last_command = pos
+                return JointTargets(pos, qd)
+        return JointTargets(self.hold.copy() if self.hold is not None else np.asarray(obs.joint_position, float))
+
+    def info(self) -> dict:
+        """Predictions for comparison with the outcome."""
+        out: dict = {"reasons": list(self.reasons)}
+        if self.decision is not None:
+            d = self.decision
+            out["prediction"] = {"touchdown_time_s": getattr(self, "predicted_touchdown_time", None),
+                                 "landing": None if not np.all(np.isfinite(d.landing)) else d.landing.tolist(),
+                                 "alpha2_deg": math.degrees(d.alpha2) if math.isfinite(d.alpha2) else None,
+                                 "case": d.case}
+            out["measured_touchdown_time_s"] = self.touchdown_at
+        return out
+
+
+__all__ = ["SafeFallConfig", "SafeFallController", "SafeFallDecision"]

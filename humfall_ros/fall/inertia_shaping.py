@@ -1,0 +1,156 @@
+"""Whole-body inertia shaping of paper 1 §IV (eq. 11-14), from swing touchdown on.
+
+* eq. 11-12: with the robot a reaction-mass pendulum on its CoP P, V_G = omega x PG; to move G
+  away from the target T the desired angular velocity is omega_d = -unit(z x PT).
+* desired locked inertia: I_d = R I R^T with R = exp([gain * omega_d]x) (the exponential map,
+  ``pinocchio.exp3``); ``gain`` [rad per tick] is how far the desired inertia turns each tick.
+* eq. 13: the CRB-inertia Jacobian J_I (6 x n) maps joint changes to changes of the six unique
+  elements of the centroidal composite-rigid-body inertia (``crb_inertia_vector`` order
+  Ixx, Iyy, Izz, Ixy, Ixz, Iyz). We build it from the same body inertias pinocchio's CCRBA sums
+  (I_G = sum_b R_b I_b R_b^T + m_b (|r_b|^2 1 - r_b r_b^T), r_b = c_b - G) and the joint
+  Jacobians: a joint j turns each body below it by a_j and moves its CoM by the column of the
+  body's WORLD Jacobian; ``test_fall_inertia`` checks it against finite differences of
+  ``HumanoidModel.crb_inertia`` (CCRBA).
+* eq. 14: theta' = J_I^# (I_d - I) / dt, the pseudo-inverse over the recruited joints, within
+  the joint speed limits and with joints at a position limit (moving outward) dropped and the
+  rest re-solved.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pinocchio as pin
+
+from humfall_ros.model.humanoid import HumanoidModel
+
+_IDX = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+_GEN = np.array([[[0, 0, 0], [0, 0, -1], [0, 1, 0]], [[0, 0, 1], [0, 0, 0], [-1, 0, 0]],
+                 [[0, -1, 0], [1, 0, 0], [0, 0, 0]]], float)   # [e_a]x
+
+
+def crb_inertia_vector(inertia: np.ndarray) -> np.ndarray:
+    """The six unique elements (Ixx, Iyy, Izz, Ixy, Ixz, Iyz) of a symmetric 3 x 3 inertia [kg m^2]."""
+    return np.array([inertia[i, j] for i, j in _IDX])
+
+
+def crb_inertia_and_jacobian(model: HumanoidModel, q) -> tuple[np.ndarray, np.ndarray]:
+    """(I_G (3 x 3) [kg m^2], J_I (6 x njoints) [kg m^2 / rad]) at configuration ``q`` (eq. 13)."""
+    m, d = model.model, model.data
+    pin.computeJointJacobians(m, d, q)
+    com = pin.centerOfMass(m, d, q, False)
+    nb = m.njoints - 1
+    n = model.njoints
+    masses = np.empty(nb)
+    cb = np.empty((nb, 3))
+    Iw = np.empty((nb, 3, 3))
+    Js = np.empty((nb, 6, n))
+    for k in range(nb):
+        Y = m.inertias[k + 1]
+        M = d.oMi[k + 1]
+        R = M.rotation
+        masses[k] = Y.mass
+        cb[k] = M.act(Y.lever)
+        Iw[k] = R @ Y.inertia @ R.T
+        Js[k] = pin.getJointJacobian(m, d, k + 1, pin.ReferenceFrame.WORLD)[:, 6:]
+    w = Js[:, 3:]
+    # velocity of each body's CoM per joint column: v_origin + omega x c
+    c = cb[:, :, None]
+    dc = Js[:, :3] + np.stack([w[:, 1] * c[:, 2] - w[:, 2] * c[:, 1], w[:, 2] * c[:, 0] - w[:, 0] * c[:, 2],
+                               w[:, 0] * c[:, 1] - w[:, 1] * c[:, 0]], axis=1)
+    total = masses.sum()
+    r = cb - com
+    I = np.einsum("k,kij->ij", masses, np.einsum("ki,ki->k", r, r)[:, None, None] * np.eye(3)
+                  - np.einsum("ki,kj->kij", r, r)) + Iw.sum(axis=0)
+    dcom = np.einsum("k,kin->in", masses, dc) / total
+    dr = dc - dcom[None]
+    # rotational part per column: sum_k [w_k]x Iw_k - Iw_k [w_k]x = sum_k,a w_ka (E_a Iw_k - Iw_k E_a)
+    B = np.einsum("aij,kjl->kail", _GEN, Iw) - np.einsum("kij,ajl->kail", Iw, _GEN)   # (nb, 3, 3, 3)
+    rot = (w.reshape(nb * 3, n).T @ B.reshape(nb * 3, 9)).reshape(n, 3, 3)
+    mdr = dr * masses[:, None, None]                                                   # (nb, 3, n)
+    outer = np.tensordot(mdr, r, axes=([0], [0]))                                      # (3, n, 3): sum m dr_i r_j
+    outer = outer.transpose(1, 0, 2)
+    trace = np.einsum("kin,ki->n", mdr, r)
+    par = 2 * trace[:, None, None] * np.eye(3) - outer - outer.transpose(0, 2, 1)
+    dI = rot + par                                   # (n, 3, 3)
+    J_I = np.stack([dI[:, i, j] for i, j in _IDX])   # (6, n)
+    return I, J_I
+
+
+def desired_angular_velocity(cop, target) -> np.ndarray:
+    """Eq. 12: omega_d = -unit(z x PT) [-], (3,); zero when T is over P."""
+    pt = np.array([target[0] - cop[0], target[1] - cop[1], 0.0])
+    axis = np.cross([0.0, 0.0, 1.0], pt)
+    n = float(np.linalg.norm(axis))
+    return -axis / n if n > 1e-9 else np.zeros(3)
+
+
+def desired_inertia(inertia: np.ndarray, omega_d: np.ndarray, gain: float) -> np.ndarray:
+    """I_d = R I R^T with R = exp(gain * omega_d) (``pinocchio.exp3``); ``gain`` [rad per tick]."""
+    R = pin.exp3(gain * np.asarray(omega_d, float))
+    return R @ inertia @ R.T
+
+
+@dataclasses.dataclass(frozen=True)
+class ShapingConfig:
+    """Inertia-shaping parameters (``config/safe_fall_controller.yaml``).
+
+    Attributes:
+        gain: rotation of the desired inertia per tick [rad].
+        damping: damping of the pseudo-inverse [kg^2 m^4] (0: plain pseudo-inverse).
+        velocity_fraction: joint speeds within this fraction of the URDF limits [-].
+        position_margin: joints stay this far inside their limits [rad].
+    """
+
+    gain: float = 0.05
+    damping: float = 1e-4
+    velocity_fraction: float = 0.9
+    position_margin: float = 0.02
+
+
+def shaping_velocities(model: HumanoidModel, q, cop, target, dt: float, recruit: np.ndarray | None = None,
+                       cfg: ShapingConfig | None = None) -> tuple[np.ndarray, dict]:
+    """Eq. 14: joint velocities [rad/s] (njoints,) towards I_d, and diagnostics.
+
+    Args:
+        q: configuration (nq,).
+        cop: P [m]; target: T [m] (ground, (2,) or (3,)).
+        dt: control period [s].
+        recruit: mask of the joints that may move (default all).
+    """
+    cfg = cfg or ShapingConfig()
+    n = model.njoints
+    I, J = crb_inertia_and_jacobian(model, q)
+    omega_d = desired_angular_velocity(cop, target)
+    Id = desired_inertia(I, omega_d, cfg.gain)
+    err = crb_inertia_vector(Id) - crb_inertia_vector(I)
+    active = np.ones(n, bool) if recruit is None else np.asarray(recruit, bool).copy()
+    qj = np.asarray(q, float)[7:]
+    lo = model.limits.lower + cfg.position_margin
+    hi = model.limits.upper - cfg.position_margin
+    vmax = cfg.velocity_fraction * model.limits.velocity
+    qd = np.zeros(n)
+    for _ in range(4):  # drop joints that would leave their range, re-solve with the rest
+        Ja = J[:, active]
+        if Ja.shape[1] == 0:
+            break
+        A = Ja @ Ja.T + cfg.damping * np.eye(6)
+        dq = Ja.T @ np.linalg.solve(A, err)
+        qd = np.zeros(n)
+        qd[active] = dq / dt
+        scale = np.max(np.abs(qd) / vmax)
+        if scale > 1.0:
+            qd /= scale
+        nxt = qj + qd * dt
+        out = active & (((nxt < lo) & (qd < 0)) | ((nxt > hi) & (qd > 0)))
+        if not np.any(out):
+            break
+        active &= ~out
+    info = {"inertia": I, "desired_inertia": Id, "omega_d": omega_d,
+            "residual": float(np.linalg.norm(err - J @ (qd * dt))), "error": float(np.linalg.norm(err)),
+            "recruited": int(active.sum())}
+    return qd, info
+
+
+__all__ = ["ShapingConfig", "crb_inertia_and_jacobian", "crb_inertia_vector", "desired_angular_velocity",
+           "desired_inertia", "shaping_velocities"]

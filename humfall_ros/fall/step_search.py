@@ -1,0 +1,417 @@
+"""The optimal protective step of paper 1 §III-B (eq. 4): brute force over cases and cells.
+
+Cases in double support: no change, lift the left / right foot (and keep it up), step with
+the left / right foot to a cell (x, y, beta) of its allowable stepping zone
+(``fall.stepping_zone``). In single support (walking): continue the planned step, re-target the
+swing foot over the cells, keep it lifted.
+
+Per case, the toppling pendulum predicts the state at touchdown (``touchdown_time`` after the
+decision): about the current leading edge (no change: 2-D, the motion along the edge dropped)
+or about the stance sole's leading corner (lift / step: the spherical pendulum; the 2-D one
+when two corners tie, i.e. the fall is along the sole's axis). Batched fixed-step RK4
+(``toppling.spherical_rk4``) for all cases at once. Q2 is the capture point of that state
+(eq. 1-2).
+
+**P2 (the paper leaves it undefined; ours):** the point of the candidate's new support polygon
+nearest Q2. For Q2 outside the polygon the robot then topples about the edge (or corner)
+through P2, along P2->Q2, which is the edge normal there (paper 1 §II-C). The new support
+polygon is the hull of the stance sole's pivot corner(s) and the landing sole's four corners
+(lift: the pivot corner(s) alone; no change: the current soles' hull).
+
+**Capture:** Q2 inside the new polygon by at least ``capture_margin``: no fall is predicted.
+Captures rank above every fall (among them the deepest Q2 wins); falls rank by the avoidance
+angle alpha2 = angle(Q2 P2 T) (eq. 4, Fig. 5).
+
+Vectorisation: for N cells the landing corners are (N, 4, 2); the hull edges of the N point sets
+(4 corners + 1-2 pivots) are found among all point pairs by the side test, then the nearest
+boundary point and the inside margin come from those edges alone; no Python loop over cells.
+"""
+from __future__ import annotations
+
+import dataclasses
+import enum
+import itertools
+import math
+import time
+
+import numpy as np
+
+from humfall_ros.dynamics.pendulum import GRAVITY
+from humfall_ros.dynamics.toppling import spherical_rk4
+from humfall_ros.fall.geometry import (
+    avoidance_angle,
+    inside_convex,
+    nearest_on_boundary,
+    nearest_on_segments,
+    rotation_z,
+)
+from humfall_ros.fall.stepping_zone import SteppingZone
+from humfall_ros.model.humanoid import point_in_polygon_margin, support_polygon
+
+
+class StepCase(enum.Enum):
+    NO_CHANGE = "no_change"
+    LIFT_LEFT = "lift_left"
+    LIFT_RIGHT = "lift_right"
+    STEP_LEFT = "step_left"
+    STEP_RIGHT = "step_right"
+    CONTINUE_STEP = "continue_step"   # single support: the planned step
+    NO_TARGET = "no_target"           # nothing to avoid: no step
+
+    @property
+    def swing(self) -> str | None:
+        return {"lift_left": "l", "step_left": "l", "lift_right": "r", "step_right": "r"}.get(self.value)
+
+
+@dataclasses.dataclass(frozen=True)
+class SearchConfig:
+    """Grid and model parameters of the search (``config/safe_fall_controller.yaml``).
+
+    Attributes:
+        cell_xy: cell size in x and y [m].
+        cell_yaw: cell size in beta [rad].
+        capture_margin: Q2 this deep inside the new polygon is a capture [m].
+        corner_tie: stance corners within this of the leading one along the fall direction pivot as an edge [m].
+        obstacle_clearance: landing soles keep this far from obstacle footprints [m].
+        rk4_steps: fixed RK4 steps of the pendulum prediction [-].
+    """
+
+    cell_xy: float = 0.04
+    cell_yaw: float = 0.15
+    capture_margin: float = 0.02
+    corner_tie: float = 0.01
+    obstacle_clearance: float = 0.03
+    rk4_steps: int = 8
+
+
+@dataclasses.dataclass
+class Footprint:
+    """An obstacle's ground rectangle: centre [m] (2,), half sizes [m] (2,), yaw [rad]."""
+
+    center: np.ndarray
+    half_size: np.ndarray
+    yaw: float
+
+
+@dataclasses.dataclass
+class FallSituation:
+    """What the search needs at the decision (world frame, ground z = 0).
+
+    Attributes:
+        com, com_velocity: G [m] and dG/dt [m/s], (3,).
+        cop: P1 [m], (3,) or (2,).
+        capture_point: Q1 [m].
+        leading_edge: (start, end) [m] of the current leading edge (equal points: a corner), (2,) each.
+        edge_normal: its outward normal (the fall direction) [-], (2,).
+        soles: sole corners per side [m], {"l": (4, 2), "r": (4, 2)} (CCW), the feet as they are now.
+        sole_poses: (x, y, yaw) of each sole [m, m, rad].
+        target: T [m], (2,), or None.
+        touchdown_time: time from the decision to the swing foot's touchdown [s].
+        control_duration: dT to theta_threshold about the leading edge [s] (reported).
+        zones: allowable stepping zones by swing side ({} in single support without re-targeting).
+        obstacles: ground footprints the landing sole must avoid.
+        single_support: the stance side while walking ("l"/"r"), None in double support.
+        planned_landing: the gait's planned (x, y, yaw) of the swing sole (single support).
+    """
+
+    com: np.ndarray
+    com_velocity: np.ndarray
+    cop: np.ndarray
+    capture_point: np.ndarray
+    leading_edge: tuple[np.ndarray, np.ndarray]
+    edge_normal: np.ndarray
+    soles: dict
+    sole_poses: dict
+    target: np.ndarray | None
+    touchdown_time: float
+    control_duration: float
+    zones: dict = dataclasses.field(default_factory=dict)
+    obstacles: list = dataclasses.field(default_factory=list)
+    single_support: str | None = None
+    planned_landing: np.ndarray | None = None
+
+
+@dataclasses.dataclass
+class CaseResult:
+    """The best candidate of one case."""
+
+    case: StepCase
+    p2: np.ndarray
+    q2: np.ndarray
+    alpha2: float           # [rad], NaN for a capture
+    captured: bool
+    margin: float           # Q2's depth inside the polygon [m] (< 0 outside)
+    landing: np.ndarray | None  # (x, y, yaw) of the landing sole
+    polygon: np.ndarray     # the new support polygon (k, 2)
+    com_touchdown: np.ndarray
+    cells: int = 0
+    capture_margin: float = 0.02
+
+    @property
+    def score(self) -> float:
+        if self.captured:
+            return (1e3 if self.margin >= self.capture_margin else 5e2) + self.margin
+        return self.alpha2 if math.isfinite(self.alpha2) else -1.0
+
+
+@dataclasses.dataclass
+class StepDecision:
+    """The decision of eq. 4 (what ``safe_fall/decision`` carries, see controller.SafeFallDecision)."""
+
+    best: CaseResult
+    cases: dict
+    p1: np.ndarray
+    q1: np.ndarray
+    alpha1: float
+    touchdown_time: float
+    control_duration: float
+    cell_count: int
+    search_time: float
+    reason: str = ""
+
+
+def _pivot(soles: dict, stance: str, direction, tie: float) -> np.ndarray:
+    """The stance sole's corner(s) furthest along the fall direction (1 corner, or 2 tying: an edge)."""
+    c = soles[stance]
+    proj = c @ direction
+    keep = proj >= proj.max() - tie
+    return c[keep]
+
+
+def _pendulum_start(com, vel, pivots: list[np.ndarray]):
+    """Initial (r, v) relative to each case's pivot; a 2-point pivot is an edge: the motion along it is dropped."""
+    r0, v0 = [], []
+    for pv in pivots:
+        if len(pv) >= 2:
+            a, b = pv[0], pv[-1]
+            e = (b - a) / max(float(np.linalg.norm(b - a)), 1e-12)
+            t = float(np.clip((com[:2] - a) @ e, 0.0, float(np.linalg.norm(b - a))))
+            p = a + t * e
+            e3 = np.array([e[0], e[1], 0.0])
+            v = vel - e3 * float(vel @ e3)
+        else:
+            p = pv[0]
+            v = vel
+        r0.append(com - np.array([p[0], p[1], 0.0]))
+        v0.append(v)
+    return np.array(r0), np.array(v0)
+
+
+def predict_touchdown(com, com_velocity, pivots: list[np.ndarray], duration: float, steps: int = 8,
+                      g: float = GRAVITY) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """CoM, its velocity and the capture point (eq. 1-2) ``duration`` after now, per pivot set.
+
+    Returns (com (k, 3), velocity (k, 3), capture point (k, 2)).
+    """
+    com = np.asarray(com, float)
+    vel = np.asarray(com_velocity, float)
+    r0, v0 = _pendulum_start(com, vel, pivots)
+    if duration <= 0:
+        r, v = r0, v0
+    else:
+        r, v = spherical_rk4(r0, v0, duration, steps, g)
+    origin = com[None, :] - r0
+    G = origin + r
+    z = np.maximum(G[:, 2], 1e-3)
+    Q = G[:, :2] + np.sqrt(z / g)[:, None] * v[:, :2]
+    return G, v, Q
+
+
+def _hull_eval(pts: np.ndarray, q: np.ndarray, target: np.ndarray):
+    """Per point set (N, M, 2): nearest hull point to q, inside margin, alpha (vectorised).
+
+    Outside the hull, the nearest point of the hull is the nearest point over all segments between
+    the set's points (interior chords are never nearer than the boundary), so no hull is built.
+    Inside (q in one of the triangles of the points, Caratheodory), the margin reported is the
+    distance to the nearest segment: a lower bound of the depth (a chord may be nearer than the
+    boundary), exact when the nearest segment is a hull edge; ``_inside_margin`` gives the exact
+    depth (hull edges found by the side test) and is what the tests compare against.
+    """
+    N, M, _ = pts.shape
+    pairs = np.array([(i, j) for i, j in itertools.combinations(range(M), 2) if (i, j) not in ((0, 2), (1, 3))])
+    a = pts[:, pairs[:, 0]]                      # (N, P, 2); the sole's diagonals 0-2 and 1-3 are skipped
+    e = pts[:, pairs[:, 1]] - a
+    qa = q - a
+    den = np.maximum(e[..., 0] ** 2 + e[..., 1] ** 2, 1e-18)
+    t = np.clip((qa[..., 0] * e[..., 0] + qa[..., 1] * e[..., 1]) / den, 0.0, 1.0)
+    dx = qa[..., 0] - t * e[..., 0]
+    dy = qa[..., 1] - t * e[..., 1]
+    d2 = dx * dx + dy * dy
+    k = np.argmin(d2, axis=1)
+    rows = np.arange(N)
+    p2 = q - np.column_stack([dx[rows, k], dy[rows, k]])
+    dist = np.sqrt(d2[rows, k])
+    # inside: in some triangle of the points
+    tri = np.array(list(itertools.combinations(range(M), 3)))
+    A, B, C = pts[:, tri[:, 0]], pts[:, tri[:, 1]], pts[:, tri[:, 2]]
+
+    def side(u, w):
+        return (w[..., 0] - u[..., 0]) * (q[1] - u[..., 1]) - (w[..., 1] - u[..., 1]) * (q[0] - u[..., 0])
+
+    s1, s2, s3 = side(A, B), side(B, C), side(C, A)
+    inside = np.any(((s1 >= 0) & (s2 >= 0) & (s3 >= 0)) | ((s1 <= 0) & (s2 <= 0) & (s3 <= 0)), axis=1)
+    # inside: the distance to the nearest segment is a lower bound of the depth (chords are inside)
+    margin = np.where(inside, dist, -dist)
+    alpha = avoidance_angle(p2, np.broadcast_to(q, p2.shape), np.broadcast_to(target, p2.shape))
+    return p2, margin, alpha
+
+
+def _inside_margin(pts: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Depth of q inside the hulls of point sets (n, M, 2) [m] (vectorised hull-edge test)."""
+    M = pts.shape[1]
+    pairs = np.array(list(itertools.combinations(range(M), 2)))
+    a = pts[:, pairs[:, 0]]
+    e = pts[:, pairs[:, 1]] - a
+    rel = pts[:, None, :, :] - a[:, :, None, :]
+    cr = e[:, :, None, 0] * rel[..., 1] - e[:, :, None, 1] * rel[..., 0]
+    left = np.all(cr >= -1e-9, axis=2)
+    right = np.all(cr <= 1e-9, axis=2)
+    length = np.maximum(np.hypot(e[..., 0], e[..., 1]), 1e-12)
+    qa = q - a
+    cq = (e[..., 0] * qa[..., 1] - e[..., 1] * qa[..., 0]) * np.where(left, 1.0, -1.0) / length
+    return np.min(np.where((left | right) & (length > 1e-9), cq, np.inf), axis=1)
+
+
+def zone_cells(zone: SteppingZone, cfg: SearchConfig, obstacles: list[Footprint]) -> np.ndarray:
+    """Landing poses (n, 3) = (x, y, yaw) on the grid inside the zone and off the obstacles."""
+    (x0, x1), (y0, y1) = zone.x_range, zone.y_range
+    if x1 <= x0 or y1 <= y0:
+        return np.zeros((0, 3))
+    lo = max(zone.center[2] - zone.half_extent_eq8[2], zone.yaw_range[0])
+    hi = min(zone.center[2] + zone.half_extent_eq8[2], zone.yaw_range[1])
+    if hi < lo:
+        return np.zeros((0, 3))
+    xs = np.arange(x0 + cfg.cell_xy / 2, x1, cfg.cell_xy)
+    ys = np.arange(y0 + cfg.cell_xy / 2, y1, cfg.cell_xy)
+    nyaw = max(1, math.floor((hi - lo) / cfg.cell_yaw) + 1)
+    yaws = np.linspace(lo, hi, nyaw) if nyaw > 1 else np.array([0.5 * (lo + hi)])
+    X, Y, B = np.meshgrid(xs, ys, yaws, indexing="ij")
+    cells = np.column_stack([X.ravel(), Y.ravel(), B.ravel()])
+    cells = cells[zone.contains(cells[:, :2], cells[:, 2])]
+    if obstacles and len(cells):
+        cells = cells[~_hits_obstacles(cells, obstacles, cfg.obstacle_clearance)]
+    return cells
+
+
+def sole_corners_at(poses: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """Sole corners (n, 4, 2) of sole poses (n, 3) [m, m, rad]; ``local`` (4, 2) in the sole frame."""
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    x = local[None, :, 0] * c[:, None] - local[None, :, 1] * s[:, None] + poses[:, None, 0]
+    y = local[None, :, 0] * s[:, None] + local[None, :, 1] * c[:, None] + poses[:, None, 1]
+    return np.stack([x, y], axis=2)
+
+
+def _hits_obstacles(cells: np.ndarray, obstacles: list[Footprint], clearance: float) -> np.ndarray:
+    hit = np.zeros(len(cells), bool)
+    for ob in obstacles:
+        R = rotation_z(-ob.yaw)
+        rel = (cells[:, :2] - ob.center) @ R.T
+        hit |= np.all(np.abs(rel) <= ob.half_size + clearance + 0.15, axis=1)  # 0.15: sole half-length and more
+    return hit
+
+
+def case_pivots(sit: FallSituation, cfg: SearchConfig) -> tuple[list[str], list[np.ndarray]]:
+    """(stance sides, pivot point sets): the current leading edge first, then each stance sole's pivot."""
+    p1 = np.asarray(sit.cop, float)[:2]
+    q1 = np.asarray(sit.capture_point, float)[:2]
+    u = np.asarray(sit.edge_normal, float)[:2]
+    if not np.all(np.isfinite(u)) or np.linalg.norm(u) < 1e-9:
+        u = q1 - p1
+    u = u / max(float(np.linalg.norm(u)), 1e-12)
+    edge = np.array([np.asarray(sit.leading_edge[0], float)[:2], np.asarray(sit.leading_edge[1], float)[:2]])
+    if np.linalg.norm(edge[1] - edge[0]) < 1e-6:
+        edge = edge[:1]
+    stance_sides = [sit.single_support] if sit.single_support else ["r", "l"]   # lift left = stance right
+    return stance_sides, [edge] + [_pivot(sit.soles, s, u, cfg.corner_tie) for s in stance_sides]
+
+
+def search(sit: FallSituation, sole_local: np.ndarray, cfg: SearchConfig | None = None,
+           prediction: tuple[np.ndarray, np.ndarray] | None = None) -> StepDecision:
+    """Eq. 4 over the cases (module docstring); ``sole_local`` (4, 2) is the sole rectangle in its frame.
+
+    ``prediction``: (G (k, 3), Q (k, 2)) of :func:`predict_touchdown` for :func:`case_pivots`, if the
+    caller already has it (the controller needs it for the stepping zones).
+    """
+    cfg = cfg or SearchConfig()
+    t0 = time.perf_counter()
+    com = np.asarray(sit.com, float)
+    vel = np.asarray(sit.com_velocity, float)
+    p1 = np.asarray(sit.cop, float)[:2]
+    q1 = np.asarray(sit.capture_point, float)[:2]
+    target = None if sit.target is None else np.asarray(sit.target, float)[:2]
+    alpha1 = float(avoidance_angle(p1, q1, target)) if target is not None else math.nan
+    stance_sides, pivots = case_pivots(sit, cfg)
+    edge = pivots[0]
+    if prediction is None:
+        G, _V, Q = predict_touchdown(com, vel, pivots, sit.touchdown_time, cfg.rk4_steps)
+    else:
+        G, Q = prediction
+    cases: dict[StepCase, CaseResult] = {}
+    if target is None:
+        best = CaseResult(StepCase.NO_TARGET, p1, Q[0], math.nan, False, -math.inf, None, edge, G[0])
+        return StepDecision(best, {StepCase.NO_TARGET: best}, p1, q1, alpha1, sit.touchdown_time,
+                            sit.control_duration, 0, time.perf_counter() - t0, "no target to avoid: no step")
+    if not sit.single_support:  # no change: rotate on about the current soles' hull
+        poly0 = support_polygon(np.vstack([sit.soles["l"], sit.soles["r"]]))
+        cases[StepCase.NO_CHANGE] = _single(StepCase.NO_CHANGE, poly0, Q[0], target, G[0], cfg)
+    total_cells = 0
+    for k, stance in enumerate(stance_sides, start=1):
+        swing = "l" if stance == "r" else "r"
+        piv = pivots[k]
+        lift_case = StepCase.LIFT_LEFT if swing == "l" else StepCase.LIFT_RIGHT
+        step_case = StepCase.STEP_LEFT if swing == "l" else StepCase.STEP_RIGHT
+        cases[lift_case] = _single(lift_case, piv, Q[k], target, G[k], cfg)   # single support: keep it lifted
+        if sit.single_support and sit.planned_landing is not None:
+            plan = np.asarray(sit.planned_landing, float).reshape(1, 3)
+            r = _cells(StepCase.CONTINUE_STEP, plan, piv, Q[k], target, G[k], sole_local, cfg)
+            if r is not None:
+                cases[StepCase.CONTINUE_STEP] = r
+        zone = sit.zones.get(swing)
+        if zone is None:
+            continue
+        cells = zone_cells(zone, cfg, sit.obstacles)
+        total_cells += len(cells)
+        r = _cells(step_case, cells, piv, Q[k], target, G[k], sole_local, cfg)
+        if r is not None:
+            cases[step_case] = r
+    best = max(cases.values(), key=lambda c: c.score)
+    return StepDecision(best, cases, p1, q1, alpha1, sit.touchdown_time, sit.control_duration, total_cells,
+                        time.perf_counter() - t0)
+
+
+def _single(case: StepCase, poly, q2, target, g_td, cfg: SearchConfig) -> CaseResult:
+    poly = support_polygon(poly) if len(poly) >= 3 else np.asarray(poly, float).reshape(-1, 2)
+    if len(poly) >= 3 and inside_convex(q2, poly, cfg.capture_margin):
+        return CaseResult(case, q2.copy(), q2.copy(), math.nan, True, point_in_polygon_margin(q2, poly), None, poly,
+                          g_td)
+    if len(poly) >= 3:
+        p2 = nearest_on_boundary(q2, poly)
+    elif len(poly) == 2:
+        near, _dist = nearest_on_segments(q2, poly[:1], poly[1:])
+        p2 = near[0]
+    else:
+        p2 = poly[0]
+    return CaseResult(case, p2, q2.copy(), float(avoidance_angle(p2, q2, target)), False, -float(np.linalg.norm(q2 - p2)),
+                      None, poly, g_td)
+
+
+def _cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, target, g_td, sole_local,
+           cfg: SearchConfig) -> CaseResult | None:
+    if len(cells) == 0:
+        return None
+    corners = sole_corners_at(cells, sole_local)
+    n = len(cells)
+    pts = np.concatenate([corners, np.broadcast_to(pivot, (n, len(pivot), 2))], axis=1)
+    p2, margin, alpha = _hull_eval(pts, q2, target)
+    inside = margin > 0
+    captured = margin >= cfg.capture_margin
+    # inside but shallow (by the lower bound): ranks above every fall, below the captures
+    score = np.where(captured, 1e3 + margin, np.where(inside, 5e2 + margin, np.where(np.isfinite(alpha), alpha, -1.0)))
+    i = int(np.argmax(score))
+    poly = support_polygon(pts[i])
+    return CaseResult(case, p2[i].copy(), q2.copy(), math.nan if inside[i] else float(alpha[i]), bool(inside[i]),
+                      float(margin[i]), cells[i].copy(), poly, g_td, n, cfg.capture_margin)
+
+
+__all__ = ["CaseResult", "FallSituation", "Footprint", "SearchConfig", "StepCase", "StepDecision", "predict_touchdown",
+           "search", "sole_corners_at", "zone_cells"]
