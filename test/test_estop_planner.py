@@ -175,3 +175,20 @@ def test_unreachable_stop_runs_the_fallback_or_not():
     assert fb.beta == pytest.approx(-fb.omega_f)
     none = EstopPlanner(M, EstopConfig.defaults(fallback="none")).plan_with_posture(st, _seed(st))
     assert not none.feasible and none.fallback == "" and none.crouch is None
+
+
+def test_result_section_from_the_plan_played_back(planner):
+    from humfall_ros.estop.metrics import estop_result
+
+    plan = planner.plan(walking_state(0.22, 0.28))
+    t = np.arange(0.0, plan.end_time + 0.5, 0.002)
+    refs = [plan.sample(x) for x in t]
+    com = np.array([r.com for r in refs])
+    cop = np.array([r.zmp for r in refs])
+    margin = np.array([point_in_polygon_margin(p, plan.support_polygon) for p in cop])
+    res = estop_result(plan, t + 1.0, com, cop, margin, 1.0, False)
+    assert res["final_cog_major_m"] == pytest.approx(plan.major.n3, abs=1e-9)
+    assert res["final_cog_minor_m"] == pytest.approx(0.0, abs=1e-9)
+    assert res["stop_time_s"] == pytest.approx(plan.stop_time, abs=0.02)
+    assert res["max_cop_minor_m"] == pytest.approx(abs(plan.minor.max_zmp), abs=2e-3)
+    assert res["min_cop_margin_m"] >= plan.min_zmp_margin - 2e-3 and res["feasible"] and not res["fell"]

@@ -417,7 +417,14 @@ class EstopPlanner:
         required = min(c.zmp_margin, float(margins[0]))
         speed = np.hypot(vel[0], vel[1])
         above = np.nonzero(speed >= c.settle_speed)[0]
-        stop_time = float(t[min(above[-1] + 1, len(t) - 1)]) if len(above) else 0.0
+        if not len(above):
+            stop_time = 0.0
+        elif above[-1] + 1 < len(t):            # interpolate the crossing between the bracketing samples
+            i = above[-1]
+            f = (speed[i] - c.settle_speed) / max(speed[i] - speed[i + 1], 1e-12)
+            stop_time = float(t[i] + f * (t[i + 1] - t[i]))
+        else:
+            stop_time = float(t[-1])
         minor = dataclasses.replace(plan.minor, max_zmp=_extreme(pbar[0]), max_lipm_zmp=_extreme(lipm[0]))
         feasible = margin >= required - 1e-9
         reason = "" if feasible else (f"predicted ZMP {margin * 100:.1f} cm inside the double-support polygon "
