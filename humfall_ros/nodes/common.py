@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-import signal
+import threading
 import sys
 import time
 from typing import Any, Callable
@@ -115,8 +115,6 @@ def run_node(factory: Callable[[], Node], args=None, use_sim_time: bool = True,
     os.environ.setdefault("ROS_LOG_DIR", os.path.join(os.path.expanduser("~"), ".ros", "log"))
     rclpy.init(args=args if args is not None else sys.argv)
     node = None
-    # SIGTERM is how `humfall up` stops nodes: turn it into a clean shutdown.
-    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
     try:
         node = factory()
         if use_sim_time and not node.has_parameter("use_sim_time"):
@@ -142,7 +140,24 @@ def run_node(factory: Callable[[], Node], args=None, use_sim_time: bool = True,
                 close()
             node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    return _exit_past_worker_threads(0)
+
+
+def _exit_past_worker_threads(code: int) -> int:
+    """Return ``code``, or end the process now if worker threads are still busy.
+
+    A thread inside a long C++ call (an IPOPT solve, a casadi structure build) cannot be
+    interrupted; letting the interpreter finalise around it aborts the process ("pure
+    virtual method called", exit 134) or keeps it alive past SIGTERM. The node has
+    closed its files and shut rclpy down by now, so leaving at once loses nothing.
+    """
+    busy = [t for t in threading.enumerate() if t is not threading.main_thread() and t.is_alive()
+            and not t.name.startswith(("pydevd", "Dummy"))]
+    if busy:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
 
 # Our per-tick topics need no QoS event callbacks; each one would be another

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import math
-import signal
 import sys
 import time
 
@@ -543,7 +542,6 @@ class SimBridge(Node):
 def main(args=None) -> int:
     rclpy.init(args=args)
     node = None
-    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
     try:
         try:
             node = SimBridge()
