@@ -1,0 +1,290 @@
+"""Safe fall (paper 1), functional core: geometry, FTB, stepping zone, search, inertia shaping, controller."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from humfall_ros import params
+from humfall_ros.control.contract import CentroidalObservation, Observation
+from humfall_ros.fall import step_search as ss
+from humfall_ros.fall.controller import SafeFallConfig, SafeFallController
+from humfall_ros.fall.ftb import TRANSITIONS, FtbConfig, FtbMonitor, FtbState, TriggerMode, features_of
+from humfall_ros.fall.geometry import avoidance_angle, nearest_on_boundary, polygon_edges
+from humfall_ros.fall.inertia_shaping import (
+    crb_inertia_and_jacobian,
+    crb_inertia_vector,
+    desired_angular_velocity,
+    shaping_velocities,
+)
+from humfall_ros.fall.stepping_zone import stepping_zone
+from humfall_ros.model.humanoid import load_model, point_in_polygon_margin, support_polygon
+from humfall_ros.sim.world import STANDING_POSTURE
+
+M = load_model()
+
+
+def standing_q(base_xy=(0.0, 0.0)):
+    qj = M.joint_vector(STANDING_POSTURE)
+    q = M.configuration([0, 0, 0], [0, 0, 0, 1], qj)
+    M.forward(q)
+    z = -min(M.sole_corners(s)[:, 2].min() for s in "lr")
+    q[:3] = [base_xy[0], base_xy[1], z]
+    M.forward(q)
+    return q
+
+
+def state(com, vel, polygon, cop=None, feet_center=(0, 0, 0.105), normal_force=570.0):
+    com = np.asarray(com, float)
+    vel = np.asarray(vel, float)
+    cop = np.array([com[0], com[1], 0.0]) if cop is None else np.asarray(cop, float)
+    omega_inv = math.sqrt(com[2] / 9.81)
+    cp = np.array([com[0] + omega_inv * vel[0], com[1] + omega_inv * vel[1], 0.0])
+    d = com - cop
+    lean = math.atan2(math.hypot(d[0], d[1]), d[2])
+    return CentroidalObservation(com, vel, cop, cp, np.zeros(3), np.asarray(polygon, float), np.asarray(feet_center),
+                                 lean, math.atan2(d[1], d[0]), normal_force, True, True, True)
+
+
+SQUARE = np.array([[0.145, -0.16], [0.145, 0.16], [-0.095, 0.16], [-0.095, -0.16]])[::-1]  # CCW below
+SQUARE = support_polygon(SQUARE)
+
+
+# ---------------------------------------------------------------------- geometry
+def test_avoidance_angle_geometry():
+    p = np.zeros(2)
+    assert float(avoidance_angle(p, [1, 0], [2, 0])) == pytest.approx(0.0)
+    assert float(avoidance_angle(p, [1, 0], [-2, 0])) == pytest.approx(math.pi)
+    assert float(avoidance_angle(p, [1, 0], [0, 3])) == pytest.approx(math.pi / 2)
+    assert float(avoidance_angle([1, 1], [2, 2], [1, 3])) == pytest.approx(math.pi / 4)
+    a = avoidance_angle(np.zeros((3, 2)), [[1, 0], [0, 1], [0, 0]], [[1, 1]] * 3)
+    assert a[:2] == pytest.approx([math.pi / 4] * 2)
+    assert math.isnan(a[2])   # P == Q: no fall direction
+
+
+def test_polygon_edges_outward_and_nearest():
+    e = polygon_edges(SQUARE)
+    centre = SQUARE.mean(axis=0)
+    assert np.all(np.sum((e.start - centre) * e.normal, axis=1) > 0)
+    assert nearest_on_boundary([0.3, 0.0], SQUARE) == pytest.approx([0.145, 0.0])
+    assert nearest_on_boundary([0.3, 0.3], SQUARE) == pytest.approx([0.145, 0.16])
+
+
+# ---------------------------------------------------------------------- FTB
+def test_ftb_features_separate_crest():
+    still = features_of(state([0.02, 0, 0.75], [0, 0, 0], SQUARE))
+    assert still.valid and still.separatrix_margin < 0
+    # CoM 8.6 cm behind the toe edge: the crest speed is sqrt(2 g L (1 - cos theta)) ~ 0.31 m/s
+    th = math.atan2(-0.086, 0.75)
+    v_crest = math.sqrt(2 * 9.81 * math.hypot(0.086, 0.75) * (1 - math.cos(th))) * 0.75 / math.hypot(0.086, 0.75)
+    slow = features_of(state([0.059, 0, 0.75], [0.95 * v_crest, 0, 0], SQUARE))
+    fast = features_of(state([0.059, 0, 0.75], [1.05 * v_crest, 0, 0], SQUARE))
+    assert slow.energy_ratio < 1 < fast.energy_ratio
+    assert slow.separatrix_margin < 0 < fast.separatrix_margin
+    assert fast.edge_normal == pytest.approx([1, 0])
+
+
+def test_ftb_thin_strip_and_single_foot_edges_do_not_fire():
+    # feet rocking on their toes: the touching corners are a strip a few mm deep; the CoM is behind it
+    strip = support_polygon([[0.145, 0.16], [0.145, 0.02], [0.143, -0.02], [0.145, -0.16]])
+    f = features_of(state([0.03, 0, 0.745], [0.1, 0, 0], strip))
+    assert f.edge_normal[0] > 0.99 and f.separatrix_margin < 0
+    # one foot loaded (the other just above the ground): the CoM over the gap is not a fall over the inner edge
+    left = support_polygon([[0.145, 0.16], [0.145, 0.02], [-0.095, 0.02], [-0.095, 0.16]])
+    f = features_of(state([0.02, 0.0, 0.74], [0.0, 0.0, 0.0], left))
+    assert f.separatrix_margin < 0
+
+
+def _obs(t, s, **inputs):
+    return Observation(int(round(t * 1e9)), np.zeros(M.njoints), np.zeros(M.njoints), s, "", dict(inputs))
+
+
+def test_ftb_state_machine_debounce_edge_reset():
+    mon = FtbMonitor(FtbConfig(debounce_ms=10.0, robot_weight=570.0))
+    falling = state([0.059, 0, 0.75], [0.5, 0, 0], SQUARE)
+    quiet = state([0.02, 0, 0.75], [0, 0, 0], SQUARE)
+    assert mon.step(_obs(0.0, quiet)).state is FtbState.BALANCED
+    events = []
+    for k in range(1, 12):
+        st = mon.step(_obs(0.002 * k, falling))
+        events.append(st.event)
+        if k <= 5:
+            assert st.state is FtbState.BALANCED  # 10 ms not yet held (first outside tick at 2 ms)
+    assert sum(e is not None for e in events) == 1   # once, on the edge
+    ev = next(e for e in events if e is not None)
+    assert ev.trigger_mode == "ftb" and ev.fall_direction == pytest.approx(0.0) and math.isfinite(ev.control_duration)
+    assert mon.state is FtbState.FALLING
+    mon.reset()
+    assert mon.state is FtbState.BALANCED and mon.event is None
+    # sim time going back resets too
+    for k in range(8):
+        mon.step(_obs(1.0 + 0.002 * k, falling))
+    assert mon.state is FtbState.FALLING
+    assert mon.step(_obs(0.0, quiet)).state is FtbState.BALANCED
+    assert {(t.source, t.target) for t in TRANSITIONS} >= {(FtbState.BALANCED, FtbState.FALLING),
+                                                         (FtbState.FALLING, FtbState.FALLEN)}
+
+
+def test_ftb_fixed_mode_and_config():
+    cfg = FtbConfig.from_params({**params.defaults("ftb_monitor"), "mode": "fixed"})
+    assert cfg.mode is TriggerMode.FIXED
+    mon = FtbMonitor(cfg)
+    quiet = state([0.02, 0, 0.75], [0, 0, 0], SQUARE)
+    assert mon.step(_obs(0.64, quiet, push_end_time=0.6)).event is None
+    ev = mon.step(_obs(0.65, quiet, push_end_time=0.6)).event
+    assert ev is not None and ev.trigger_mode == "fixed"
+    with pytest.raises(ValueError):
+        FtbConfig.from_params({"no_such_key": 1})
+
+
+# ---------------------------------------------------------------------- stepping zone
+def test_stepping_zone_shape():
+    q = standing_q()
+    z1 = stepping_zone(M, q, "l", 0.15, [1, 0], M.com(q), hip_drop=0.08)
+    z2 = stepping_zone(M, q, "l", 0.30, [1, 0], M.com(q), hip_drop=0.08)
+    assert z2.half_extent_eq8 == pytest.approx(2 * z1.half_extent_eq8)          # eq. 8 is linear in dT
+    legs = M.limits.velocity[[M.joint_index(f"{s}_{j}") for s in "lr" for j in ("hip_yaw", "knee")]]
+    assert np.all(z1.gamma >= legs.min() - 1e-9) and np.all(z1.gamma <= legs.max() + 1e-9)
+    c = z1.center[:2]
+    assert z1.contains([c + [0.12, 0.05]], [z1.center[2]])[0]      # ahead: inside
+    assert not z1.contains([c - [0.05, 0.0]], [z1.center[2]])[0]   # behind the separatrix
+    assert not z1.contains([c + [1.0, 0.0]], [z1.center[2]])[0]    # beyond the legs
+    assert not z1.contains([z1.stance_pose[:2] + [0.02, 0.0]], [0.0])[0]  # on the stance sole
+    assert not z1.contains([c + [0.12, 0.0]], [z1.center[2] + 1.0])[0]  # beyond the hip yaw
+    zr = stepping_zone(M, q, "r", 0.15, [1, 0], M.com(q), hip_drop=0.08)
+    assert zr.reach_radius == pytest.approx(z1.reach_radius, abs=1e-3)
+    assert zr.center[1] == pytest.approx(-z1.center[1], abs=1e-3)
+
+
+# ---------------------------------------------------------------------- search
+def _reference(cells, pivot, q2, target, local):
+    """Slow per-cell reference: hull, inside, nearest boundary point, alpha."""
+    out = []
+    for c in cells:
+        corners = ss.sole_corners_at(c[None], local)[0]
+        poly = support_polygon(np.vstack([corners, pivot]))
+        if point_in_polygon_margin(q2, poly) > 0:
+            out.append(1e3)
+        else:
+            p2 = nearest_on_boundary(q2, poly)
+            out.append(float(avoidance_angle(p2, q2, target)))
+    return np.array(out)
+
+
+def test_search_picks_known_optimum():
+    local = M.sole_corners_local["l"][:, :2]
+    pivot = np.array([[0.145, -0.16]])
+    q2 = np.array([0.30, 0.05])
+    target = np.array([1.2, 0.0])
+    rng = np.random.default_rng(3)
+    cells = np.column_stack([rng.uniform(-0.1, 0.5, 400), rng.uniform(0.1, 0.6, 400), rng.uniform(-0.6, 0.6, 400)])
+    ref = _reference(cells, pivot, q2, target, local)
+    falls = ref < 1e3
+    r = ss._cells(ss.StepCase.STEP_LEFT, cells[falls], pivot, q2, target, np.zeros(3), local, ss.SearchConfig())
+    i = int(np.argmax(ref[falls]))
+    assert r.landing == pytest.approx(cells[falls][i])
+    assert r.alpha2 == pytest.approx(ref[falls][i], abs=1e-9)
+    # with capturing cells present, a capture wins over every fall
+    r2 = ss._cells(ss.StepCase.STEP_LEFT, cells, pivot, q2, target, np.zeros(3), local, ss.SearchConfig())
+    assert r2.captured == bool(np.any(~falls))
+    # hand-made: three landings; the one whose sole covers Q2 captures
+    hand = np.array([[0.0, 0.45, 0.0], [0.30, 0.08, 0.0], [0.1, 0.6, 0.3]])
+    r3 = ss._cells(ss.StepCase.STEP_LEFT, hand, pivot, q2, target, np.zeros(3), local, ss.SearchConfig())
+    assert r3.captured and r3.landing == pytest.approx(hand[1])
+    # the vectorised inside depth is a lower bound of the exact one
+    pts = np.concatenate([ss.sole_corners_at(hand, local), np.broadcast_to(pivot, (3, 1, 2))], axis=1)
+    exact = ss._inside_margin(pts[1:2], q2)[0]
+    assert 0 < r3.margin <= exact + 1e-12
+
+
+# ---------------------------------------------------------------------- inertia shaping
+def test_crb_inertia_jacobian_against_finite_differences():
+    rng = np.random.default_rng(0)
+    q = standing_q()
+    q[3:7] = [0.05, 0.02, 0.1, 0.99]
+    q[3:7] /= np.linalg.norm(q[3:7])
+    q[7:] += 0.2 * rng.standard_normal(M.njoints)
+    inertia, J = crb_inertia_and_jacobian(M, q)
+    assert inertia == pytest.approx(M.crb_inertia(q), abs=1e-12)
+    h = 1e-6
+    fd = np.zeros_like(J)
+    for j in range(M.njoints):
+        qp, qm = q.copy(), q.copy()
+        qp[7 + j] += h
+        qm[7 + j] -= h
+        fd[:, j] = (crb_inertia_vector(M.crb_inertia(qp)) - crb_inertia_vector(M.crb_inertia(qm))) / (2 * h)
+    assert np.abs(J - fd).max() < 1e-6 * max(1.0, np.abs(fd).max())
+
+
+def test_inertia_shaping_direction_and_progress():
+    w = desired_angular_velocity([0, 0, 0], [1.2, 0, 0])
+    assert w == pytest.approx([0, -1, 0])
+    assert np.cross(w, [0, 0, 1])[0] < 0   # V_G = w x PG points away from T (eq. 11)
+    q = standing_q()
+    qd, info = shaping_velocities(M, q, [0.1, 0, 0], [1.2, 0, 0], 0.002)
+    assert np.all(np.abs(qd) <= M.limits.velocity + 1e-9)
+    assert info["residual"] < info["error"]
+
+
+# ---------------------------------------------------------------------- controller
+def _controller_obs(t, inputs):
+    q = standing_q()
+    com = M.com(q)
+    poly = support_polygon(np.vstack([M.sole_corners(s)[:, :2] for s in "lr"]))
+    s = state(com + [0.04, 0, 0], [0.45, -0.1, 0.0], poly, cop=[0.144, 0.0, 0.0],
+              feet_center=(M.frame_position("l_foot") + M.frame_position("r_foot")) / 2)
+    return Observation(int(round(t * 1e9)), q[7:].copy(), np.zeros(M.njoints), s, "locomotion", inputs)
+
+
+def _event(t):
+    from humfall_ros.fall.ftb import FallEvent
+
+    z = np.zeros(3)
+    return FallEvent(int(round(t * 1e9)), "ftb", "test", z, z, False, z, z, 0.0, 0.8, 0.26, 1.001, 0.001, 0.1, z, z,
+                     np.zeros((0, 2)))
+
+
+TARGET = [{"name": "target", "position": [1.2, 0.0, 0.4], "size": [0.3, 0.6, 0.8], "yaw": 0.0, "is_target": True}]
+IMU = (np.array([0.0, 0.0, 0.0, 1.0]), np.zeros(3))
+
+
+def test_controller_releases_until_event_then_never():
+    c = SafeFallController(config=SafeFallConfig.from_params(params.defaults("safe_fall_controller")))
+    assert c.step(_controller_obs(0.5, {"obstacles": TARGET, "imu": IMU})) is None
+    obs = _controller_obs(0.62, {"obstacles": TARGET, "imu": IMU, "fall_event": _event(0.62)})
+    cmd = c.step(obs)
+    assert cmd is not None and cmd.positions.shape == (M.njoints,)
+    d = c.decision
+    assert d.cell_count > 0 and d.case in {x.value for x in ss.StepCase}
+    assert math.isfinite(d.touchdown_time) and d.search_time > 0
+    for k in range(1, 5):  # keeps control, every tick a command
+        assert c.step(_controller_obs(0.62 + 0.002 * k, {"obstacles": TARGET, "imu": IMU})) is not None
+
+
+@pytest.mark.parametrize("obstacles,why", [
+    ([], "no target"),
+    ([{**TARGET[0], "position": [math.nan, 0.0, 0.4]}], "not finite"),
+    ([{**TARGET[0], "position": [0.02, 0.0, 0.4]}], "inside the robot"),
+])
+def test_controller_bad_targets_do_not_step(obstacles, why):
+    c = SafeFallController()
+    cmd = c.step(_controller_obs(0.62, {"obstacles": obstacles, "imu": IMU, "fall_event": _event(0.62)}))
+    assert cmd is not None
+    assert c.decision.swing_side == "" and why in c.decision.reason
+
+
+def test_controller_bad_events_and_inputs():
+    c = SafeFallController()
+    # an event from the future (sim time went back): ignored
+    assert c.step(_controller_obs(0.3, {"obstacles": TARGET, "imu": IMU, "fall_event": _event(0.62)})) is None
+    # a stale one: taken, noted, decided from now
+    c.reset()
+    assert c.step(_controller_obs(1.0, {"obstacles": TARGET, "imu": IMU, "fall_event": _event(0.62)})) is not None
+    assert "old" in c.decision.reason
+    # no IMU: holds the measured posture, never raises, never commandless
+    c.reset()
+    obs = _controller_obs(0.62, {"obstacles": TARGET, "fall_event": _event(0.62)})
+    cmd = c.step(obs)
+    assert cmd is not None and cmd.positions == pytest.approx(obs.joint_position)
+    assert any("IMU" in r for r in c.reasons)
