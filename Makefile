@@ -17,7 +17,7 @@ export RMW_IMPLEMENTATION := rmw_fastrtps_cpp
 export AMENT_PREFIX_PATH := $(VENV_ABS)
 export MPLBACKEND := Agg
 
-.PHONY: setup demo test bench interfaces install clean lock
+.PHONY: setup demo test lint bench interfaces install clean lock
 
 $(PY):
 	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' || { \
@@ -52,8 +52,11 @@ setup: install
 demo: setup
 	$(VENV_ABS)/bin/humfall up --scenario $(SCENARIO) --controller $(CONTROLLER)
 
-test: setup
+test: setup lint
 	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+lint: $(VENV)/.deps-stamp
+	$(VENV_ABS)/bin/ruff check humfall_ros test benchmarks tools
 
 bench: setup
 	$(PY) benchmarks/run_all.py

@@ -181,7 +181,8 @@ def check_node_params(node: str, params: dict, owned: set[str]) -> dict:
     """
     for key in params:
         if key in owned:
-            raise RunError(f"params.{node}.{key} is set by the launcher from the scenario (use the scenario's own keys)")
+            raise RunError(f"params.{node}.{key} is set by the launcher from the scenario "
+                           "(use the scenario's own keys)")
     try:
         return params_mod.check_overrides(node, params, prefix=f"params.{node}.")
     except params_mod.ParamError as e:

@@ -473,7 +473,8 @@ class SimBridge(Node):
                         missing = sorted(set(self.lockstep_sources) - self.answered)
                         self.get_logger().error(f"lockstep stalled at t={self.world.time:.3f} s (tick "
                                                 f"{int(round(self.world.time * self.control_rate))}): no command from "
-                                                f"{', '.join(missing)} after {self.stall_timeout:.0f} s; ending the run")
+                                                f"{', '.join(missing)} after {self.stall_timeout:.0f} s; "
+                                                "ending the run")
                         self.stalled_ticks += 1
                         self.stalled = (",".join(missing), self.world.time)
                         break
