@@ -32,9 +32,9 @@ class LocomotionConfig:
     preview_r: float = 1e-7
     multibody_correction: bool = True
     multibody_horizon: float = 0.6        # s
-    dcm_gain: float = 1.0                 # m/m
+    dcm_gain: float = 0.0                 # m/m
     com_feedback_max: float = 0.03        # m
-    cop_damping_gain: float = 2.0         # rad/(m s)
+    cop_damping_gain: float = 0.0         # rad/(m s)
     cop_damping_time_constant: float = 0.2  # s
     walk_ankle_max_offset: float = 0.05   # rad
     velocity_fraction: float = 0.9

@@ -2,7 +2,8 @@
 
 No rclpy, no simulator. Standing is :class:`humfall_ros.control.standing.StandingController`
 (the ankle strategy, with its bumpless hand-back). A walking command (``set_walk_command`` or
-``observation.inputs["cmd_walk"]``, a :class:`WalkCommand` or ``(speed [m/s], yaw_rate [rad/s])``)
+``observation.inputs["cmd_walk"]``, a :class:`WalkCommand` or ``(speed [m/s], yaw_rate [rad/s][, n_steps])``,
+acted on when a new object arrives)
 starts a walk: the command is checked (finite; speed and turn rate clamped to their limits with a
 warning; the kinematics checked on a short offline rehearsal before the first step) and a
 :class:`WalkingPattern` is started from the measured posture. Each tick: pattern step (preview
@@ -188,8 +189,11 @@ class LocomotionController:
         cmd_in = inp.get("cmd_walk")
         if cmd_in is not None and cmd_in is not self._last_input:
             self._last_input = cmd_in
-            sp, yr = (cmd_in.speed, cmd_in.yaw_rate) if isinstance(cmd_in, WalkCommand) else cmd_in
-            self.set_walk_command(float(sp), float(yr))
+            if isinstance(cmd_in, WalkCommand):
+                self.set_walk_command(cmd_in.speed, cmd_in.yaw_rate)
+            else:  # (speed, yaw_rate) or (speed, yaw_rate, n_steps)
+                n = int(cmd_in[2]) if len(cmd_in) > 2 and cmd_in[2] is not None else None
+                self.set_walk_command(float(cmd_in[0]), float(cmd_in[1]), n)
         active = observation.active_source
         if self.pattern is not None and active not in ("", "none", self.source):
             self._log(f"walk stopped: {active} drives the robot")
