@@ -93,8 +93,9 @@ def part_threshold(quick: bool, workers: int) -> dict:
     r = _run(spec, "ray", workers)
     table, meta = load_results(r["results"])
     th = thresholds(table, meta["spec"])
-    r["thresholds"] = [{"direction_deg": t.point.get("push.0.direction_deg"), "height_m": t.point.get("push.0.height_m"),
-                        "low_n": t.low, "high_n": t.high, "status": t.status,
+    r["thresholds"] = [{"direction_deg": t.point.get("push.0.direction_deg"),
+                        "height_m": t.point.get("push.0.height_m"), "low_n": t.low, "high_n": t.high,
+                        "status": t.status,
                         "fall_direction_deg": None if t.fall_direction_deg is None else round(t.fall_direction_deg, 1)}
                        for t in th]
     r["report"] = str(write_report(r["results"]))

@@ -217,3 +217,23 @@ def test_timeout_row_is_kept_in_the_table(tmp_path):
     assert rows[0.2]["status"] == "ok"
     assert rows[300.0]["status"] == "timeout" and "time limit" in rows[300.0]["error"]
     assert rows[300.0]["log_tail"]
+
+
+def test_stop_when_fallen_keeps_the_fall_metrics(tmp_path):
+    ov = ["obstacles=[]", "duration=3.0", "push.0.force=[520,0,0]"]
+    s = TrialServer(str(tmp_path))
+    try:
+        full = s.run(TrialRequest("full", "standing_push", ov, "inprocess", 60.0, None))
+        short = s.run(TrialRequest("short", "standing_push", ov, "inprocess", 60.0, None, stop_when_fallen=True))
+        held = s.run(TrialRequest("held", "standing_push", ["obstacles=[]", "duration=1.0",
+                                                            "push.0.force=[60,0,0]"], "inprocess", 60.0, None,
+                                  stop_when_fallen=True))
+    finally:
+        s.close()
+    a, b = full["metrics"], short["metrics"]
+    assert a["fell"] and b["fell"]
+    assert b["stopped_early_at_s"] is not None and b["sim_duration_s"] < 2.5 and a["sim_duration_s"] == 3.0
+    for k in ("fall_time_s", "landing_time_s", "fall_direction_deg", "landing_com"):
+        assert b[k] == a[k], k
+    assert held["metrics"]["fell"] is False and held["metrics"]["stopped_early_at_s"] is None
+    assert held["metrics"]["sim_duration_s"] == 1.0

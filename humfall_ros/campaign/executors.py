@@ -27,9 +27,10 @@ from humfall_ros.campaign.design import Trial
 from humfall_ros.campaign.server import TAG_ENV, TrialRequest, TrialServer, rss_mb
 
 
-def request_for(trial: Trial, mode: str, time_limit_s: float, bag_dir: str | None) -> TrialRequest:
+def request_for(trial: Trial, mode: str, time_limit_s: float, bag_dir: str | None,
+                stop_when_fallen: bool = False) -> TrialRequest:
     return TrialRequest(trial.trial_id, trial.base_scenario, list(trial.overrides), mode, time_limit_s,
-                        bag_dir)
+                        bag_dir, stop_when_fallen and mode == "inprocess")
 
 
 def _worker_info(executor: str) -> dict:

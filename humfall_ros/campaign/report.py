@@ -258,7 +258,7 @@ def _threshold_section(table: pa.Table, spec: dict) -> str:
             if t.fall_direction_deg is not None:
                 falls.setdefault(label, ([], []))
                 falls[label][0].append(t.point[dkey])
-                falls[label][1].append(t.fall_direction_deg)
+                falls[label][1].append(t.fall_direction_deg % 360.0)
         if groups:
             parts.append(f'<img src="data:image/png;base64,'
                          f'{_polar(groups, "fall threshold by push direction", "radius: threshold [N]")}">')
@@ -297,8 +297,8 @@ def _sweep_section(table: pa.Table, spec: dict) -> str:
             bins = np.round(d[m] / 30.0) * 30.0 % 360.0
             dirs = sorted(set(bins))
             parts.append("<h3>Avoidance angle (paper 1 Fig. 5) by push direction</h3>")
-            parts.append(f'<img src="data:image/png;base64,'
-                         f'{_polar({"mean": (dirs, [a[m][bins == b].mean() for b in dirs])}, "avoidance angle", "radius: deg")}">')
+            png = _polar({"mean": (dirs, [a[m][bins == b].mean() for b in dirs])}, "avoidance angle", "radius: deg")
+            parts.append(f'<img src="data:image/png;base64,{png}">')
     return "\n".join(parts)
 
 

@@ -183,4 +183,4 @@ def run_campaign(spec: CampaignSpec, opts: RunOptions | None = None) -> Campaign
 def _request(trial, spec: CampaignSpec, mode: str, bag_dir: str | None):
     from humfall_ros.campaign.executors import request_for
 
-    return request_for(trial, mode, spec.trial.time_limit_s, bag_dir)
+    return request_for(trial, mode, spec.trial.time_limit_s, bag_dir, spec.trial.stop_when_fallen)

@@ -32,6 +32,8 @@ import traceback
 import uuid
 from multiprocessing.connection import Connection
 
+import numpy as np
+
 TAG_ENV = "HUMFALL_CAMPAIGN_TAG"          # set on every process of a campaign (the driver's tag)
 SERVER_TAG_ENV = "HUMFALL_TRIAL_SERVER"   # set on a server and everything it starts
 STARTUP_TIMEOUT_S = 180.0
@@ -48,6 +50,11 @@ class TrialRequest:
     mode: str                 # "inprocess" | "graph"
     time_limit_s: float
     bag_dir: str | None       # write the trial's recording here (None: no recording)
+    stop_when_fallen: bool = False
+
+
+STOP_AFTER_LANDING_S = 0.2    # simulated time kept after the trunk meets the ground [s]
+STOP_AFTER_FALL_S = 1.0       # ... or after the fall, if nothing but the feet touches down [s]
 
 
 # ---------------------------------------------------------------------------- process helpers
@@ -123,23 +130,47 @@ def run_inprocess(req: TrialRequest) -> dict:
     """The closed loop without ROS; returns the metrics dict of its LoopResult."""
     import inspect
 
-    import numpy as np
-
     from humfall_ros.campaign.design import build_scenario
     from humfall_ros.sim.closed_loop import run_scenario
 
     sc = build_scenario(req.base_scenario, req.overrides)
-    kwargs = {}
-    if "trunk_tilt_limit_deg" in inspect.signature(run_scenario).parameters:
-        kwargs["trunk_tilt_limit_deg"] = 0.0  # no estimator-vs-truth comparison: not a campaign metric
-    result = run_scenario(sc, **kwargs)
+    if req.stop_when_fallen:
+        result = _run_until_fallen(sc)
+    else:
+        kwargs = {}
+        if "trunk_tilt_limit_deg" in inspect.signature(run_scenario).parameters:
+            kwargs["trunk_tilt_limit_deg"] = 0.0  # no estimator-vs-truth comparison: not a campaign metric
+        result = run_scenario(sc, **kwargs)
     if req.bag_dir:
         pathlib.Path(req.bag_dir).mkdir(parents=True, exist_ok=True)
         np.savez_compressed(pathlib.Path(req.bag_dir) / f"{req.trial_id}.npz",
                             joint_positions=np.asarray(result.joint_positions))
     m = dict(result.metrics)
-    m.setdefault("sim_duration_s", float(sc["duration"]))
+    m.setdefault("sim_duration_s", m.get("stopped_early_at_s") or float(sc["duration"]))
     return m
+
+
+def _run_until_fallen(sc: dict):
+    """The closed loop (ClosedLoop, the engine of run_scenario) stopped once the fall is decided."""
+    from humfall_ros.sim.closed_loop import ClosedLoop, LoopResult
+
+    loop = ClosedLoop(sc)
+    try:
+        m = loop.ground_truth.metrics
+        ticks = int(round(sc["duration"] * sc["sim"]["control_rate"]))
+        stopped = None
+        for _ in range(ticks):
+            loop.step()
+            t = loop.world.time
+            if m.fell and ((m.landing_time is not None and t >= m.landing_time + STOP_AFTER_LANDING_S)
+                           or t >= m.fall_time + STOP_AFTER_FALL_S):
+                stopped = t
+                break
+        r = m.result()
+        r["stopped_early_at_s"] = stopped
+        return LoopResult(r, np.array(loop.joint_positions), {}, r["max_trunk_tilt_deg"])
+    finally:
+        loop.close()
 
 
 def run_graph(req: TrialRequest, runs_dir: str) -> dict:

@@ -142,6 +142,9 @@ Study = Annotated[SweepStudy | ThresholdMapStudy, Field(discriminator="type")]
 class TrialSpec(_Strict):
     time_limit_s: float = Field(120.0, gt=0, description="wall time after which a trial is killed [s]")
     mode: Literal["inprocess", "graph"] = "inprocess"
+    stop_when_fallen: bool = Field(False, description=(
+        "in-process only: end a trial STOP_AFTER_LANDING_S after the trunk lands (or 1 s after the fall if it "
+        "does not land); the metrics that decide a fall and its direction are final by then"))
 
 
 class OutputSpec(_Strict):
