@@ -46,6 +46,10 @@ from humfall_ros.fall.stepping_zone import stepping_zone
 from humfall_ros.model.humanoid import SIDES, HumanoidModel, load_model
 
 
+# joints inertia shaping may move, by name fragment: all of them (the paper), or the pitch chain
+RECRUIT = {"all": ("",), "pitch": ("chest_pitch", "hip_pitch", "shoulder_pitch")}
+
+
 @dataclasses.dataclass(frozen=True)
 class SafeFallConfig:
     """``config/safe_fall_controller.yaml`` (flat keys; units in the names)."""
@@ -70,7 +74,9 @@ class SafeFallConfig:
     press_depth: float = 0.01
     swing_gain: float = 0.5
     ik_velocity_fraction: float = 0.95
-    shaping_gain: float = 0.05
+    shaping_gain: float = 0.02
+    shaping_sign: float = -1.0
+    shaping_recruit: str = "pitch"
     shaping_damping: float = 1e-4
 
     @classmethod
@@ -83,7 +89,8 @@ class SafeFallConfig:
 
     @property
     def search(self) -> ss.SearchConfig:
-        return ss.SearchConfig(self.cell_xy, self.cell_yaw, self.capture_margin, obstacle_clearance=self.obstacle_clearance)
+        return ss.SearchConfig(self.cell_xy, self.cell_yaw, self.capture_margin,
+                               obstacle_clearance=self.obstacle_clearance)
 
     @property
     def step(self) -> StepControlConfig:
@@ -92,7 +99,7 @@ class SafeFallConfig:
 
     @property
     def shaping(self) -> ShapingConfig:
-        return ShapingConfig(gain=self.shaping_gain, damping=self.shaping_damping)
+        return ShapingConfig(gain=self.shaping_gain, sign=self.shaping_sign, damping=self.shaping_damping)
 
 
 @dataclasses.dataclass
@@ -171,6 +178,10 @@ class SafeFallController:
         self.config = config or SafeFallConfig()
         self.stepper = StepController(self.m, self.config.step)
         self._sole_local = self.m.sole_corners_local["l"][:, :2].copy()
+        if self.config.shaping_recruit not in RECRUIT:
+            raise ValueError(f"shaping_recruit must be one of {sorted(RECRUIT)}, got {self.config.shaping_recruit!r}")
+        names = RECRUIT[self.config.shaping_recruit]
+        self._recruit = np.array([any(k in n for k in names) for n in self.m.joint_names])
         self.reset()
 
     def reset(self) -> None:
@@ -388,7 +399,7 @@ class SafeFallController:
                 q = configuration_from_sensors(self.m, obs.joint_position, quat, obs.state.com)
                 q[7:] = self.last_command  # shape from the commanded posture (position-controlled joints lag)
                 qd, _ = shaping_velocities(self.m, q, obs.state.cop, self.target, c.control_period_s,
-                                           cfg=c.shaping)
+                                           recruit=self._recruit, cfg=c.shaping)
                 pos = np.clip(self.last_command + qd * c.control_period_s, self.m.limits.lower, self.m.limits.upper)
                 self.last_command = pos
                 return JointTargets(pos, qd)

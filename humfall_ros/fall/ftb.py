@@ -28,7 +28,8 @@ being built, the reference fields are the contract).
 
 The state machine is data (:data:`TRANSITIONS`): BALANCED -> FALLING (the trigger, with
 the :class:`FallEvent` published once, on the edge) -> FALLEN (lean beyond
-``fallen_lean_deg`` or ``falling_timeout_s`` in FALLING); FALLEN and FALLING leave only
+``fallen_lean_deg`` or ``falling_timeout_s`` in FALLING, or the CoM below
+``fallen_com_height_fraction`` of its first height); FALLEN and FALLING leave only
 through :meth:`FtbMonitor.reset` (``ftb/reset``) or sim time going back.
 """
 from __future__ import annotations
@@ -88,6 +89,7 @@ class FtbConfig:
     debounce_ms: float = 10.0
     lean_backstop_deg: float = 25.0
     fallen_lean_deg: float = 60.0
+    fallen_com_height_fraction: float = 0.5
     falling_timeout_s: float = 3.0
     fixed_delay_s: float = 0.05
     theta_threshold_deg: float = 15.0
@@ -335,6 +337,7 @@ class FtbMonitor:
         self.last_stamp: int | None = None
         self.event: FallEvent | None = None
         self.weight = self.config.robot_weight if self.config.robot_weight > 0 else None
+        self.com_height: float | None = None
 
     # ---------------------------------------------------------------- conditions
     def _outside(self, obs: Observation, f: FtbFeatures) -> str:
@@ -382,7 +385,12 @@ class FtbMonitor:
             f.valid = False
         reason = ""
         event = None
-        fallen = math.isfinite(f.lean_angle) and f.lean_angle > math.radians(c.fallen_lean_deg)
+        if self.com_height is None and math.isfinite(float(s.com[2])):
+            self.com_height = float(s.com[2])
+        # fallen: a loaded lean beyond the limit (an unloaded CoP is a fallback, its lean means
+        # nothing: measured, a noisy quiet stance read > 60 deg), or the CoM down
+        fallen = (f.valid and f.lean_angle > math.radians(c.fallen_lean_deg)) or \
+            (self.com_height is not None and float(s.com[2]) < c.fallen_com_height_fraction * self.com_height)
         if self.state is FtbState.BALANCED:
             why = self._outside(obs, f)
             if why:

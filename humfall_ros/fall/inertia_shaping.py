@@ -2,8 +2,16 @@
 
 * eq. 11-12: with the robot a reaction-mass pendulum on its CoP P, V_G = omega x PG; to move G
   away from the target T the desired angular velocity is omega_d = -unit(z x PT).
-* desired locked inertia: I_d = R I R^T with R = exp([gain * omega_d]x) (the exponential map,
+* desired locked inertia: I_d = R I R^T with R = exp([sign * gain * omega_d]x) (the exponential map,
   ``pinocchio.exp3``); ``gain`` [rad per tick] is how far the desired inertia turns each tick.
+  **The sign.** The toppling robot pivots passively on P: no ground torque about P, so the
+  angular momentum about P, L_P = m PG x V_G + k_G, changes only by gravity over a tick. Joint
+  motion that turns the CRB inertia (the body's shape) about omega_d creates centroidal momentum
+  k_G along omega_d, and L_P being unchanged, m PG x V_G changes by -k_G: the CoM is sent *towards*
+  T. To send it away the shape must turn about -omega_d (``sign = -1``, our default; e.g. for a
+  target ahead the hips flex and the trunk pikes forward, which drives the hips and CoM back).
+  Measured on standing_push (docs/safe_fall.md): sign +1 gives alpha2 40-46 deg (worse than the
+  step alone, 115 deg), sign -1 with the pitch joints 162 deg.
 * eq. 13: the CRB-inertia Jacobian J_I (6 x n) maps joint changes to changes of the six unique
   elements of the centroidal composite-rigid-body inertia (``crb_inertia_vector`` order
   Ixx, Iyy, Izz, Ixy, Ixz, Iyz). We build it from the same body inertias pinocchio's CCRBA sums
@@ -97,12 +105,15 @@ class ShapingConfig:
 
     Attributes:
         gain: rotation of the desired inertia per tick [rad].
+        sign: +1 rotates the CRB inertia about omega_d (eq. 12 read literally), -1 about -omega_d
+            (the reaction sign, module docstring; measured: -1 turns the fall away, +1 towards T).
         damping: damping of the pseudo-inverse [kg^2 m^4] (0: plain pseudo-inverse).
         velocity_fraction: joint speeds within this fraction of the URDF limits [-].
         position_margin: joints stay this far inside their limits [rad].
     """
 
-    gain: float = 0.05
+    gain: float = 0.02
+    sign: float = -1.0
     damping: float = 1e-4
     velocity_fraction: float = 0.9
     position_margin: float = 0.02
@@ -122,7 +133,7 @@ def shaping_velocities(model: HumanoidModel, q, cop, target, dt: float, recruit:
     n = model.njoints
     I, J = crb_inertia_and_jacobian(model, q)
     omega_d = desired_angular_velocity(cop, target)
-    Id = desired_inertia(I, omega_d, cfg.gain)
+    Id = desired_inertia(I, omega_d, cfg.sign * cfg.gain)
     err = crb_inertia_vector(Id) - crb_inertia_vector(I)
     active = np.ones(n, bool) if recruit is None else np.asarray(recruit, bool).copy()
     qj = np.asarray(q, float)[7:]

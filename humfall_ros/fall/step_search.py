@@ -222,7 +222,7 @@ def _hull_eval(pts: np.ndarray, q: np.ndarray, target: np.ndarray):
 
     Outside the hull, the nearest point of the hull is the nearest point over all segments between
     the set's points (interior chords are never nearer than the boundary), so no hull is built.
-    Inside (q in one of the triangles of the points, Caratheodory), the margin reported is the
+    Inside (no angular gap of pi or more among the points around q), the margin reported is the
     distance to the nearest segment: a lower bound of the depth (a chord may be nearer than the
     boundary), exact when the nearest segment is a hull edge; ``_inside_margin`` gives the exact
     depth (hull edges found by the side test) and is what the tests compare against.
@@ -241,15 +241,11 @@ def _hull_eval(pts: np.ndarray, q: np.ndarray, target: np.ndarray):
     rows = np.arange(N)
     p2 = q - np.column_stack([dx[rows, k], dy[rows, k]])
     dist = np.sqrt(d2[rows, k])
-    # inside: in some triangle of the points
-    tri = np.array(list(itertools.combinations(range(M), 3)))
-    A, B, C = pts[:, tri[:, 0]], pts[:, tri[:, 1]], pts[:, tri[:, 2]]
-
-    def side(u, w):
-        return (w[..., 0] - u[..., 0]) * (q[1] - u[..., 1]) - (w[..., 1] - u[..., 1]) * (q[0] - u[..., 0])
-
-    s1, s2, s3 = side(A, B), side(B, C), side(C, A)
-    inside = np.any(((s1 >= 0) & (s2 >= 0) & (s3 >= 0)) | ((s1 <= 0) & (s2 <= 0) & (s3 <= 0)), axis=1)
+    # inside: no half-plane through q holds every point, i.e. the largest angular gap of the
+    # points seen from q is below pi (one arctan2 and a sort of M angles per cell)
+    ang = np.sort(np.arctan2(pts[..., 1] - q[1], pts[..., 0] - q[0]), axis=1)
+    gaps = np.diff(ang, axis=1, append=ang[:, :1] + 2 * np.pi)
+    inside = np.max(gaps, axis=1) < np.pi
     # inside: the distance to the nearest segment is a lower bound of the depth (chords are inside)
     margin = np.where(inside, dist, -dist)
     alpha = avoidance_angle(p2, np.broadcast_to(q, p2.shape), np.broadcast_to(target, p2.shape))
@@ -391,7 +387,8 @@ def _single(case: StepCase, poly, q2, target, g_td, cfg: SearchConfig) -> CaseRe
         p2 = near[0]
     else:
         p2 = poly[0]
-    return CaseResult(case, p2, q2.copy(), float(avoidance_angle(p2, q2, target)), False, -float(np.linalg.norm(q2 - p2)),
+    return CaseResult(case, p2, q2.copy(), float(avoidance_angle(p2, q2, target)), False,
+                      -float(np.linalg.norm(q2 - p2)),
                       None, poly, g_td)
 
 
