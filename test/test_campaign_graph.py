@@ -8,6 +8,7 @@ controllers through the bridge's mux): it runs when ``HUMFALL_GRAPH_IDENTITY=1``
 from __future__ import annotations
 
 import os
+import time
 
 import numpy as np
 import pytest
@@ -74,3 +75,21 @@ def test_inprocess_and_graph_give_identical_joint_states_on_10_sampled_trials(tm
             assert a["metrics"]["fell"] == b["metrics"]["fell"]
     finally:
         server.close()
+
+
+def test_hung_graph_trial_is_killed_with_its_nodes(tmp_path, monkeypatch):
+    tag = "graph-timeout-" + tmp_path.name
+    monkeypatch.setenv(TAG_ENV, tag)
+    s = TrialServer(str(tmp_path))
+    try:
+        t0 = time.monotonic()
+        r = s.run(TrialRequest("slow", "standing_push", ["obstacles=[]", "duration=600"], "graph", 8.0, None))
+        assert r["status"] == "timeout" and "time limit" in r["error"]
+        assert "sim_bridge" in r["log_tail"]           # the log shows the nodes it started
+        assert time.monotonic() - t0 < 8.0 + 30.0
+    finally:
+        s.close()
+    deadline = time.monotonic() + 10
+    while tagged_pids(TAG_ENV, tag) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert tagged_pids(TAG_ENV, tag) == []

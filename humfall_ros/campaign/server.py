@@ -183,7 +183,7 @@ def run_graph(req: TrialRequest, runs_dir: str) -> dict:
         print(f"[campaign] trial {req.trial_id} in ROS_DOMAIN_ID={domain}", flush=True)
         status, result = launch.up(req.base_scenario, None, list(req.overrides), runs_dir=req.bag_dir or runs_dir,
                                    record=bool(req.bag_dir), plots=False, quiet=False,
-                                   timeout=req.time_limit_s)
+                                   timeout=req.time_limit_s + 60.0)  # the worker's limit governs
     if status != 0:
         raise RuntimeError(f"humfall up exited with status {status}")
     m = dict(result.get("metrics") or {})
@@ -295,7 +295,10 @@ class TrialServer:
     def kill(self, graceful: bool = False) -> None:
         """Stop the server and everything it started (found by its tag)."""
         if self.proc is not None and self.proc.poll() is None:
-            if graceful:  # graph mode: launch.up stops its nodes on SIGINT
+            if graceful:  # graph mode: launch.up stops its nodes on SIGINT; the closed socket then ends the server
+                if self.conn is not None:
+                    self.conn.close()
+                    self.conn = None
                 self.proc.send_signal(signal.SIGINT)
                 try:
                     self.proc.wait(GRAPH_STOP_GRACE_S)
