@@ -92,6 +92,8 @@ class Observation:
         joint_velocity: measured joint velocities [rad/s], model order.
         state: the estimator's centroidal state of this tick.
         active_source: the mux's source during the tick that ended here ("" or "none": none).
+        joint_targets: the joint position targets the servos tracked during that tick [rad],
+            model order (None if unknown): a source taking over starts from them (bumpless).
         inputs: further per-tick inputs by name (e.g. ``"ftb/status"``, ``"walking/state"``)
             and latched ones (``"fall_event"``, ``"obstacles"``, ``"estop"``), as plain
             dataclasses of the functional core; a node fills them from its messages.
@@ -103,6 +105,7 @@ class Observation:
     state: CentroidalObservation
     active_source: str = ""
     inputs: dict[str, Any] = dataclasses.field(default_factory=dict)
+    joint_targets: np.ndarray | None = None
 
     @property
     def time(self) -> float:

@@ -146,8 +146,9 @@ class ControllerNode(Node):
         for i in self.extra:
             if i.per_tick:
                 extra[i.name] = i.convert(inputs[i.name])
-        return Observation(stamp_ns, q, v, centroidal_from_msg(inputs["centroidal_state"]), inputs["mux"].active,
-                           extra)
+        mux = inputs["mux"]
+        return Observation(stamp_ns, q, v, centroidal_from_msg(inputs["centroidal_state"]), mux.active, extra,
+                           joint_targets=np.array(mux.targets, dtype=float) if len(mux.targets) else None)
 
     # ------------------------------------------------------------ the tick
     def _on_batch(self) -> None:

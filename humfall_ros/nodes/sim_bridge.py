@@ -342,6 +342,7 @@ class SimBridge(Node):
         mux.header.stamp = st
         mux.active, mux.holding = self.decision.source or "none", self.decision.holding
         mux.engaged = [s for s in self.mux.sources if self.mux.engaged[s]]
+        mux.targets = w.targets.tolist()
         self._pub(self.pub_mux, mux)
         r = self.sensors.read()
         js = self._js

@@ -118,6 +118,7 @@ class ClosedLoop:
         self._truth = CentroidalEstimator(self.model, contact_force=est["contact_force"]) if track_errors else None
         self.tilt_limit = np.radians(trunk_tilt_limit_deg)
         self.errors: dict[str, float] = {}
+        self._past_tilt_limit = False
         self.joint_positions: list[np.ndarray] = []
         self.active_sources: list[str] = []
         self.outputs: dict[str, list] = {m.name: [] for m in self.monitors}
@@ -136,14 +137,17 @@ class ClosedLoop:
                                   r.wrenches)
         self.joint_positions.append(r.joint_position)
         self.active_sources.append(self.active)
-        if self.track_errors and w.trunk_tilt() < self.tilt_limit and w.time > 0.05:  # skip the first settling
+        if self.track_errors and not self._past_tilt_limit and w.trunk_tilt() >= self.tilt_limit:
+            self._past_tilt_limit = True  # compared until the trunk first passes the limit, not after a rebound
+        if self.track_errors and not self._past_tilt_limit and w.time > 0.05:  # skip the first settling
             qj, vj, _ = w.joint_states()
             g = self._truth.update(w.time, qj, vj, r.imu_orientation, r.gyro, r.wrenches,
                                    base_truth=w.base_state())
             for k, v in estimate_error(e, g).items():
                 self.errors[k] = max(self.errors.get(k, 0.0), v)
         obs = Observation(stamp, np.asarray(r.joint_position, float), np.asarray(r.joint_velocity, float),
-                          centroidal_from_estimate(e), self.active, {"obstacles": self.obstacles})
+                          centroidal_from_estimate(e), self.active, {"obstacles": self.obstacles},
+                          joint_targets=np.array(w.targets, dtype=float))
         for m in self.monitors:
             value = m.step(obs)
             obs.inputs[m.name] = value

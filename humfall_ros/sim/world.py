@@ -48,7 +48,8 @@ STANDING_POSTURE = _STANDING_POSTURE  # the model's (kept importable from here)
 class SimWorld:
     def __init__(self, physics_rate: float = 1000.0, control_rate: float = 500.0,
                  friction: float = 0.9, position_gain: float = 0.3, velocity_gain: float = 1.0,
-                 model: HumanoidModel | None = None, initial_posture: dict | None = None):
+                 model: HumanoidModel | None = None, initial_posture: dict | None = None,
+                 enforce_velocity_limits: bool = True):
         if physics_rate % control_rate:
             raise ValueError("physics_rate must be an integer multiple of control_rate")
         self.physics_rate = float(physics_rate)
@@ -58,6 +59,7 @@ class SimWorld:
         self.friction = friction
         self.position_gain = position_gain
         self.velocity_gain = velocity_gain
+        self.enforce_velocity_limits = enforce_velocity_limits
         self.model = model or load_model()
         self.initial_posture = dict(STANDING_POSTURE if initial_posture is None else initial_posture)
         self.client = pb.connect(pb.DIRECT)
@@ -82,6 +84,12 @@ class SimWorld:
         for link in range(-1, pb.getNumJoints(self.robot, physicsClientId=c)):
             pb.changeDynamics(self.robot, link, lateralFriction=self.friction, linearDamping=0.0,
                               angularDamping=0.0, physicsClientId=c)
+        if self.enforce_velocity_limits:
+            # real actuators cannot exceed their speed: the URDF velocity limits (which paper 1's
+            # stepping zone, eq. 8, is computed from) bound every joint in the solver
+            for name, limit in zip(self.model.joint_names, self.model.limits.velocity):
+                pb.changeDynamics(self.robot, self.joint_ids[name], maxJointVelocity=float(limit),
+                                  physicsClientId=c)
         q_joints = self.model.joint_vector(self.initial_posture)
         base_z = self.standing_base_height(q_joints)
         pb.resetBasePositionAndOrientation(self.robot, [0, 0, base_z], [0, 0, 0, 1], physicsClientId=c)
