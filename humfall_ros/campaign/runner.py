@@ -125,21 +125,21 @@ def run_campaign(spec: CampaignSpec, opts: RunOptions | None = None) -> Campaign
     interrupted = False
     ran = 0
     t0 = time.monotonic()
+    startup = 0.0
     bar = None
     old_term = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM: same clean stop as Ctrl-C
     try:
+        if todo:
+            executor = _make_executor(opts, str(log_dir), mode)
+            startup = time.monotonic() - t0
+            t0 = time.monotonic()      # the campaign's wall time counts from a running executor
         if opts.progress:
             from tqdm import tqdm
 
+            # resumed trials are done from the start and do not count in the rate or the ETA
             bar = tqdm(total=study.total, initial=resumed, unit="trial", desc=spec.name, dynamic_ncols=True,
                        file=sys.stderr, smoothing=0.05)
         while todo or (executor is not None and executor.in_flight()):
-            if todo and executor is None:
-                executor = _make_executor(opts, str(log_dir), mode)
-                t0 = time.monotonic()
-                if bar is not None:
-                    bar.reset(total=study.total)   # the rate and ETA count from here
-                    bar.update(resumed)
             while todo and executor.in_flight() < executor.capacity:
                 t = todo.popleft()
                 executor.submit(t, _request(t, spec, mode, bag_dir))
@@ -173,6 +173,7 @@ def run_campaign(spec: CampaignSpec, opts: RunOptions | None = None) -> Campaign
         wall = time.monotonic() - t0
         store.finish_session(ran=ran, interrupted=interrupted, wall_s=round(wall, 3),
                              executor=opts.executor, workers=getattr(executor, "workers", None),
+                             executor_startup_s=round(startup, 2),
                              status_counts=dict(counts))
         signal.signal(signal.SIGTERM, old_term)
         signal.signal(signal.SIGINT, old_int)
