@@ -10,15 +10,25 @@ import numpy as np
 import pytest
 
 from humfall_ros.multicontact import contacts as C
-from humfall_ros.multicontact.collocation import OptConfig, Segment
+from humfall_ros.multicontact.collocation import Segment
 from humfall_ros.multicontact.modes import Environment
-from humfall_ros.multicontact.planner import FallPlanner, PlannerConfig
+from humfall_ros.multicontact.planner import FallPlanner
 from humfall_ros.multicontact.resim import dense_check, forward_resim, plan_check
+
+
+# today's planner before issue 14, kept as an option: the post-impact objective and frontier key
+# (departures from paper 2, Sec. III-A), landings not limited
+DEPARTURE = {"transition_objective": "post_impact", "frontier_order": "post_impact", "landing_policy": "ignore"}
 
 
 @pytest.fixture(scope="module")
 def planner():
-    return FallPlanner(OptConfig(), PlannerConfig())
+    return FallPlanner.from_params()          # config/multicontact_planner.yaml: the paper's objective
+
+
+@pytest.fixture(scope="module")
+def departure_planner():
+    return FallPlanner.from_params(**DEPARTURE)
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +79,7 @@ def test_returned_plan_passes_independent_resimulation(plan10, planner):
 
 
 def test_infeasible_push_fails_clearly_within_budget():
-    planner = FallPlanner(OptConfig(nlp_max_wall_time=3.0, max_iter=60), PlannerConfig())
+    planner = FallPlanner.from_params(nlp_max_wall_time=3.0, max_iter=60)
     budget = 4.0
     r = planner.plan({"kinetic_energy": 160.0, "direction": 1.0, "time_budget": budget})
     assert not r["success"]
@@ -84,6 +94,7 @@ def test_invalid_request_answers_without_planning(planner):
 
 
 def test_seed_durations_first_then_retry_list_on_the_grid():
+    from humfall_ros.multicontact.collocation import OptConfig
     cfg = OptConfig(seed_first_duration=0.8, seed_retry_durations=(0.5, 1.2, 0.25, 2.0), max_seed_attempts=3)
     grid = np.linspace(cfg.t_min, cfg.t_max, cfg.n_seed_durations)
     d = cfg.seed_durations()
@@ -91,13 +102,20 @@ def test_seed_durations_first_then_retry_list_on_the_grid():
     assert all(np.min(np.abs(grid - x)) < 1e-12 for x in d)      # on the N_tot grid (Sec. III-D)
     assert len(set(d)) == len(d)
     assert OptConfig(max_seed_attempts=1).seed_durations() == d[:1]
+    # a release has its own T_min and seeds
+    rel = OptConfig(release_t_min=0.05, release_seed_durations=(0.1, 0.25, 0.0))
+    dr = rel.seed_durations("remove")
+    assert len(dr) == 2 and dr[0] == pytest.approx(0.1, abs=0.05) and min(dr) >= 0.05
+    assert rel.seed_durations("add") == d and rel.t_min_of("remove") == 0.05 and rel.t_min_of("add") == 0.25
 
 
-def test_60J_hand_landing_keeps_post_impact_joint_speeds_within_limits(planner):
-    """60 J had no plan while the impact map (eq. 10) could throw the landing arm
-    to 2.6 v_max; with eq. 6 applied to the post-impact state the hand landing
-    is a plan, every node on the path starts within the joint speed limits, and
-    the plan passed the re-simulation acceptance check."""
+def test_60J_hand_landing_keeps_post_impact_joint_speeds_within_limits(departure_planner):
+    """With the departure objective (post-impact energy): 60 J had no plan while the
+    impact map (eq. 10) could throw the landing arm to 2.6 v_max; with eq. 6 applied
+    to the post-impact state the hand landing is a plan, every node on the path
+    starts within the joint speed limits, and the plan passed the re-simulation
+    acceptance check. Its landing report shows the hard landing issue 14 is about."""
+    planner = departure_planner
     r = planner.plan({"kinetic_energy": 60.0, "direction": 1.0, "time_budget": 90.0})
     assert r["success"], r["reason"]
     assert r["final_ke"] < planner.opt.cfg.eps_ke
@@ -115,6 +133,14 @@ def test_60J_hand_landing_keeps_post_impact_joint_speeds_within_limits(planner):
     assert added and all(nodes[i]["pre_impact_ke"] >= nodes[i]["ke"] - 1e-6 for i in added)
     # the landing limb takes a pushing (>= 0) normal impulse, and some: a contact was made at speed
     assert all(nodes[i]["landing_impulse"] > 0 for i in added)
+    # landing severity (eq. 10): the report agrees with the tree's own impact map
+    lands = r["landings"]
+    assert len(lands) == len(added) and lands[0].limb in ("LH", "RH")
+    assert lands[0].pre_impact_ke == pytest.approx(nodes[added[0]]["pre_impact_ke"])
+    assert lands[0].post_impact_ke == pytest.approx(nodes[added[0]]["ke"])
+    assert lands[0].absorbed_energy == pytest.approx(lands[0].pre_impact_ke - lands[0].post_impact_ke)
+    assert lands[0].normal_speed > planner.opt.cfg.landing_limits.hand_normal_speed_max   # a hard landing
+    assert not r["landings_within_limits"]
     log = r["tree"]["nlp_log"]
     assert log[-1]["plan_check"] == "passed"
     assert all(len(e["attempt_log"]) == e["attempts"] >= 1 for e in log)
@@ -175,3 +201,26 @@ def test_80J_hand_support_is_consistent_but_holds_only_under_tracking(planner):
     assert tracked["tracked_end_q_error_max"] < 0.1 and tracked["tracked_end_ke"] < 0.1, tracked
     assert "knot-to-knot error" in plan_check(model, [seg], env, 0.1, 1.0)
     assert plan_check(model, [seg], env, 0.1, 1.0, feedback_omega=40.0) is None
+
+
+def test_paper_objective_lands_the_hand_with_less_energy_than_the_departure(planner, departure_planner):
+    """Sec. III-A: a contact-adding transition minimises the pre-impact energy. The
+    same hand landing from the same 30 J state, with both objectives: the paper's
+    arrives with less energy and more slowly; the departure (post-impact energy)
+    arrives harder and lets the impact of eq. 10 absorb more."""
+    from humfall_ros.multicontact.landing import landing_report
+    from humfall_ros.multicontact.planner import validate
+
+    model, env = planner.model, Environment()
+    vr = validate(model, {"kinetic_energy": 30.0, "direction": 1.0}, planner.cfg)
+    target = ("LF", "RF", "LH")
+    reps = {}
+    for name, p in (("paper", planner), ("departure", departure_planner)):
+        seg = p.opt.opt_transition_motion(vr.q, vr.v, vr.mode, target, env)
+        assert seg.success, (name, seg.status)
+        reps[name], _ = landing_report(model, seg.q[-1], seg.v[-1], target, "LH", env)
+        assert seg.objective == pytest.approx(reps[name].pre_impact_ke if name == "paper"
+                                              else reps[name].post_impact_ke, rel=1e-3, abs=1e-3)
+    assert reps["paper"].pre_impact_ke < reps["departure"].pre_impact_ke
+    assert reps["paper"].absorbed_energy < reps["departure"].absorbed_energy
+    assert reps["paper"].normal_speed < reps["departure"].normal_speed

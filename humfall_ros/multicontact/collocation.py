@@ -19,8 +19,8 @@ the planar case), eq. 6 (joint, velocity and torque limits from the URDF).
 Objective eq. 9: kinetic energy at the last knot, plus a tiny torque
 regulariser that only breaks ties. For an added contact the impact map (eq. 10)
 is part of the NLP (post-impact velocity and impulse are variables) and the
-objective blends pre- and post-impact energy (``impact_dissipation_weight``;
-Sec. III-A uses the pre-impact one, our default the post-impact one), with
+objective is the pre-impact energy (Sec. III-A; ``transition_objective``
+'post_impact', the energy after the impact, is kept as a departure), with
 eq. 6 applied to the post-impact velocities too: they start the child's
 segments (docs/multicontact.md has the measurements behind both choices).
 
@@ -41,8 +41,17 @@ import casadi as ca
 import numpy as np
 
 from humfall_ros.multicontact import contacts as C
-from humfall_ros.multicontact.model import EXTREMITIES, PlanarModel
-from humfall_ros.multicontact.modes import Environment, Mode, make_mode, mode_label, parse_mode
+from humfall_ros.multicontact.landing import LandingLimits
+from humfall_ros.multicontact.model import EXTREMITIES, FEET, PlanarModel
+from humfall_ros.multicontact.modes import (
+    Environment,
+    Mode,
+    make_mode,
+    mode_label,
+    parse_mode,
+)
+
+TRANSITION_OBJECTIVES = ("pre_impact", "post_impact")
 
 
 @dataclasses.dataclass
@@ -88,28 +97,66 @@ class OptConfig:
     elbow_margin: float = 0.0
     contact_pos_tol: float = 0.002   # m, eq. 3 at the knots (drift bound)
     contact_vel_tol: float = 0.02    # m/s, eq. 4 at the knots
-    nlp_max_wall_time: float = 20.0
-    # Objective of a transition that adds a contact: E_post + beta (E_pre - E_post).
-    # beta = 1: pre-impact energy (the paper, Sec. III-A); beta = 0: the energy
-    # the child node starts with.
-    impact_dissipation_weight: float = 0.0
+    nlp_max_wall_time: float = 10.0
+    # Objective of a transition that adds a contact (Sec. III-A): 'pre_impact' (the
+    # paper: E_K just before the impact) or 'post_impact' (departure, the energy the
+    # child node starts with: makes the rigid impact of eq. 10 a free energy sink).
+    transition_objective: str = "pre_impact"
+    # T_min of a transition that removes a contact (s; <= 0: t_min). A release is
+    # a lift-off: it has no reason to last as long as the shortest landing.
+    release_t_min: float = 0.0
+    # seed durations of a release (s; values <= 0 dropped; empty: the general list). Tried in order.
+    release_seed_durations: tuple = ()
+    # foot landing seeds: the seed goal puts the landing foot's toe this far past
+    # the capture point of the pushed state (m; nan: the paper's seed, the goal
+    # projection alone decides)
+    step_seed_capture_offset: float = float("nan")
+    # touchdown normal speed of the landing limb as a constraint of the NLP (limits
+    # from ``landing_limits``); off: the limits only rank plans (tree.py)
+    touchdown_speed_constraint: bool = False
+    # a foot landing must put the post-impact capture point at least this far inside
+    # the landing foot (behind its toe for a forward fall): looks beyond the edge, which
+    # eq. 9 does not (departure from the paper, off by default)
+    step_capture_constraint: bool = False
+    step_capture_margin: float = 0.0
+    landing_limits: LandingLimits = dataclasses.field(default_factory=LandingLimits)
+
+    def __post_init__(self):
+        if self.transition_objective not in TRANSITION_OBJECTIVES:
+            raise ValueError(f"transition_objective {self.transition_objective!r} is not one of "
+                             f"{', '.join(TRANSITION_OBJECTIVES)}")
+        self.seed_retry_durations = tuple(float(x) for x in self.seed_retry_durations)
+        self.release_seed_durations = tuple(float(x) for x in self.release_seed_durations if float(x) > 0)
 
     @staticmethod
-    def from_dict(d: dict) -> "OptConfig":
+    def from_params(d: dict) -> OptConfig:
+        """From a dict of OptConfig field names (e.g. split out of the node's
+        declaration by ``planner.configs_from_params``); unknown keys are refused."""
         names = {f.name for f in dataclasses.fields(OptConfig)}
-        return OptConfig(**{k: v for k, v in d.items() if k in names})
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"OptConfig: unknown keys {sorted(unknown)}")
+        return OptConfig(**d)
 
-    def seed_durations(self) -> list[float]:
+    def t_min_of(self, change: str) -> float:
+        """T_min of a segment of this kind (s)."""
+        return self.release_t_min if change == "remove" and self.release_t_min > 0 else self.t_min
+
+    def seed_durations(self, change: str = "") -> list[float]:
         """Seed durations in the order they are tried (Sec. III-D).
 
         The paper sweeps the whole N_tot grid by increasing duration until a
         seed converges. T is a decision variable here, so a handful suffices:
         ``seed_first_duration`` first, then ``seed_retry_durations``, each
         snapped to the grid, duplicates dropped, at most ``max_seed_attempts``.
+        A release (``change == 'remove'``) uses ``release_seed_durations`` when
+        given, on a grid that starts at its own T_min.
         """
-        grid = np.linspace(self.t_min, self.t_max, max(2, self.n_seed_durations))
+        grid = np.linspace(self.t_min_of(change), self.t_max, max(2, self.n_seed_durations))
+        wanted = (self.release_seed_durations if change == "remove" and self.release_seed_durations
+                  else (self.seed_first_duration, *self.seed_retry_durations))
         out: list[float] = []
-        for d in (self.seed_first_duration, *self.seed_retry_durations):
+        for d in wanted:
             g = float(grid[int(np.argmin(np.abs(grid - d)))])
             if g not in out:
                 out.append(g)
@@ -163,7 +210,7 @@ class Segment:
         }
 
     @staticmethod
-    def from_dict(d: dict) -> "Segment":
+    def from_dict(d: dict) -> Segment:
         """Inverse of ``to_dict`` (a stored plan re-checked or re-plotted later)."""
         arrays = {k: np.asarray(d[k], float) for k in ("time", "q", "v", "a", "u", "lam", "ke")}
         if arrays["lam"].ndim == 1:      # no contact rows: keep the (Nd, 0) shape
@@ -247,9 +294,9 @@ class SegmentNLP:
         knots = []
         for k in range(N):
             o = 1 + k * nk
-            knots.append(dict(q=w[o:o + n], v=w[o + n:o + 2 * n], a=w[o + 2 * n:o + 3 * n],
-                              u=ca.DM(self.u_scale) * w[o + 3 * n:o + 3 * n + m],
-                              l=self.f_scale * w[o + 3 * n + m:o + nk]))
+            knots.append({"q": w[o:o + n], "v": w[o + n:o + 2 * n], "a": w[o + 2 * n:o + 3 * n],
+                          "u": ca.DM(self.u_scale) * w[o + 3 * n:o + 3 * n + m],
+                          "l": self.f_scale * w[o + 3 * n + m:o + nk]})
         dyn_scale = 1.0 / self.f_scale
         g, self.g_tags = [], []  # tags: (block, knot, index-in-block)
 
@@ -317,11 +364,32 @@ class SegmentNLP:
             # eq. 10: D (v+ - v-) = J^T Lambda, J v+ = 0
             add("impact", N - 1, (model.f_D(qN) @ (v_plus - vN) - Jt.T @ imp) / self.imp_scale)
             add("impact_vel", N - 1, Jt @ v_plus)
-            # blend: beta = 1 is the paper's pre-impact energy, beta = 0 the
-            # energy left after the impact; in between, the energy the impact
-            # dissipates is charged at rate beta (a hard landing is not free)
             ke_post = model.f_ke(qN, v_plus)
-            ke = ke_post + cfg.impact_dissipation_weight * (ke - ke_post)
+            self.ke_post = ke_post
+            # Sec. III-A: the pre-impact energy (default); 'post_impact' is the
+            # departure that lets the rigid impact take the energy out for free
+            if cfg.transition_objective == "post_impact":
+                ke = ke_post
+            # touchdown velocity of the landing limb's points along the surface
+            # normal (bounded in ``bounds`` when touchdown_speed_constraint)
+            surf = env_shape.surface_of(key.extremity)
+            nd = C.row_direction(C.ContactRow(key.extremity, key.extremity, surf, "n"))
+            pts = [f"{key.extremity}_toe", f"{key.extremity}_heel"] if key.extremity in FEET else [key.extremity]
+            add("touchdown", N - 1, ca.vertcat(*[
+                ca.mtimes(nd[0] * model.f_point_jac[p](qN)[0, :] + nd[1] * model.f_point_jac[p](qN)[1, :], vN)
+                for p in pts]))
+            if key.extremity in FEET:
+                # capture point after the impact relative to the landing foot: rows
+                # (toe x - x_cp, x_cp - heel x); ``bounds`` asks the row of the push's
+                # direction to be >= step_capture_margin when step_capture_constraint
+                qs, vs = ca.SX.sym("q", n), ca.SX.sym("v", n)
+                cs = model.f_com(qs)
+                f_cp = ca.Function("cp", [qs, vs], [cs[0] + ca.mtimes(ca.jacobian(cs[0], qs), vs)
+                                                    * ca.sqrt(ca.fmax(cs[1], 1e-3) / 9.81)])
+                cp = f_cp(qN, v_plus)
+                toe = model.f_point[f"{key.extremity}_toe"](qN)[0]
+                heel = model.f_point[f"{key.extremity}_heel"](qN)[0]
+                add("capture", N - 1, ca.vertcat(toe - cp, cp - heel))
         reg = 0
         freg = 0
         for k in range(N):
@@ -397,7 +465,7 @@ class SegmentNLP:
         n, m, N = model.n, model.m, key.n_knots
         lbx = np.full(self.nw, -np.inf)
         ubx = np.full(self.nw, np.inf)
-        lbx[0], ubx[0] = cfg.t_min, cfg.t_max
+        lbx[0], ubx[0] = cfg.t_min_of(key.change), cfg.t_max
         for k, (a, b) in enumerate(self.knot_slices):
             o = a
             # q
@@ -467,6 +535,16 @@ class SegmentNLP:
         if len(idx):
             lo, hi = self._clearance_bounds(q0, env)
             lbg[idx], ubg[idx] = lo, hi
+        idx = self._block_idx.get("capture", np.array([], int))
+        if len(idx):
+            lbg[idx], ubg[idx] = -np.inf, np.inf
+            if cfg.step_capture_constraint:
+                forward = capture_point(model, q0, v0) >= model.com(q0)[0]
+                lbg[idx[0 if forward else 1]] = cfg.step_capture_margin
+        idx = self._block_idx.get("touchdown", np.array([], int))
+        if len(idx):   # normal velocity (surface normal points out of it): > -v_max, i.e. approach < v_max
+            vlim = cfg.landing_limits.speed_max(key.extremity) if cfg.touchdown_speed_constraint else np.inf
+            lbg[idx], ubg[idx] = -vlim, np.inf
         return lbx, ubx, lbg, ubg
 
     def _clearance_bounds(self, q0, env: Environment):
@@ -585,6 +663,17 @@ def parabolic_seed(model: PlanarModel, q0, v0, qg, T, N, rows):
     return t, q, v, a, u, lam
 
 
+def capture_point(model: PlanarModel, q, v) -> float:
+    """Instantaneous capture point x_com + xdot_com / omega, omega = sqrt(g / z_com) [m]
+    (linear inverted pendulum over the ground; the step seed's reference)."""
+    q = np.asarray(q, float)
+    v = np.asarray(v, float)
+    eps = 1e-6
+    c = model.com(q)
+    dc = (model.com(q + eps * v) - model.com(q - eps * v)) / (2 * eps)
+    return float(c[0] + dc[0] / math.sqrt(9.81 / max(c[1], 1e-3)))
+
+
 # -------------------------------------------------------------- optimiser
 class TrajectoryOptimizer:
     """opt_self_motion / opt_transition_motion with cached NLP structures."""
@@ -653,12 +742,19 @@ class TrajectoryOptimizer:
         # bounds: goal rows anchored like the NLP's last knot
         lbg, ubg = [], []
         anchors = C.rows_value(self.model, proj.goal_rows, q0)
+        step_x = None
+        if math.isfinite(self.cfg.step_seed_capture_offset):
+            landing = [e for e in goal_mode if e not in mode and e in FEET]
+            if landing:
+                step_x = capture_point(self.model, q0, v0) + self.cfg.step_seed_capture_offset
         for i, r in enumerate(proj.goal_rows):
             if r.axis == "n":
                 val = -(env.wall_x) if r.surface == "wall" else 0.0
                 lbg.append(val); ubg.append(val)
             elif r.extremity in mode:
                 lbg.append(anchors[i]); ubg.append(anchors[i])
+            elif step_x is not None:   # the landing foot's toe past the capture point (a step seed)
+                lbg.append(step_x); ubg.append(step_x + 0.1)
             else:
                 lbg.append(-np.inf); ubg.append(np.inf)
         lo, hi = nlp._clearance_bounds(q0, env)
@@ -700,12 +796,12 @@ class TrajectoryOptimizer:
         best = None
         attempts = 0
         log = []
-        for T in cfg.seed_durations():
+        for T in cfg.seed_durations(change):
             if deadline is not None and time.perf_counter() >= deadline:
                 break
             attempts += 1
             t_a = time.perf_counter()
-            nlp, (t, q, v, a, u, lam), _ = self.seed(q0, v0, mode, change, ext, env, T)
+            nlp, (_, q, v, a, u, lam), _ = self.seed(q0, v0, mode, change, ext, env, T)
             lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env)
             w0 = np.clip(nlp.pack(T, q, v, a, u, lam), lbx, ubx)
             with nlp.lock:
@@ -752,6 +848,38 @@ class TrajectoryOptimizer:
         best.attempts = attempts
         best.attempt_log = log
         return best
+
+    def warm_solve(self, q0, v0, guess: Segment, env: Environment) -> Segment:
+        """Re-solve ``guess``'s NLP (same mode and contact change) from a new initial
+        state, with ``guess``'s knots, torques and forces as the initial point: one
+        IPOPT run, no seed sweep (the online re-plan from a library of plans; paper 2,
+        Sec. V names such a database as future work). The first knot is the new state
+        (the bounds fix it); the rest of the guess is used as it is."""
+        q0 = np.asarray(q0, float)
+        v0 = np.asarray(v0, float)
+        t0, c0 = time.perf_counter(), time.thread_time()
+        nlp, _ = self.structures(guess.mode, guess.change, guess.extremity, env)
+        build_time = time.perf_counter() - t0
+        lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env)
+        q, v = guess.q.copy(), guess.v.copy()
+        q[0], v[0] = q0, v0
+        w0 = np.clip(nlp.pack(float(guess.time[-1]), q, v, guess.a, guess.u, guess.lam), lbx, ubx)
+        with nlp.lock:
+            sol = nlp.solver(x0=w0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
+            stats = dict(nlp.solver.stats())
+        w = np.array(sol["x"]).ravel()
+        viol = nlp.violation(w, lbx, ubx, lbg, ubg)
+        ok = stats["return_status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level") \
+            and viol <= self.cfg.feasibility_tol
+        seg = self._segment(nlp, w, guess.mode, guess.target_mode, guess.change, guess.extremity, ok, stats,
+                            float(guess.time[-1]), viol)
+        seg.objective = float(nlp.f_ke_end(w))
+        seg.nlp_time, seg.build_time, seg.cpu_time = time.perf_counter() - t0, build_time, time.thread_time() - c0
+        seg.attempt_log = [{"seed_T": "warm", "status": seg.status, "iterations": seg.iterations,
+                            "time": round(seg.nlp_time, 3), "objective": round(seg.objective, 4),
+                            "final_ke": round(seg.final_ke, 4), "T": round(float(seg.time[-1]), 4),
+                            "violation": viol, "success": bool(ok), "warm_restarts": 0}]
+        return seg
 
     def _segment(self, nlp, w, mode, target, change, ext, ok, stats, T_seed, viol) -> Segment:
         T, q, v, a, u, lam = nlp.unpack(w)

@@ -98,7 +98,7 @@ def friction_groups(rows: list[ContactRow]) -> list[tuple[int, list[int]]]:
     for i, r in enumerate(rows):
         t, n = by_ext.setdefault(r.extremity, ([], []))
         (t if r.axis == "t" else n).append(i)
-    for e, (t, n) in by_ext.items():
+    for t, n in by_ext.values():
         groups.append((t[0], n))
     return groups
 

@@ -287,7 +287,7 @@ class PlanarModel:
             if b.parent > 0:
                 segs.append((pos[b.parent], pos[b.joint]))
         for nm, (j, off) in self.points.items():
-            if nm in ("LH", "RH") or nm.endswith("_toe") or nm.endswith("_heel") or nm == "head":
+            if nm in ("LH", "RH") or nm.endswith(("_toe", "_heel")) or nm == "head":
                 segs.append((pos[j], self.point(nm, q)))
         for ext in FEET:
             segs.append((self.point(f"{ext}_toe", q), self.point(f"{ext}_heel", q)))

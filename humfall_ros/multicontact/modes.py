@@ -72,6 +72,6 @@ class Environment:
         return "wall"
 
     @staticmethod
-    def from_distance(wall_distance: float) -> "Environment":
+    def from_distance(wall_distance: float) -> Environment:
         """Request convention: wall_distance <= 0 means no wall."""
         return Environment(float(wall_distance) if wall_distance and wall_distance > 0 else None)

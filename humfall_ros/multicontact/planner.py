@@ -18,7 +18,11 @@ import numpy as np
 
 from humfall_ros.multicontact import contacts as C
 from humfall_ros.multicontact.collocation import OptConfig, TrajectoryOptimizer
-from humfall_ros.multicontact.initial_state import nominal_configuration, velocity_for_energy
+from humfall_ros.multicontact.initial_state import (
+    nominal_configuration,
+    velocity_for_energy,
+)
+from humfall_ros.multicontact.landing import LandingLimits
 from humfall_ros.multicontact.model import EXTREMITIES, FEET, PlanarModel, load_model
 from humfall_ros.multicontact.modes import Environment, mode_label, parse_mode
 from humfall_ros.multicontact.resim import plan_check
@@ -43,12 +47,62 @@ class PlannerConfig:
     # (rad/s) reproduces it with at most check_feedback_max of a joint's torque limit as feedback
     check_feedback_omega: float = 40.0
     check_feedback_max: float = 0.5
+    # frontier key of a child reached by a landing: 'pre_impact' (Alg. 1 line 20, the
+    # paper) or 'post_impact' (departure); landings beyond the limits: rank_last | refuse | ignore
+    frontier_order: str = "pre_impact"
+    landing_policy: str = "rank_last"
     stance: dict = dataclasses.field(default_factory=dict)
 
     @staticmethod
-    def from_dict(d: dict) -> "PlannerConfig":
+    def from_params(d: dict) -> PlannerConfig:
+        """From a dict of PlannerConfig field names; unknown keys are refused."""
         names = {f.name for f in dataclasses.fields(PlannerConfig)}
-        return PlannerConfig(**{k: v for k, v in d.items() if k in names})
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"PlannerConfig: unknown keys {sorted(unknown)}")
+        return PlannerConfig(**d)
+
+
+# parameters of config/multicontact_planner.yaml that only the node uses
+NODE_ONLY_PARAMS = ("queue_size", "warm_up")
+_LANDING_PARAMS = {"landing_hand_normal_speed_max": "hand_normal_speed_max",
+                   "landing_foot_normal_speed_max": "foot_normal_speed_max",
+                   "landing_hand_energy_max": "hand_energy_max",
+                   "landing_foot_energy_max": "foot_energy_max"}
+
+
+def configs_from_params(values: dict) -> tuple[OptConfig, PlannerConfig]:
+    """(OptConfig, PlannerConfig) from the flat parameters of config/multicontact_planner.yaml
+    (``humfall_ros.params.defaults("multicontact_planner")`` or the node's declared values).
+
+    ``stance_<joint>`` go to ``PlannerConfig.stance``, ``landing_*`` to
+    ``OptConfig.landing_limits``, ``step_seed_at_capture_point`` gates
+    ``step_seed_capture_offset``; a name neither dataclass knows is refused
+    (ValueError), except the node's own (``NODE_ONLY_PARAMS``)."""
+    opt_names = {f.name for f in dataclasses.fields(OptConfig)}
+    plan_names = {f.name for f in dataclasses.fields(PlannerConfig)} - {"stance"}
+    opt, plan, stance, limits = {}, {}, {}, {}
+    unknown = []
+    step_seed = bool(values.get("step_seed_at_capture_point", False))
+    for k, v in values.items():
+        if k in NODE_ONLY_PARAMS or k == "step_seed_at_capture_point":
+            continue
+        if k.startswith("stance_"):
+            stance[k.removeprefix("stance_")] = v
+        elif k in _LANDING_PARAMS:
+            limits[_LANDING_PARAMS[k]] = float(v)
+        elif k in opt_names:
+            opt[k] = tuple(v) if isinstance(v, list) else v
+        elif k in plan_names:
+            plan[k] = v
+        else:
+            unknown.append(k)
+    if unknown:
+        raise ValueError(f"multicontact_planner parameters: unknown {sorted(unknown)}")
+    if "step_seed_capture_offset" in opt and not step_seed:
+        opt["step_seed_capture_offset"] = float("nan")
+    opt["landing_limits"] = LandingLimits(**limits)
+    return OptConfig.from_params(opt), PlannerConfig.from_params({**plan, "stance": stance})
 
 
 @dataclasses.dataclass
@@ -160,6 +214,19 @@ class FallPlanner:
         self.cfg = cfg or PlannerConfig()
         self.opt = TrajectoryOptimizer(self.model, opt_cfg or OptConfig())
 
+    @staticmethod
+    def from_params(values: dict | None = None, **overrides) -> FallPlanner:
+        """A planner built from the node's declaration (config/multicontact_planner.yaml),
+        ``overrides`` by parameter name on top (the way tests and benchmarks build it)."""
+        from humfall_ros import params
+        vals = params.defaults("multicontact_planner") if values is None else dict(values)
+        unknown = set(overrides) - set(vals)
+        if unknown:
+            raise ValueError(f"multicontact_planner has no parameters {sorted(unknown)}")
+        vals.update(overrides)
+        opt, cfg = configs_from_params(vals)
+        return FallPlanner(opt, cfg)
+
     def plan(self, req: dict) -> dict:
         t0 = time.perf_counter()
         try:
@@ -173,7 +240,8 @@ class FallPlanner:
                                   self.cfg.check_force_error_max_mg, self.cfg.check_feedback_omega,
                                   self.cfg.check_feedback_max)
         res = search(self.opt, vr.q, vr.v, vr.mode, vr.env, max_depth=self.cfg.max_depth,
-                     time_budget=vr.time_budget, symmetry_cut=self.cfg.symmetry_cut, check_plan=check)
+                     time_budget=vr.time_budget, symmetry_cut=self.cfg.symmetry_cut, check_plan=check,
+                     frontier_order=self.cfg.frontier_order, landing_policy=self.cfg.landing_policy)
         out = result_dict(self.model, res, vr)
         out["total_time_s"] = time.perf_counter() - t0
         return out
@@ -182,7 +250,7 @@ class FallPlanner:
 def failure(reason: str, elapsed: float = 0.0) -> dict:
     return {"success": False, "reason": reason, "contact_sequence": [], "node_ke": [], "final_ke": float("nan"),
             "segments": [], "nlp_times_s": [], "nlp_cpu_s": [], "nlp_build_s": [], "total_time_s": elapsed,
-            "nlp_count": 0, "tree_nodes": 0,
+            "nlp_count": 0, "tree_nodes": 0, "landings": [], "landings_within_limits": False,
             "deepest_depth": 0, "tree": None, "initial_ke": float("nan")}
 
 
@@ -196,5 +264,7 @@ def result_dict(model: PlanarModel, res: SearchResult, vr: ValidRequest) -> dict
         "nlp_build_s": [e["build_time"] for e in res.nlp_log],
         "total_time_s": res.total_time, "nlp_count": len(res.nlp_log), "tree_nodes": len(res.nodes),
         "deepest_depth": res.deepest_depth, "tree": res.tree_dict(with_trajectories=False),
+        "landings": res.landings(),
+        "landings_within_limits": bool(res.success and all(x.within_limits for x in res.landings())),
         "search": res, "env": vr.env, "wall_x": vr.env.wall_x,
     }

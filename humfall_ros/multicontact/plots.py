@@ -9,11 +9,11 @@ import os
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from humfall_ros.multicontact.model import PlanarModel  # noqa: E402
-from humfall_ros.multicontact.modes import parse_mode  # noqa: E402
+from humfall_ros.multicontact.model import PlanarModel
+from humfall_ros.multicontact.modes import parse_mode
 
 _COLORS = {"root": "#e6c700", "terminal": "#1f5fd6", "connectable": "#2ca02c", "failed": "#d62728"}
 

@@ -26,8 +26,15 @@ import numpy as np
 
 from humfall_ros.multicontact import contacts as C
 from humfall_ros.multicontact.collocation import Segment, TrajectoryOptimizer
+from humfall_ros.multicontact.landing import LandingReport, landing_report
 from humfall_ros.multicontact.model import mirror_extremity
-from humfall_ros.multicontact.modes import Environment, Mode, adjacent_modes, make_mode, mode_label
+from humfall_ros.multicontact.modes import (
+    Environment,
+    Mode,
+    adjacent_modes,
+    make_mode,
+    mode_label,
+)
 
 
 @dataclasses.dataclass
@@ -43,6 +50,10 @@ class TreeNode:
     min_normal_impulse: float | None = None
     # N s, normal impulse the added extremity takes in the impact (eq. 10): what a hard landing costs the limb
     landing_impulse: float | None = None
+    landing: LandingReport | None = None   # severity of the landing that created this node (eq. 10)
+    # this node or an ancestor was reached through a landing beyond the limits
+    over_limits: bool = False
+    priority: float = float("nan")         # frontier key (J): see ``search``
     edge: Segment | None = None          # transition from the parent
     self_motion: Segment | None = None
     status: str = "frontier"             # frontier | expanded | terminal | unexpanded
@@ -53,6 +64,8 @@ class TreeNode:
         d = {"id": self.id, "parent": self.parent, "depth": self.depth, "mode": mode_label(self.mode),
              "ke": self.ke, "pre_impact_ke": self.pre_impact_ke, "min_normal_impulse": self.min_normal_impulse,
              "landing_impulse": self.landing_impulse,
+             "landing": self.landing.to_dict() if self.landing is not None else None,
+             "over_limits": self.over_limits, "priority": self.priority,
              "status": self.status, "children": list(self.children), "rejected": self.rejected,
              "q": self.q.tolist(), "v": self.v.tolist()}
         for name, seg in (("edge", self.edge), ("self_motion", self.self_motion)):
@@ -90,6 +103,16 @@ class SearchResult:
             return float("nan")
         return self.nodes[self.path[-1]].self_motion.final_ke
 
+    def landings(self) -> list[LandingReport]:
+        """The landings along the solution path, in order (with their plan times)."""
+        out, t = [], 0.0
+        for i in self.path[1:]:
+            n = self.nodes[i]
+            t += float(n.edge.time[-1])
+            if n.landing is not None:
+                out.append(dataclasses.replace(n.landing, time=t))
+        return out
+
     def segments(self) -> list[Segment]:
         """Transitions along the path, then the terminal self-motion."""
         segs = [self.nodes[i].edge for i in self.path[1:]]
@@ -109,13 +132,25 @@ def _mirror_mode(mode: Mode) -> Mode:
 
 def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
            eps_ke: float | None = None, max_depth: int = 4, time_budget: float = 60.0,
-           symmetry_cut: bool = True, check_plan=None) -> SearchResult:
+           symmetry_cut: bool = True, check_plan=None, frontier_order: str = "pre_impact",
+           landing_policy: str = "rank_last") -> SearchResult:
     """Algorithm 1: grow the tree by least kinetic energy until a node's
     self-motion ends with E_K < eps_KE, the frontier empties or the budget ends.
 
+    ``frontier_order``: 'pre_impact' ranks a child by E_K(End(y_ij)) as line 20
+    does (for an added contact: the energy just before the impact);
+    'post_impact' (departure) by the energy after the impact map (line 16).
+    ``landing_policy`` for a landing beyond ``opt.cfg.landing_limits``:
+    'rank_last' (the node and its subtree are popped after every node within
+    the limits), 'refuse' (the node is not added) or 'ignore'.
     ``check_plan(segments) -> reason | None``, when given, must accept the
     path's segments before a node is declared terminal; a rejected node is
     expanded like any other (its reason is kept in the node and the log)."""
+    if frontier_order not in ("pre_impact", "post_impact"):
+        raise ValueError(f"frontier_order {frontier_order!r}: 'pre_impact' or 'post_impact'")
+    if landing_policy not in ("rank_last", "refuse", "ignore"):
+        raise ValueError(f"landing_policy {landing_policy!r}: 'rank_last', 'refuse' or 'ignore'")
+    limits = opt.cfg.landing_limits
     model = opt.model
     eps_ke = opt.cfg.eps_ke if eps_ke is None else eps_ke
     t0 = time.perf_counter()
@@ -123,9 +158,10 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
     q0 = np.asarray(q0, float)
     v0 = np.asarray(v0, float)
     root = TreeNode(0, None, 0, tuple(mode0), q0, v0, model.kinetic_energy(q0, v0))
+    root.priority = root.ke
     nodes = [root]
     counter = itertools.count()
-    frontier = [(root.ke, next(counter), 0)]
+    frontier = [(False, root.ke, next(counter), 0)]   # (over the landing limits, energy, tie, node)
     log: list[dict] = []
     deepest = 0
 
@@ -147,7 +183,7 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         if time.perf_counter() >= deadline:
             return result(False, f"no solution within the time budget of {time_budget:.1f} s "
                                  f"(deepest tree depth reached: {deepest})", [])
-        _, _, nid = heapq.heappop(frontier)
+        *_, nid = heapq.heappop(frontier)
         d = nodes[nid]
         deepest = max(deepest, d.depth)
         try:
@@ -197,20 +233,28 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
             if not y_ij.success:
                 continue
             qj, vj = y_ij.q[-1].copy(), y_ij.v[-1].copy()                       # line 15
-            pre, min_imp, landing = None, None, None
+            pre, min_imp, landing, rep = None, None, None, None
             if change == "add":                                                # line 16, eq. 10
                 pre = model.kinetic_energy(qj, vj)
                 rows = C.contact_rows(sigma_j, env)
+                rep, _ = landing_report(model, qj, vj, sigma_j, ext, env, limits)
                 vj, impulse = C.impact_map(model, qj, vj, rows)
                 normals = [impulse[i] for i, r in enumerate(rows) if r.axis == "n"]
                 min_imp = float(min(normals)) if normals else None
-                landing = float(sum(impulse[i] for i, r in enumerate(rows) if r.axis == "n" and r.extremity == ext))
-            child = TreeNode(len(nodes), d.id, d.depth + 1, sigma_j, qj, vj, model.kinetic_energy(qj, vj),
-                             pre_impact_ke=pre, min_normal_impulse=min_imp, landing_impulse=landing, edge=y_ij)
+                landing = rep.normal_impulse
+                if not rep.within_limits and landing_policy == "refuse":
+                    log[-1]["landing_refused"] = rep.exceeded
+                    continue
+            ke_j = model.kinetic_energy(qj, vj)
+            over = d.over_limits or (rep is not None and not rep.within_limits and landing_policy == "rank_last")
+            child = TreeNode(len(nodes), d.id, d.depth + 1, sigma_j, qj, vj, ke_j,
+                             pre_impact_ke=pre, min_normal_impulse=min_imp, landing_impulse=landing, edge=y_ij,
+                             landing=rep, over_limits=over,
+                             priority=pre if (pre is not None and frontier_order == "pre_impact") else ke_j)
             nodes.append(child)                                               # lines 17-19
             d.children.append(child.id)
             deepest = max(deepest, child.depth)
-            heapq.heappush(frontier, (child.ke, next(counter), child.id))     # line 20
+            heapq.heappush(frontier, (child.over_limits, child.priority, next(counter), child.id))   # line 20
     if time.perf_counter() >= deadline:   # the last NLPs were cut by the budget: not a complete search
         return result(False, f"no solution within the time budget of {time_budget:.1f} s "
                              f"(deepest tree depth reached: {deepest})", [])

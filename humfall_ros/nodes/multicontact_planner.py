@@ -15,15 +15,14 @@ import time
 
 import numpy as np
 import rclpy.executors
+from humfall_interfaces.msg import LandingReport, PlanSegment
+from humfall_interfaces.srv import PlanFall
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 
-from humfall_interfaces.msg import PlanSegment
-from humfall_interfaces.srv import PlanFall
 from humfall_ros.multicontact import contacts as C
-from humfall_ros.multicontact.collocation import OptConfig
 from humfall_ros.multicontact.modes import Environment, mode_label
-from humfall_ros.multicontact.planner import FallPlanner, PlannerConfig
+from humfall_ros.multicontact.planner import FallPlanner, configs_from_params
 from humfall_ros.nodes.common import Params, run_node
 
 NAME = "multicontact_planner"
@@ -33,46 +32,11 @@ class MulticontactPlanner(Node):
     def __init__(self):
         super().__init__(NAME)
         p = Params(self)
-        opt = {
-            "n_knots": p.declare("n_knots"),
-            "t_min": p.declare("t_min"),
-            "t_max": p.declare("t_max"),
-            "n_seed_durations": p.declare("n_seed_durations"),
-            "max_seed_attempts": p.declare("max_seed_attempts"),
-            "seed_first_duration": p.declare("seed_first_duration"),
-            "seed_retry_durations": tuple(float(x) for x in p.declare("seed_retry_durations")),
-            "retry_if_energy_rises": p.declare("retry_if_energy_rises"),
-            "retry_energy_fraction": p.declare("retry_energy_fraction"),
-            "eps_ke": p.declare("eps_ke"),
-            "eps_cl": p.declare("eps_cl"),
-            "mu": p.declare("mu"),
-            "acc_max": p.declare("acc_max"),
-            "force_max_mg": p.declare("force_max_mg"),
-            "contact_pos_tol": p.declare("contact_pos_tol"),
-            "contact_vel_tol": p.declare("contact_vel_tol"),
-            "impact_dissipation_weight": p.declare("impact_dissipation_weight"),
-            "knee_margin": p.declare("knee_margin"),
-            "post_impact_velocity_limits": p.declare("post_impact_velocity_limits"),
-            "max_iter": p.declare("max_iter"),
-            "tol": p.declare("tol"),
-            "nlp_max_wall_time": p.declare("nlp_max_wall_time"),
-        }
-        plan = {
-            "max_depth": p.declare("max_depth"),
-            "time_budget": p.declare("time_budget"),
-            "max_time_budget": p.declare("max_time_budget"),
-            "max_kinetic_energy": p.declare("max_kinetic_energy"),
-            "symmetry_cut": p.declare("symmetry_cut"),
-            "check_q_error_max": p.declare("check_q_error_max"),
-            "check_force_error_max_mg": p.declare("check_force_error_max_mg"),
-            "check_feedback_omega": p.declare("check_feedback_omega"),
-            "check_feedback_max": p.declare("check_feedback_max"),
-        }
-        stance = {k: p.declare(f"stance_{k}")
-                  for k in ("hip_pitch", "knee", "shoulder_pitch", "elbow")}
-        self.queue_size = p.declare("queue_size")
-        warm = p.declare("warm_up")
-        self.planner = FallPlanner(OptConfig.from_dict(opt), PlannerConfig.from_dict({**plan, "stance": stance}))
+        values = p.declare_all()   # every parameter of config/multicontact_planner.yaml
+        self.queue_size = values["queue_size"]
+        warm = values["warm_up"]
+        opt_cfg, plan_cfg = configs_from_params(values)
+        self.planner = FallPlanner(opt_cfg, plan_cfg)
         self._state = threading.Lock()
         self._plan_lock = threading.Lock()
         self._pending = 0
@@ -83,7 +47,8 @@ class MulticontactPlanner(Node):
         if warm:
             threading.Thread(target=self._warm_up, name="nlp-warm-up", daemon=True).start()
         self.get_logger().info(f"plan_fall ready (n={self.planner.model.n}, m={self.planner.model.m}, "
-                               f"Nd={opt['n_knots']}, queue_size={self.queue_size})")
+                               f"Nd={opt_cfg.n_knots}, objective={opt_cfg.transition_objective}, "
+                               f"queue_size={self.queue_size})")
 
     def _warm_up(self):
         """Build the NLP structures of the root two-foot mode (the sweep's first
@@ -161,6 +126,21 @@ class MulticontactPlanner(Node):
             m.kinetic_energy = s.ke.tolist()
             segs.append(m)
         resp.segments = segs
+        resp.landings = [landing_msg(x) for x in r.get("landings", [])]
+        resp.landings_within_limits = bool(r.get("landings_within_limits", False))
+        resp.transition_objective = self.planner.opt.cfg.transition_objective
+
+
+def landing_msg(rep) -> LandingReport:
+    """humfall_interfaces/LandingReport from a multicontact.landing.LandingReport."""
+    m = LandingReport()
+    for f in ("limb", "surface", "exceeded"):
+        setattr(m, f, str(getattr(rep, f)))
+    for f in ("time", "normal_speed", "tangential_speed", "pre_impact_ke", "post_impact_ke", "absorbed_energy",
+              "normal_impulse", "tangential_impulse"):
+        setattr(m, f, float(getattr(rep, f)))
+    m.within_limits = bool(rep.within_limits)
+    return m
 
 
 def main(args=None) -> int:

@@ -3,7 +3,9 @@
     humfall plan-fall --ke 30 [--wall 0.8] [--direction 1] [--mode LF/RF] [--budget S] [--json] [--plots DIR]
 
 Prints a human summary, or with --json one JSON object (success, reason,
-contact_sequence, node_ke, final_ke, nlp_times_s, total_time_s, ...).
+contact_sequence, node_ke, final_ke, nlp_times_s, total_time_s, landings (per
+landing: limb, touchdown speeds, pre/post-impact KE, absorbed energy, impulse),
+landings_within_limits, ...).
 Exit code: 0 plan found, 1 no plan (service answered success=false),
 2 service unavailable or no answer in time. ``--plots DIR`` also writes the
 plan's contact transition tree, stick figures and kinetic energy over time
@@ -53,6 +55,12 @@ def response_to_dict(resp) -> dict:
                       "ke_start": float(s.kinetic_energy[0]) if len(s.kinetic_energy) else None,
                       "ke_end": float(s.kinetic_energy[-1]) if len(s.kinetic_energy) else None}
                      for s in resp.segments],
+        "landings": [{f: getattr(x, f) for f in ("limb", "surface", "time", "normal_speed", "tangential_speed",
+                                                  "pre_impact_ke", "post_impact_ke", "absorbed_energy",
+                                                  "normal_impulse", "tangential_impulse", "within_limits",
+                                                  "exceeded")} for x in resp.landings],
+        "landings_within_limits": bool(resp.landings_within_limits),
+        "transition_objective": resp.transition_objective,
     }
 
 
@@ -66,6 +74,14 @@ def summary(d: dict) -> str:
         tgt = f" -> {s['target_mode']}" if s["kind"] == "transition" else ""
         lines.append(f"  {s['kind']:<11} {s['mode']}{tgt}: {s['duration_s']:.2f} s, "
                      f"KE {s['ke_start']:.2f} -> {s['ke_end']:.3g} J")
+    for x in d.get("landings", []):
+        lines.append(f"  landing {x['limb']} on the {x['surface']} at {x['time']:.2f} s: touchdown "
+                     f"{x['normal_speed']:.2f} m/s normal, {x['tangential_speed']:.2f} m/s tangential; KE "
+                     f"{x['pre_impact_ke']:.1f} -> {x['post_impact_ke']:.1f} J (absorbed {x['absorbed_energy']:.1f} J), "
+                     f"impulse {x['normal_impulse']:.1f} N s"
+                     + ("" if x["within_limits"] else f"  BEYOND LIMITS: {x['exceeded']}"))
+    if d.get("transition_objective"):
+        lines.append(f"transition objective: {d['transition_objective']}")
     times = d["nlp_times_s"]
     if times:
         med = sorted(times)[len(times) // 2]
