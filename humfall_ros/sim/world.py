@@ -82,8 +82,11 @@ class SimWorld:
                                  flags=pb.URDF_USE_INERTIA_FROM_FILE, physicsClientId=c)
         self._index_joints()
         for link in range(-1, pb.getNumJoints(self.robot, physicsClientId=c)):
-            pb.changeDynamics(self.robot, link, lateralFriction=self.friction, linearDamping=0.0,
-                              angularDamping=0.0, physicsClientId=c)
+            pb.changeDynamics(self.robot, link, linearDamping=0.0, angularDamping=0.0, physicsClientId=c)
+            # a separate call: PyBullet ignores lateralFriction given together with the damping
+            # arguments (measured: the robot kept its default 0.5). Bullet multiplies the two
+            # bodies' coefficients, so the robot gets 1 and the ground (and obstacles) `friction`.
+            pb.changeDynamics(self.robot, link, lateralFriction=1.0, physicsClientId=c)
         if self.enforce_velocity_limits:
             # real actuators cannot exceed their speed: the URDF velocity limits (which paper 1's
             # stepping zone, eq. 8, is computed from) bound every joint in the solver
@@ -147,6 +150,7 @@ class SimWorld:
             orn = pb.getQuaternionFromEuler([0, 0, box.yaw])
             self._obstacle_ids[box.name] = pb.createMultiBody(0, shape, basePosition=box.position,
                                                               baseOrientation=orn, physicsClientId=c)
+            pb.changeDynamics(self._obstacle_ids[box.name], -1, lateralFriction=self.friction, physicsClientId=c)
 
     # ---------------------------------------------------------------- control
     def set_joint_targets(self, positions, velocities=None) -> None:
