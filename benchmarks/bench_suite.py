@@ -31,11 +31,22 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
+def standin_overrides(n: int) -> list[str]:
+    """``--set`` for n idle per-tick controller nodes (test/takeover_controller.py, never taking over)."""
+    if n <= 0:
+        return []
+    node = REPO / "test" / "takeover_controller.py"
+    items = ", ".join(f"{{node: {node}, source: standin{i}, priority: {40 + i}, "
+                      f"params: {{source: standin{i}, take_over_time: -1.0}}}}" for i in range(1, n + 1))
+    return ["--set", f"controllers=[{items}]"]
+
+
 def up(seconds: float, rate: float, lockstep: bool, rtf: float, runs: pathlib.Path, env: dict,
-       probe: bool = False) -> dict:
+       probe: bool = False, standins: int = 0) -> dict:
     cmd = [sys.executable, "-m", "humfall_ros.cli", "up", "--scenario", "standing_quiet", "--runs-dir", str(runs),
            "--no-plots", "--set", f"duration={seconds}", "--set", f"sim.control_rate={rate}",
-           "--set", f"sim.lockstep={str(lockstep).lower()}", "--set", f"sim.real_time_factor={rtf}"]
+           "--set", f"sim.lockstep={str(lockstep).lower()}", "--set", f"sim.real_time_factor={rtf}",
+           *standin_overrides(standins)]
     before = set(runs.glob("*")) if runs.exists() else set()
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     hops = run_probe(proc) if probe else None
@@ -105,6 +116,8 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--control-rate", type=float, default=500.0)
     ap.add_argument("--repeats", type=int, default=3, help="free-run repeats (the RTF varies with the machine's load)")
+    ap.add_argument("--standins", type=int, default=0,
+                    help="extra idle per-tick controller nodes (lockstep sources answering every tick with a release)")
     a = ap.parse_args()
     env = dict(os.environ)
     env["ROS_DOMAIN_ID"] = str(60 + os.getpid() % 30)
@@ -114,10 +127,11 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         runs = pathlib.Path(tmp) / "runs"
         load_before = os.getloadavg()[0]
-        free = [up(a.seconds, a.control_rate, False, 0.0, runs, env) for _ in range(a.repeats)]
+        k = a.standins
+        free = [up(a.seconds, a.control_rate, False, 0.0, runs, env, standins=k) for _ in range(a.repeats)]
         # a 1 s run measures each node's start-up CPU (imports, model, discovery), so the
         # per-node figure below is the CPU of running the sim, per simulated second
-        short = up(1.0, a.control_rate, False, 0.0, runs, env)
+        short = up(1.0, a.control_rate, False, 0.0, runs, env, standins=k)
         rtfs = sorted(r["real_time_factor"] for r in free)
         per_sim_s = {n: round(float(np.median([(r["node_cpu_s"][n] - short["node_cpu_s"][n]) / (a.seconds - 1.0)
                                                for r in free])), 3) for n in short["node_cpu_s"]}
@@ -131,8 +145,9 @@ def main() -> int:
                              "uncontrolled_ticks": [r["uncontrolled_ticks"] for r in free],
                              "ticks": free[0]["ticks"], "runs": free},
             "cpu_cores_per_sim_second": {**per_sim_s, "total": round(sum(per_sim_s.values()), 3)},
-            "free_run_target_1": up(a.seconds, a.control_rate, False, 1.0, runs, env),
-            "lockstep": up(a.seconds, a.control_rate, True, 1.0, runs, env, probe=True),
+            "standin_controllers": k,
+            "free_run_target_1": up(a.seconds, a.control_rate, False, 1.0, runs, env, standins=k),
+            "lockstep": up(a.seconds, a.control_rate, True, 1.0, runs, env, probe=True, standins=k),
         }
     print(json.dumps(res, indent=2))
     return 0

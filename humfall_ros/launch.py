@@ -25,7 +25,13 @@ from humfall_ros import scenario as scenario_mod
 from humfall_ros.control.mux import DEFAULT_PRIORITIES, mux_order
 
 # Which nodes serve which fall controller (`controller:` of a scenario).
-CONTROLLER_NODES: dict[str, list[str]] = {"none": []}
+CONTROLLER_NODES: dict[str, list[str]] = {"none": [], "stepping": ["ftb_monitor", "safe_fall_controller"],
+                                          "stepping_inertia": ["ftb_monitor", "safe_fall_controller"]}
+# Parameters a controller choice sets on its nodes (params.<node>.<name> may not override them).
+CONTROLLER_PARAMS: dict[str, dict[str, dict]] = {
+    "stepping": {"safe_fall_controller": {"inertia_shaping": False}},
+    "stepping_inertia": {"safe_fall_controller": {"inertia_shaping": True}},
+}
 # The mux source each built-in controller node commands (joint_command/<source>), in lockstep.
 NODE_SOURCE = {"locomotion": "locomotion", "safe_fall_controller": "safe_fall", "estop_planner": "estop"}
 # Bridge parameters that come from the scenario file itself (its sim section and duration).
@@ -133,11 +139,13 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[NodeSpec]:
     builtin = getattr(scenario_mod, "BUILTIN_PRIORITIES", DEFAULT_PRIORITIES)
     for n in ["locomotion", *CONTROLLER_NODES[controller]]:
         src = NODE_SOURCE.get(n)
-        nodes.append(NodeSpec(n, f"humfall_ros.nodes.{n}", {}, src, builtin.get(src) if src else None))
+        own = dict(CONTROLLER_PARAMS.get(controller, {}).get(n, {}))
+        nodes.append(NodeSpec(n, f"humfall_ros.nodes.{n}", own, src, builtin.get(src) if src else None))
     for c in sc.get("controllers") or []:
         node = c["node"]
         mod = node if (node.endswith(".py") or "." in node) else f"humfall_ros.nodes.{node}"
-        name = pathlib.Path(node).stem if node.endswith(".py") else node.rsplit(".", 1)[-1]
+        stem = pathlib.Path(node).stem if node.endswith(".py") else node.rsplit(".", 1)[-1]
+        name = f"{stem}_{c['source']}"  # one node module may serve several sources
         nodes.append(NodeSpec(name, mod, dict(c.get("params") or {}), c["source"], int(c["priority"])))
     sources = [n for n in nodes if n.source]
     try:

@@ -18,7 +18,7 @@ from typing import Any, Callable
 import numpy as np
 from humfall_interfaces.msg import CentroidalState, MuxState, ObstacleArray
 from rclpy.node import Node
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Imu, JointState
 
 from humfall_ros.control.contract import CentroidalObservation, Controller, JointTargets, Observation, Obstacle
 from humfall_ros.control.tick_gate import Action, TickGate
@@ -70,7 +70,14 @@ def obstacles_from_msg(msg: ObstacleArray) -> list[Obstacle]:
     return out
 
 
+def imu_from_msg(msg: Imu) -> tuple[np.ndarray, np.ndarray]:
+    """(orientation xyzw, gyro) as the in-process loop gives them."""
+    o, g = msg.orientation, msg.angular_velocity
+    return np.array([o.x, o.y, o.z, o.w]), np.array([g.x, g.y, g.z])
+
+
 OBSTACLES = Input("obstacles", ObstacleArray, "obstacles", obstacles_from_msg)
+IMU = Input("imu", Imu, "imu", imu_from_msg, per_tick=True)  # for controllers that read the IMU each tick
 
 
 class ControllerNode(Node):

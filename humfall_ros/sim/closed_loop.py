@@ -10,7 +10,14 @@ tests, benchmarks and campaigns, where DDS would only add time.
 
 A *monitor* (e.g. the FTB) is a per-tick stage that is not a command source:
 ``name``, ``reset()``, ``step(observation) -> value``; its value goes into the
-controllers' ``observation.inputs[name]`` of the same tick, as its topic would.
+controllers' ``observation.inputs[name]`` of the same tick, as its per-tick topic
+would. A monitor may also keep a dict ``latched`` (e.g. ``{"fall_event": ...}``):
+its entries are in every later observation's inputs, as a transient-local topic's
+last message would be.
+
+Every observation's inputs also hold ``"imu"``: ``(orientation xyzw, gyro in the IMU
+frame)`` as numpy arrays (what a node gets from the per-tick ``imu`` topic), and
+``"obstacles"`` (the scenario's boxes as ``contract.Obstacle``).
 """
 from __future__ import annotations
 
@@ -122,6 +129,7 @@ class ClosedLoop:
         self.joint_positions: list[np.ndarray] = []
         self.active_sources: list[str] = []
         self.outputs: dict[str, list] = {m.name: [] for m in self.monitors}
+        self.latched: dict[str, Any] = {}
         self.obstacles = [Obstacle(o["name"], tuple(o["position"]), tuple(o["size"]), o["yaw"], o["is_target"])
                           for o in sc["obstacles"]]
         for c in self.controllers:
@@ -148,10 +156,16 @@ class ClosedLoop:
         obs = Observation(stamp, np.asarray(r.joint_position, float), np.asarray(r.joint_velocity, float),
                           centroidal_from_estimate(e), self.active, {"obstacles": self.obstacles},
                           joint_targets=np.array(w.targets, dtype=float))
+        obs.inputs["imu"] = (np.asarray(r.imu_orientation, float), np.asarray(r.gyro, float))
+        obs.inputs.update(self.latched)
         for m in self.monitors:
             value = m.step(obs)
             obs.inputs[m.name] = value
             self.outputs[m.name].append(value)
+            latched = getattr(m, "latched", None)
+            if latched:
+                self.latched.update(latched)
+                obs.inputs.update(latched)
         if self.inputs is not None:
             self.inputs(self, obs)
         t = stamp * 1e-9
