@@ -5,6 +5,7 @@
     humfall push FX FY FZ [--duration S] [--link L] [--point X Y Z]
     humfall plan-fall --ke 30 [--wall 0.8] [--json]
     humfall bag info FILE | humfall bag plot FILE [--out DIR] | humfall bag recover FILE [--out F]
+    humfall campaign SPEC.yaml [...] | humfall campaign report RESULTS   (push campaigns, see campaign --help)
 """
 from __future__ import annotations
 
@@ -117,6 +118,10 @@ def parser() -> argparse.ArgumentParser:
     push.add_argument("--point", type=float, nargs=3, default=[0.0, 0.0, 0.2])
     push.add_argument("--timeout", type=float, default=5.0)
     sub.add_parser("plan-fall", help="call the multi-contact planner (see plan-fall --help)", add_help=False)
+    sub.add_parser("campaign", help="push campaigns over scenario keys, local or on Ray (see campaign --help)",
+                   add_help=False)
+    sub.add_parser("sweep", help="safe-fall sweep over push directions (see sweep --help)", add_help=False)
+    sub.add_parser("estop", help="trigger (or --release) the emergency stop (topic estop)", add_help=False)
     bag = sub.add_parser("bag", help="inspect a recorded run")
     bag.add_argument("action", choices=["info", "plot", "recover"])
     bag.add_argument("file")
@@ -128,6 +133,18 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "plan-fall":
         return _cmd_plan_fall(None, argv[1:])
+    # subcommands with their own argument parsers: everything after the name is theirs
+    delegated = {"campaign": "humfall_ros.campaign.cli", "sweep": "humfall_ros.fall.sweep",
+                 "estop": "humfall_ros.nodes.estop_cli"}
+    if argv and argv[0] in delegated:
+        import importlib
+
+        try:
+            mod = importlib.import_module(delegated[argv[0]])
+        except ModuleNotFoundError as e:
+            print(f"humfall {argv[0]}: not available in this build ({e})", file=sys.stderr)
+            return 2
+        return mod.main(argv[1:]) or 0
     a = parser().parse_args(argv)
     return {"up": _cmd_up, "run": _cmd_run, "push": _cmd_push, "bag": _cmd_bag}[a.command](a)
 
