@@ -41,12 +41,15 @@ def standin_overrides(n: int) -> list[str]:
     return ["--set", f"controllers=[{items}]"]
 
 
+COMPOSE = False  # --compose: the estimator and the controllers in one process
+
+
 def up(seconds: float, rate: float, lockstep: bool, rtf: float, runs: pathlib.Path, env: dict,
        probe: bool = False, standins: int = 0) -> dict:
     cmd = [sys.executable, "-m", "humfall_ros.cli", "up", "--scenario", "standing_quiet", "--runs-dir", str(runs),
            "--no-plots", "--set", f"duration={seconds}", "--set", f"sim.control_rate={rate}",
            "--set", f"sim.lockstep={str(lockstep).lower()}", "--set", f"sim.real_time_factor={rtf}",
-           *standin_overrides(standins)]
+           *standin_overrides(standins), *(["--compose"] if COMPOSE else [])]
     before = set(runs.glob("*")) if runs.exists() else set()
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     hops = run_probe(proc) if probe else None
@@ -118,7 +121,10 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=3, help="free-run repeats (the RTF varies with the machine's load)")
     ap.add_argument("--standins", type=int, default=0,
                     help="extra idle per-tick controller nodes (lockstep sources answering every tick with a release)")
+    ap.add_argument("--compose", action="store_true", help="humfall up --compose")
     a = ap.parse_args()
+    global COMPOSE
+    COMPOSE = a.compose
     env = dict(os.environ)
     env["ROS_DOMAIN_ID"] = str(60 + os.getpid() % 30)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
@@ -146,6 +152,7 @@ def main() -> int:
                              "ticks": free[0]["ticks"], "runs": free},
             "cpu_cores_per_sim_second": {**per_sim_s, "total": round(sum(per_sim_s.values()), 3)},
             "standin_controllers": k,
+            "composed": a.compose,
             "free_run_target_1": up(a.seconds, a.control_rate, False, 1.0, runs, env, standins=k),
             "lockstep": up(a.seconds, a.control_rate, True, 1.0, runs, env, probe=True, standins=k),
         }

@@ -22,6 +22,7 @@ def _cmd_up(a) -> int:
 
     try:
         status, _ = launch.up(a.scenario, a.controller, a.set, runs_dir=a.runs_dir, record=not a.no_record,
+                              compose=a.compose,
                               plots=not a.no_plots)
     except (scenario.ScenarioError, launch.RunError) as e:
         print(f"humfall up: {e}", file=sys.stderr)
@@ -106,6 +107,8 @@ def parser() -> argparse.ArgumentParser:
     up.add_argument("--runs-dir", default="runs")
     up.add_argument("--no-record", action="store_true")
     up.add_argument("--no-plots", action="store_true")
+    up.add_argument("--compose", action="store_true",
+                    help="the estimator and all controllers in one process (each still its own node)")
     run = sub.add_parser("run", help="run one node in the foreground")
     run.add_argument("node")
     run.add_argument("ros_args", nargs=argparse.REMAINDER)

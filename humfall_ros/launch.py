@@ -47,6 +47,8 @@ class NodeSpec:
     params: dict
     source: str | None = None
     priority: int | None = None
+    argv: list[str] = dataclasses.field(default_factory=list)  # before --ros-args
+    params_file: str | None = None
 
 
 class RunError(RuntimeError):
@@ -114,7 +116,10 @@ def node_command(node: str | NodeSpec, params: dict | None = None) -> list[str]:
     spec = node if isinstance(node, NodeSpec) else NodeSpec(node, f"humfall_ros.nodes.{node}", params or {})
     mod = spec.module
     cmd = [sys.executable, mod] if mod.endswith(".py") else [sys.executable, "-m", mod]
+    cmd += list(spec.argv)
     cmd.append("--ros-args")
+    if spec.params_file:
+        cmd += ["--params-file", spec.params_file]
     for k, v in spec.params.items():
         cmd += ["-p", f"{k}:={ros_value(v)}"]
     return cmd
@@ -178,6 +183,26 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[NodeSpec]:
     return nodes
 
 
+def compose_nodes(nodes: list[NodeSpec], run_dir: pathlib.Path) -> list[NodeSpec]:
+    """The per-tick nodes (estimator and controllers) folded into one ``composed`` process.
+
+    The recorder and the bridge keep their own processes (the bridge owns time; the
+    recorder must outlive everyone). Parameters go through a params file with a
+    section per node, as ``ros2 launch`` would give a component container.
+    """
+    folded = [n for n in nodes if n.name not in ("recorder", "sim_bridge")]
+    if len(folded) < 2:
+        return nodes
+    params = {n.name: {"ros__parameters": dict(n.params)} for n in folded}
+    path = run_dir / "composed_params.yaml"
+    path.write_text(yaml.safe_dump(params, sort_keys=False))
+    composed = NodeSpec("composed", "humfall_ros.nodes.composed", {})
+    composed.argv = [f"{n.name}={n.module}" for n in folded]
+    composed.params_file = str(path)
+    out = [n for n in nodes if n.name == "recorder"] + [composed] + [n for n in nodes if n.name == "sim_bridge"]
+    return out
+
+
 def check_node_params(node: str, params: dict, owned: set[str]) -> dict:
     """Refuse parameters a node does not have, of the wrong type or range, or that the launcher sets.
 
@@ -213,8 +238,12 @@ def child_env(run_dir: pathlib.Path) -> dict:
 
 def up(scenario: str, controller: str | None = None, overrides: list[str] | None = None,
        runs_dir: str = "runs", record: bool = True, plots: bool = True, quiet: bool = False,
-       timeout: float | None = None) -> tuple[int, dict]:
-    """Run a scenario end to end; returns (exit status, result dict)."""
+       timeout: float | None = None, compose: bool = False) -> tuple[int, dict]:
+    """Run a scenario end to end; returns (exit status, result dict).
+
+    ``compose``: the estimator and every controller node in one process and executor
+    (humfall_ros.nodes.composed), each still its own node on its own topics.
+    """
     def say(*a):
         if not quiet:
             print(*a, flush=True)
@@ -228,6 +257,8 @@ def up(scenario: str, controller: str | None = None, overrides: list[str] | None
     log_dir = run_dir / "logs"
     log_dir.mkdir()
     nodes = plan_nodes(sc, run_dir, record)
+    if compose:
+        nodes = compose_nodes(nodes, run_dir)
     env = child_env(run_dir)
     say(f"run folder {run_dir}  (ROS_DOMAIN_ID={env.get('ROS_DOMAIN_ID', '0')})")
     procs: list[Proc] = []

@@ -58,19 +58,21 @@ def make_controller(p: dict, model) -> TakeoverController:
                               p["ramp_time"])
 
 
+def make_node(name: str):
+    from humfall_ros.nodes.controller_node import ControllerNode
+
+    return ControllerNode(name, make_controller, declarations=DECLARATIONS)
+
+
 def main(args=None) -> int:
     import sys
 
     from humfall_ros.nodes.common import run_node
-    from humfall_ros.nodes.controller_node import ControllerNode
 
-    def node():
-        # the node name follows the source, so several stand-ins can run side by side
-        argv = sys.argv if args is None else args
-        source = next((a.split(":=", 1)[1] for a in argv if a.startswith("source:=")), "test")
-        return ControllerNode(f"takeover_{source}", make_controller, declarations=DECLARATIONS)
-
-    return run_node(node, args)
+    # the node name follows the source, so several stand-ins can run side by side
+    argv = sys.argv if args is None else args
+    source = next((a.split(":=", 1)[1] for a in argv if a.startswith("source:=")), "test")
+    return run_node(lambda: make_node(f"takeover_{source}"), args)
 
 
 if __name__ == "__main__":

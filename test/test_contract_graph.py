@@ -118,3 +118,18 @@ def test_a_controller_that_never_answers_stalls_the_run_with_its_name(run_up, tm
     log = (pathlib.Path(r["bag"]).parent / "logs" / "sim_bridge.log").read_text()
     assert "no command from mute" in log and "tick 0" in log
     assert json.loads((pathlib.Path(r["bag"]).parent / "result.json").read_text())["node_exit_codes"]["sim_bridge"] == 3
+
+
+def test_composed_mode_runs_the_same_graph_in_one_process(in_ros_domain, tmp_path):
+    # --compose: estimator, locomotion and the test controller in one process, each its own node
+    ov = takeover_overrides(0.3, 0.8)
+    status, r = launch.up("standing_quiet", None, ["duration=1.4", *ov], runs_dir=str(tmp_path / "runs"),
+                          quiet=True, compose=True)
+    assert status == 0, r
+    assert set(r["node_exit_codes"]) == {"recorder", "composed", "sim_bridge"}
+    sc = scenario.load("standing_quiet", ["duration=1.4", *ov])
+    mine = in_process(sc, with_takeover=True)
+    ros = _rows(r, len(mine.joint_positions))
+    assert np.array_equal(ros, mine.joint_positions)
+    active = [a for _, a in bag_topic(r["bag"], "/mux/state", "active")]
+    assert "test" in active and active[-1] == "locomotion"

@@ -1,7 +1,6 @@
 """Every executable of setup.py stops on SIGTERM and on SIGINT within 2 s, with exit code 0
 and its files closed (the recorder's bag is finalized)."""
 import ast
-import pathlib
 import signal
 import subprocess
 import sys

@@ -187,8 +187,13 @@ class HotLoop:
         self.on_batch = on_batch
         self.batching = False  # True while spin() runs its own loop (and so calls on_batch)
         self.subs: list[tuple[Any, type, Callable]] = []
+        self.composition = Composition.current
+        if self.composition is not None:
+            self.composition.loops.append(self)
 
     def subscribe(self, msg_type, topic: str, callback: Callable, qos=None):
+        if self.composition is not None:  # several nodes in this process: one subscription per topic
+            return self.composition.subscribe(self.node, msg_type, topic, callback, qos)
         sub = self.node.create_subscription(msg_type, topic, callback, qos or QOS_RELIABLE,
                                             event_callbacks=NO_SUB_EVENTS)
         self.subs.append((sub, msg_type, callback))
@@ -242,3 +247,61 @@ class HotLoop:
             self.node.get_logger().warning(f"hot loop disabled ({e}); spinning the executor")
             self.batching = False
             executor.spin()
+
+
+class Composition:
+    """Several per-tick nodes in one process and one wait set (``humfall up --compose``).
+
+    Each node stays its own node, with its own parameters, publishers and topics; what
+    they share is the process: one hot loop waits on every per-tick topic, and a topic
+    that several of them read (joint_states, centroidal_state, mux/state) is subscribed
+    once and its message handed to each (as ROS 2 composition delivers intra-process),
+    instead of being taken and deserialised once per node. After each batch every
+    node's ``on_batch`` runs, in construction order.
+
+    Activate it (``Composition.current = c``) before constructing the nodes.
+    """
+
+    current: "Composition | None" = None
+
+    def __init__(self):
+        self.loops: list[HotLoop] = []
+        self.fanout: dict[tuple[str, type], list[Callable]] = {}
+        self.subs: list[tuple[Any, type, Callable]] = []
+
+    def subscribe(self, node: Node, msg_type, topic: str, callback: Callable, qos=None):
+        key = (node.resolve_topic_name(topic), msg_type)
+        if key in self.fanout:
+            self.fanout[key].append(callback)
+            return None
+        callbacks = self.fanout[key] = [callback]
+
+        def fan(msg, callbacks=callbacks):
+            for cb in callbacks:
+                cb(msg)
+
+        sub = node.create_subscription(msg_type, topic, fan, qos or QOS_RELIABLE, event_callbacks=NO_SUB_EVENTS)
+        self.subs.append((sub, msg_type, fan))
+        return sub
+
+    def spin(self, executor, service_period: float = 0.05) -> None:
+        if not self.loops:
+            executor.spin()
+            return
+        combined = HotLoop.__new__(HotLoop)
+        combined.node = self.loops[0].node
+        combined.service_period = service_period
+        combined.subs = self.subs
+        combined.composition = None
+        members = list(self.loops)
+
+        def on_batch():
+            for loop in members:
+                if loop.on_batch is not None:
+                    loop.on_batch()
+
+        combined.on_batch = on_batch
+        for loop in members:
+            loop.batching = True
+        combined.batching = True
+        HotLoop.spin(combined, executor)
