@@ -12,6 +12,20 @@ from humfall_ros.sim.metrics import FallMetrics
 from humfall_ros.sim.world import Box, SimWorld
 
 
+def push_time(sc: dict, push: dict) -> float:
+    """When a scenario push begins [s]: its ``time``, or the gait event ``at`` of the scenario's walk.
+
+    The gait is planned deterministically from the scenario (humfall_ros.walking.scenario),
+    so a push at ``{step: K, phase: ss_start}`` is an absolute time known before the run,
+    the same in process and over ROS.
+    """
+    if push.get("at") is None:
+        return float(push["time"])
+    from humfall_ros.walking.scenario import phase_time
+
+    return float(phase_time(sc, push["at"]))
+
+
 class GroundTruth:
     def __init__(self, world: SimWorld, sc: dict):
         """Set up ``world`` from a validated scenario dict (humfall_ros.scenario)."""
@@ -19,11 +33,12 @@ class GroundTruth:
         boxes = [Box(o["name"], tuple(o["position"]), tuple(o["size"]), o["yaw"], o["is_target"])
                  for o in sc["obstacles"]]
         world.set_obstacles(boxes)
-        for p in sc["push"]:
-            world.add_push(p["force"], p["point"], p["duration"], p["link"], start=p["time"])
+        self.push_times = [push_time(sc, p) for p in sc["push"]]
+        for p, t in zip(sc["push"], self.push_times):
+            world.add_push(p["force"], p["point"], p["duration"], p["link"], start=t)
         self.metrics = FallMetrics()
         self.set_target(boxes)
-        self.first_push_time = min((p["time"] for p in sc["push"]), default=0.0)
+        self.first_push_time = min(self.push_times, default=0.0)
 
     def set_target(self, boxes: list[Box]) -> None:
         """The box to avoid (T of paper 1, Fig. 5), after obstacles change."""
