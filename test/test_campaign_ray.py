@@ -64,7 +64,9 @@ def test_ctrl_c_leaves_no_process_and_resume_finishes(tmp_path, executor):
     cmd = [sys.executable, "-m", "humfall_ros.campaign.cli", str(spec_path), "--workers", "2", "--no-progress"]
     if executor == "local":
         cmd.append("--local")
-    p = subprocess.Popen(cmd, env=env, cwd=str(ROOT), start_new_session=True,
+    # the local run starts like a shell's background job, with SIGINT ignored: Ctrl-C must still stop it
+    ignore_sigint = (lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) if executor == "local" else None
+    p = subprocess.Popen(cmd, env=env, cwd=str(ROOT), start_new_session=True, preexec_fn=ignore_sigint,
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 120

@@ -260,8 +260,8 @@ def _threshold_section(table: pa.Table, spec: dict) -> str:
                 falls[label][0].append(t.point[dkey])
                 falls[label][1].append(t.fall_direction_deg % 360.0)
         if groups:
-            parts.append(f'<img src="data:image/png;base64,'
-                         f'{_polar(groups, "fall threshold by push direction", "radius: threshold [N]")}">')
+            png = _polar(groups, "fall threshold by push direction (0° forward, 90° left)", "radius: threshold [N]")
+            parts.append(f'<img src="data:image/png;base64,{png}">')
         if falls:
             import matplotlib.pyplot as plt
 

@@ -128,6 +128,8 @@ def run_campaign(spec: CampaignSpec, opts: RunOptions | None = None) -> Campaign
     startup = 0.0
     bar = None
     old_term = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM: same clean stop as Ctrl-C
+    # a shell starts background jobs with SIGINT ignored (and Python keeps that): Ctrl-C / kill -INT must still stop us
+    old_int0 = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         if todo:
             executor = _make_executor(opts, str(log_dir), mode)
@@ -160,7 +162,7 @@ def run_campaign(spec: CampaignSpec, opts: RunOptions | None = None) -> Campaign
     except KeyboardInterrupt:
         interrupted = True
     finally:
-        old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)   # a second Ctrl-C must not cut the clean-up short
+        signal.signal(signal.SIGINT, signal.SIG_IGN)   # a second Ctrl-C must not cut the clean-up short
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         if executor is not None:
             executor.shutdown()
@@ -176,7 +178,7 @@ def run_campaign(spec: CampaignSpec, opts: RunOptions | None = None) -> Campaign
                              executor_startup_s=round(startup, 2),
                              status_counts=dict(counts))
         signal.signal(signal.SIGTERM, old_term)
-        signal.signal(signal.SIGINT, old_int)
+        signal.signal(signal.SIGINT, old_int0)
     return CampaignSummary(str(results) if results else None, study.total, ran, resumed, dict(counts), wall,
                            interrupted)
 
