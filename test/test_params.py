@@ -1,0 +1,81 @@
+"""One source per parameter: every node declares exactly what its config/<node>.yaml declares
+(type, default, description, range), and in-process users read the same declarations."""
+import importlib
+import math
+
+import pytest
+
+from humfall_ros import params
+
+NODES = {"sim_bridge": "SimBridge", "state_estimator": "StateEstimator", "locomotion": "Locomotion",
+         "recorder": "Recorder", "multicontact_planner": "MulticontactPlanner"}
+ROS_TYPE = {1: "bool", 2: "int", 3: "double", 4: "string", 6: "bool_array", 7: "int_array", 8: "double_array",
+            9: "string_array"}
+
+
+@pytest.fixture
+def rclpy_ctx(in_ros_domain, tmp_path):
+    import rclpy
+
+    rclpy.init(args=["test", "--ros-args", "-p", "warm_up:=false", "-p", f"output_dir:={tmp_path}"])
+    yield
+    rclpy.try_shutdown()
+
+
+@pytest.mark.parametrize("name", sorted(NODES))
+def test_node_declares_what_its_config_declares(rclpy_ctx, name):
+    decl = params.declarations(name)
+    assert decl, f"config/{name}.yaml declares nothing"
+    mod = importlib.import_module(f"humfall_ros.nodes.{name}")
+    node = getattr(mod, NODES[name])()
+    try:
+        declared = {n for n in node._parameters if n not in ("use_sim_time", "start_type_description_service")}
+        assert declared == set(decl), (sorted(declared - set(decl)), sorted(set(decl) - declared))
+        for d, p in zip(node.describe_parameters(list(decl)), decl.values()):
+            assert ROS_TYPE[d.type] == p.type, p.name
+            assert d.description == p.description and d.read_only == p.read_only, p.name
+            rng = list(d.floating_point_range) + list(d.integer_range)
+            if p.bounds is None:
+                assert not rng, p.name
+            else:
+                assert (rng[0].from_value, rng[0].to_value) == pytest.approx(p.bounds), p.name
+        for p in decl.values():
+            value = node.get_parameter(p.name).value
+            if p.name in ("warm_up", "output_dir"):  # overridden on the command line above
+                continue
+            value = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else value
+            assert value == p.default or (isinstance(value, float) and math.isclose(value, p.default)), p.name
+    finally:
+        close = getattr(node, "close", None)
+        if callable(close):
+            close()
+        node.destroy_node()
+
+
+def test_declarations_are_refused_when_malformed(tmp_path, monkeypatch):
+    from humfall_ros import paths
+
+    (tmp_path / "config").mkdir()
+    (tmp_path / "config" / "bad.yaml").write_text("bad:\n  x: {type: double, default_value: 1.0}\n")
+    monkeypatch.setattr(paths, "config_path", lambda n: tmp_path / "config" / n)
+    params.declarations.cache_clear()
+    try:
+        with pytest.raises(params.ParamError, match="description"):
+            params.declarations("bad")
+        (tmp_path / "config" / "bad.yaml").write_text(
+            "bad:\n  x: {type: double, default_value: 9.0, description: d, validation: {bounds<>: [0, 1]}}\n")
+        params.declarations.cache_clear()
+        with pytest.raises(params.ParamError, match="outside"):
+            params.declarations("bad")
+    finally:
+        params.declarations.cache_clear()
+
+
+def test_overrides_are_typed_and_checked():
+    assert params.check_overrides("locomotion", {"ankle_kp": 1}) == {"ankle_kp": 1.0}
+    with pytest.raises(params.ParamError, match="no parameter"):
+        params.check_overrides("locomotion", {"ankle_kpp": 1.0})
+    with pytest.raises(params.ParamError, match="outside"):
+        params.check_overrides("locomotion", {"ankle_kp": 1e6})
+    with pytest.raises(params.ParamError, match="expected bool"):
+        params.check_overrides("sim_bridge", {"lockstep": 1})
