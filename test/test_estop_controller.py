@@ -1,4 +1,5 @@
-"""EstopController (humfall_ros/estop/controller.py): triggers, phases, bad input, hand-over; a standing stop in the sim."""
+"""EstopController (humfall_ros/estop/controller.py): triggers, phases, bad input, hand-over; a standing stop in
+the sim."""
 from __future__ import annotations
 
 import dataclasses
@@ -9,7 +10,7 @@ import pytest
 
 from humfall_ros.control.contract import CentroidalObservation, Observation, stamp_ns_of
 from humfall_ros.estop.config import EstopConfig
-from humfall_ros.estop.controller import TRANSITIONS, EstopController, EstopState, EstopStatus
+from humfall_ros.estop.controller import TRANSITIONS, EstopController, EstopState, EstopStatus, TopicEvent
 from humfall_ros.model.humanoid import load_model
 from humfall_ros.sim.world import STANDING_POSTURE
 
@@ -147,7 +148,7 @@ def _standing_stop(push_force: float):
             r = sensors.read()
             e = est.update(world.time, r.joint_position, r.joint_velocity, r.imu_orientation, r.gyro, r.wrenches)
             cmd = ctl.step(Observation(stamp_ns_of(world.time), r.joint_position, r.joint_velocity,
-                                       centroidal_from_estimate(e), inputs={"joint_targets": world.targets.copy()}))
+                                       centroidal_from_estimate(e), joint_targets=world.targets.copy()))
             if cmd is None:
                 world.set_joint_targets(balance.command(e.com, e.com_velocity, e.support_polygon, e.feet_center))
             else:
@@ -187,3 +188,29 @@ def test_standing_robot_stops_in_the_simulator():
     final_rel = plan.final_com - mid_feet
     np.testing.assert_allclose(rows[-1][1][:2], final_rel[:2], atol=0.01)
     print(f"standing stop: v0 {v0:.3f} m/s, max tilt {np.degrees(tilt):.2f} deg, wall {wall:.1f} s")
+
+
+def test_topic_events_trigger_and_release_once_each():
+    # the node turns every estop / estop/release message into a new TopicEvent; the latched value stays
+    ctl = EstopController(M, EstopConfig.defaults(home_duration=0.1, terminal_tolerance=1e-3), DT)
+    trig, rel = TopicEvent(1), TopicEvent(1)
+    assert ctl.step(obs(0.0, estop=trig, **{"walking/state": Pattern()})) is not None
+    assert ctl.step(obs(DT, estop=trig, estop_release=rel, **{"walking/state": Pattern()})) is not None
+    assert any("release refused" in m for m in ctl.messages)                 # moving: refused, and used up
+    t, k = 2 * DT, 2
+    while ctl.state != EstopState.HOLDING:
+        assert ctl.step(obs(t, estop=trig, estop_release=rel, **{"walking/state": Pattern()})) is not None
+        k += 1
+        t = k * DT
+        assert t < ctl.plan.end_time + 1.0
+    still = obs(t, estop=trig, estop_release=rel, **{"walking/state": Pattern()})
+    still.state.com_velocity = np.zeros(3)
+    assert ctl.step(still) is not None and ctl.state == EstopState.HOLDING    # the old release is not re-used
+    still.inputs["estop_release"] = TopicEvent(2)
+    still.stamp_ns += stamp_ns_of(DT)
+    assert ctl.step(still) is None and ctl.state == EstopState.IDLE
+    still.stamp_ns += stamp_ns_of(DT)
+    assert ctl.step(still) is None and ctl.state == EstopState.IDLE           # the latched trigger: no new one
+    still.inputs["estop"] = TopicEvent(2)
+    still.stamp_ns += stamp_ns_of(DT)
+    assert ctl.step(still) is not None and ctl.state == EstopState.STOPPING   # a second `humfall estop`

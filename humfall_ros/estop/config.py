@@ -9,6 +9,8 @@ BETA_POLICIES = ("clamp", "supremum")
 # the scenario's single-support phase names (humfall_ros.scenario.Phase) -> elapsed fraction (issue 12's trials)
 SS_PHASES = {"ss_start": 0.1, "ss_mid": 0.5, "ss_end": 0.95}
 FALLBACKS = ("min_n3_crouch", "none")
+# parameters of config/estop_planner.yaml that only the node reads (not EstopConfig's)
+NODE_KEYS = frozenset({"walking_state_input"})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,8 +97,10 @@ class EstopConfig:
 
     @staticmethod
     def from_params(d: dict) -> EstopConfig:
-        """From a dict of parameter names (e.g. ``params.defaults("estop_planner")``); unknown keys are refused."""
+        """From a dict of parameter names (e.g. ``params.defaults("estop_planner")``); unknown keys are refused
+        (the node's own keys, :data:`NODE_KEYS`, are ignored)."""
         names = {f.name for f in dataclasses.fields(EstopConfig)}
+        d = {k: v for k, v in d.items() if k not in NODE_KEYS}
         unknown = set(d) - names
         if unknown:
             raise ValueError(f"EstopConfig: unknown keys {sorted(unknown)}")
@@ -108,4 +112,4 @@ class EstopConfig:
         return EstopConfig.from_params({**params.defaults("estop_planner"), **overrides})
 
 
-__all__ = ["BETA_POLICIES", "FALLBACKS", "SS_PHASES", "EstopConfig", "TriggerPhase"]
+__all__ = ["BETA_POLICIES", "FALLBACKS", "NODE_KEYS", "SS_PHASES", "EstopConfig", "TriggerPhase"]

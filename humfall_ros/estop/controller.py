@@ -3,7 +3,8 @@
 States (:class:`EstopState`; the transition rules are :data:`TRANSITIONS`, printable and tested):
 
 * ``idle`` -- releases every tick (``step`` returns None) and watches for a trigger:
-  ``observation.inputs["estop"]`` truthy (the latched ``estop`` topic), or the scheduled trigger
+  ``observation.inputs["estop"]`` (a new :class:`TopicEvent` from the latched ``estop`` topic, or
+  the rising edge of a truthy level), or the scheduled trigger
   (``trigger_time``: the first tick stamped at or after it; ``trigger_step`` + ``trigger_phase``:
   the first tick of that walking step in that phase, from ``inputs["walking/state"]``).
 * ``waiting`` -- triggered in single support: keeps releasing (walking plays its pattern) until
@@ -19,7 +20,8 @@ States (:class:`EstopState`; the transition rules are :data:`TRANSITIONS`, print
   as the stabiliser that makes the executed ZMP follow (eq. 2's lag).
 * ``stopped`` -- the plan has reached its final point (velocity exactly 0): the upper body moves
   home (``home_duration``), then ``holding``.
-* ``holding`` -- holds the final posture until a release (``inputs["estop_release"]`` truthy)
+* ``holding`` -- holds the final posture until a release (``inputs["estop_release"]``: a new
+  :class:`TopicEvent`, acted on once, or a truthy level)
   when the measured CoG is slower than ``settle_speed``; then ``idle`` (walking takes the robot
   back from the measured posture; aligning the feet by stepping is walking's, §V step 3).
 * ``refused`` -- the state was outside the model's validity (CoG height, speed, non-finite,
@@ -29,8 +31,8 @@ States (:class:`EstopState`; the transition rules are :data:`TRANSITIONS`, print
   takeover the e-stop does not take over; after one it keeps commanding its last targets (the
   mux gives safe_fall precedence; if nobody else commands the robot still has this one).
 
-Bumpless take-over: ``inputs["joint_targets"]`` (the targets the mux applied last tick, model
-order), when given, seeds the IK instead of the measured joints: position servos sag under load,
+Bumpless take-over: ``observation.joint_targets`` (the targets the mux applied during the last tick,
+model order), when known, seeds the IK instead of the measured joints: position servos sag under load,
 and commanding the measured posture relaxes every loaded joint at once (measured: a 100 N standing
 push, take-over at the toe, bounced both feet off the ground).
 
@@ -120,6 +122,9 @@ class EstopStatus:
         feasible: predicted feasible (ZMP margin and final posture); fallback: "" or the fallback run.
         final_com: the planned final CoG [m] (3,), world.
         reason: why infeasible / refused / yielded, or "".
+        frame_origin: world xy of the stop frame's origin [m] (2,); major_axis: its unit Major axis (2,).
+        com_ref, com_velocity_ref, zmp_ref: this tick's references of the stop [m, m/s, m] (3,), world
+            (NaN when not playing a plan): what plan-vs-measured plots read from a bag.
     """
 
     stamp_ns: int = 0
@@ -154,6 +159,22 @@ class EstopStatus:
     fallback: str = ""
     final_com: tuple = (math.nan,) * 3
     reason: str = ""
+    frame_origin: tuple = (math.nan,) * 2
+    major_axis: tuple = (math.nan,) * 2
+    com_ref: tuple = (math.nan,) * 3
+    com_velocity_ref: tuple = (math.nan,) * 3
+    zmp_ref: tuple = (math.nan,) * 3
+
+
+@dataclasses.dataclass(frozen=True)
+class TopicEvent:
+    """One message of an event topic (``estop``, ``estop/release``): ``count`` numbers them [1, 2, ...].
+
+    The node converts every message to a new count, so a second ``humfall estop`` after a release is a
+    new trigger even though the latched topic's value never changes.
+    """
+
+    count: int
 
 
 def status_from_plan(plan: StopPlan) -> dict:
@@ -171,7 +192,9 @@ def status_from_plan(plan: StopPlan) -> dict:
         "predicted_stop_time": plan.stop_time, "crouch": plan.crouch is not None,
         "crouch_height": plan.crouch.end_height if plan.crouch else plan.state.cog_height,
         "feasible": plan.feasible, "fallback": plan.fallback,
-        "final_com": tuple(float(c) for c in plan.final_com), "reason": plan.reason}
+        "final_com": tuple(float(c) for c in plan.final_com), "reason": plan.reason,
+        "frame_origin": tuple(float(c) for c in plan.frame.origin),
+        "major_axis": tuple(float(c) for c in plan.frame.major)}
 
 
 # ---------------------------------------------------------------------- pattern-state adapters
@@ -241,6 +264,9 @@ def _truthy(x) -> bool:
     return bool(x)
 
 
+_NAN3 = (math.nan,) * 3
+
+
 class EstopController:
     """The e-stop source (module docstring).
 
@@ -280,7 +306,9 @@ class EstopController:
         self.taken_over = False
         self.q_ik: np.ndarray | None = None
         self.last_targets: JointTargets | None = None
-        self._trigger_seen = False      # edge detection of the latched trigger input
+        self._trigger_seen = False      # edge detection of the latched trigger input (a level)
+        self._trigger_count = 0         # the last estop TopicEvent acted on
+        self._release_count = 0         # the last estop/release TopicEvent acted on
         self._scheduled_done = False
         self._t_start = math.nan
         self._t_stopped = math.nan
@@ -316,8 +344,9 @@ class EstopController:
         stamp = observation.stamp_ns
         triggered = self._trigger_edge(inp.get("estop"), observation, ws)
         falling = _truthy(inp.get("fall_event"))
-        release = _truthy(inp.get("estop_release"))
-        self.status = dataclasses.replace(self.status, stamp_ns=stamp, active=self.taken_over)
+        release = self._release(inp.get("estop_release"))
+        self.status = dataclasses.replace(self.status, stamp_ns=stamp, active=self.taken_over, com_ref=_NAN3,
+                                          com_velocity_ref=_NAN3, zmp_ref=_NAN3)
         out: JointTargets | None
         if falling and self.state != EstopState.YIELDED and (self.taken_over or self.pending or triggered):
             self.pending = False
@@ -363,15 +392,27 @@ class EstopController:
     def _trigger_edge(self, x, observation: Observation, ws) -> bool:
         """A new trigger this tick: the latched input's rising edge or the scheduled tick."""
         c = self.cfg
-        now = _truthy(x)
-        edge = now and not self._trigger_seen
-        self._trigger_seen = now
+        if isinstance(x, TopicEvent):          # a message of the estop topic: each new count is a trigger
+            edge = x.count > self._trigger_count
+            self._trigger_count = max(self._trigger_count, x.count)
+        else:                                  # a level (in-process callers): its rising edge
+            now = _truthy(x)
+            edge = now and not self._trigger_seen
+            self._trigger_seen = now
         due = (c.trigger_time >= 0 and observation.stamp_ns >= stamp_ns_of(c.trigger_time)) or (
             c.trigger_step >= 0 and ws is not None and self._at_phase(ws))
         if due and not self._scheduled_done:
             self._scheduled_done = True
             edge = True
         return edge
+
+    def _release(self, x) -> bool:
+        """A release this tick: a new ``estop/release`` message (acted on once), or a truthy level."""
+        if isinstance(x, TopicEvent):
+            new = x.count > self._release_count
+            self._release_count = max(self._release_count, x.count)
+            return new
+        return _truthy(x)
 
     def _at_phase(self, ws) -> bool:
         """This tick is the configured gait phase of step ``trigger_step`` (first tick that qualifies)."""
@@ -427,7 +468,7 @@ class EstopController:
                           np.asarray(state.com_velocity[:2], float)) < 0 else "r")   # the rear foot
         # bumpless: start from the joint targets in force if the loop gives them (a position-servoed
         # joint sags under load, so commanding the measured posture would relax every loaded joint)
-        targets = observation.inputs.get("joint_targets")
+        targets = observation.joint_targets
         joints = np.asarray(targets if targets is not None else observation.joint_position, float)
         q_seed = configuration_from_feet(self.m, joints, state.feet, feet_side)
         try:
@@ -470,6 +511,9 @@ class EstopController:
         self.now = observation.time
         t = observation.time - self._t_start
         ref = plan.sample(t)
+        self.status = dataclasses.replace(self.status, com_ref=tuple(map(float, ref.com)),
+                                          com_velocity_ref=tuple(map(float, ref.com_velocity)),
+                                          zmp_ref=tuple(map(float, ref.zmp)))
         if ref.done and self.state == EstopState.STOPPING:
             self._t_stopped = observation.time
             self._set(EstopState.STOPPED, observation.stamp_ns, reason=self.status.reason)
@@ -512,6 +556,7 @@ __all__ = [
     "EstopController",
     "EstopState",
     "EstopStatus",
+    "TopicEvent",
     "feet_from_joints",
     "feet_from_soles",
     "pattern_state_from_walking",

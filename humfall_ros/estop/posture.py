@@ -12,8 +12,8 @@ ZMP prediction is redone with that vertical motion. If no crouch down to
 ``crouch_min_cog_height`` gives a reachable posture, or the ZMP leaves the polygon, the
 **fallback** ``min_n3_crouch`` plans with beta = -omega_f (the smallest n3 this model can give
 with -omega_f <= beta: n3 equals eq. 22's bound y0 + ydot0/omega_c), with the crouch the posture
-needs or, if none suffices, the deepest one, and runs it with ``feasible=False``; ``fallback: none`` keeps the nominal plan (still
-``feasible=False``), to show what the prediction predicted.
+needs or, if none suffices, the deepest one, and runs it with ``feasible=False``; ``fallback: none``
+keeps the nominal plan (still ``feasible=False``), to show what the prediction predicted.
 """
 from __future__ import annotations
 
