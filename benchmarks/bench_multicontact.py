@@ -3,6 +3,14 @@ the wall case (Fig. 4). Prints one JSON object.
 
     python benchmarks/bench_multicontact.py [--kes 10,20,...,80] [--wall 0.8 --wall-ke 40]
                                             [--budget 120] [--jobs 2] [--plots DIR] [--no-resim]
+                                            [--set name=value,...] [--compare]
+
+The planner is built from its declaration (config/multicontact_planner.yaml,
+``FallPlanner.from_params``); ``--set`` overrides parameters by their yaml
+names. ``--compare`` runs the sweep twice, with the paper's objective (the
+declaration) and with the departure (``DEPARTURE``: post-impact objective and
+frontier key, landings unlimited: the planner before issue 14), and prints a
+side-by-side ``table``. Every case reports its landings (eq. 10 severity).
 
 NLP structures are built on first use and then reused (as in the node); the
 build time is reported separately ("build_s", and per NLP "nlp_build_s") and is
@@ -26,8 +34,13 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from humfall_ros.multicontact.collocation import OptConfig  # noqa: E402
-from humfall_ros.multicontact.planner import FallPlanner, PlannerConfig  # noqa: E402
+import yaml  # noqa: E402
+
+from humfall_ros.multicontact.modes import Environment  # noqa: E402
+from humfall_ros.multicontact.planner import FallPlanner  # noqa: E402
+
+# the planner before issue 14 (departures from paper 2, Sec. III-A / Alg. 1 line 20)
+DEPARTURE = {"transition_objective": "post_impact", "frontier_order": "post_impact", "landing_policy": "ignore"}
 
 PAPER = {10: "inertial shaping", 20: "inertial shaping", 30: "protective step", 40: "protective step",
          50: "protective step", 60: "hand contact", 70: "hand contact", 80: "hand contact"}
@@ -66,6 +79,13 @@ def run_case(planner: FallPlanner, ke: float, wall: float, budget: float, resim:
         "total_time_s": round(r["total_time_s"], 3), "tree_nodes": r["tree_nodes"],
         "deepest_depth": r["deepest_depth"],
     }
+    case["landings"] = [{k: (round(v, 3) if isinstance(v, float) else v) for k, v in x.to_dict().items()}
+                        for x in r.get("landings", [])]
+    case["landings_within_limits"] = r.get("landings_within_limits", False)
+    hands = [x for x in case["landings"] if x["limb"] in ("LH", "RH")]
+    case["max_hand_touchdown_normal_speed"] = max((x["normal_speed"] for x in hands), default=None)
+    case["max_pre_impact_ke_over_push"] = (round(max(x["pre_impact_ke"] for x in case["landings"]) / ke, 3)
+                                           if case["landings"] else None)
     if r["success"]:
         # eq. 6 at the start of each child segment: the impact map (eq. 10) may
         # throw joints past their velocity limits (not bounded in the NLP, see docs)
@@ -103,7 +123,7 @@ _PLANNER = None
 
 def _worker_init(overrides: dict) -> None:
     global _PLANNER
-    _PLANNER = FallPlanner(OptConfig(**overrides), PlannerConfig())
+    _PLANNER = FallPlanner.from_params(**overrides)
 
 
 def _worker_case(args) -> dict:
@@ -115,32 +135,20 @@ def _worker_case(args) -> dict:
 
 
 def parse_overrides(text: str) -> dict:
+    """``name=value,...`` by the yaml's parameter names (values parsed as YAML; lists in [] with ';')."""
     out = {}
     for kv in filter(None, text.split(",")):
-        k, v = kv.split("=")
-        d = getattr(OptConfig(), k)
-        out[k] = v.strip().lower() in ("1", "true", "yes") if isinstance(d, bool) else type(d)(v)
+        k, v = kv.split("=", 1)
+        out[k.strip()] = yaml.safe_load(v.replace(";", ","))
     return out
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--kes", default="10,20,30,40,50,60,70,80")
-    ap.add_argument("--wall", type=float, default=0.8, help="wall distance for the wall case (<= 0: skip)")
-    ap.add_argument("--wall-ke", type=float, default=40.0)
-    ap.add_argument("--budget", type=float, default=120.0, help="time budget per case (s; the node default)")
-    ap.add_argument("--plots", default="", help="directory for the figures (Fig. 1, 5-7 style)")
-    ap.add_argument("--no-resim", action="store_true", help="skip the independent re-simulation of the plans")
-    ap.add_argument("--resim", action="store_true", help="(default, kept for old command lines)")
-    ap.add_argument("--jobs", type=int, default=2, help="worker processes for the cases (1: in order, in-process)")
-    ap.add_argument("--opt", default="", help="OptConfig overrides, e.g. max_iter=300,max_seed_attempts=1")
-    args = ap.parse_args(argv)
+def run_sweep(args, overrides: dict) -> dict:
+    """One sweep (+ wall case) with the planner built from the declaration plus ``overrides``."""
     kes = [float(x) for x in args.kes.split(",") if x]
-    overrides = parse_overrides(args.opt)
     resim = not args.no_resim
     jobs = [(ke, 0.0, args.budget, resim) for ke in kes]
     wall_job = (args.wall_ke, args.wall, args.budget, resim) if args.wall > 0 else None
-
     t0 = time.perf_counter()
     if args.jobs > 1:
         import multiprocessing as mp
@@ -152,29 +160,29 @@ def main(argv=None) -> int:
             sweep_time = time.perf_counter() - t0
             wall_case = pool.apply(_worker_case, (wall_job,)) if wall_job else None
         cases = [done[i] for i in range(len(jobs))]
-        model = FallPlanner(OptConfig(**overrides), PlannerConfig()).model if args.plots else None
+        planner = FallPlanner.from_params(**overrides)
         per_worker: dict = {}
         for c in cases + ([wall_case] if wall_case else []):
             per_worker[c["worker_pid"]] = max(per_worker.get(c["worker_pid"], 0.0), c["build_s_worker_total"])
         build_total = sum(per_worker.values())
-        cfg = vars(OptConfig(**overrides))
     else:
         _worker_init(overrides)
         cases = [_worker_case(j) for j in jobs]
         sweep_time = time.perf_counter() - t0
         wall_case = _worker_case(wall_job) if wall_job else None
-        model = _PLANNER.model
+        planner = _PLANNER
         build_total = sum(_PLANNER.opt.build_times.values())
-        cfg = vars(_PLANNER.opt.cfg)
     total_time = time.perf_counter() - t0
     every = cases + ([wall_case] if wall_case else [])
     all_times = [t for c in every for t in c["nlp_times_s"]]
     solve_times = [t - b for c in every for t, b in zip(c["nlp_times_s"], c["nlp_build_s"])]
     ok = [c for c in every if c["success"] and "resim_worst" in c]
     out = {
-        "machine_cpus": os.cpu_count(),
-        "jobs": args.jobs,
-        "opt_config": cfg,
+        "overrides": overrides,
+        "transition_objective": planner.opt.cfg.transition_objective,
+        "opt_config": {k: (v if not hasattr(v, "__dataclass_fields__") else vars(v))
+                       for k, v in vars(planner.opt.cfg).items()},
+        "planner_config": vars(planner.cfg),
         "sweep": [{k: v for k, v in c.items() if not k.startswith("_")} for c in cases],
         "wall": {k: v for k, v in wall_case.items() if not k.startswith("_")} if wall_case else None,
         "sweep_and_wall_time_s": round(total_time, 2),
@@ -192,14 +200,94 @@ def main(argv=None) -> int:
         if ok else None,
         "load_average_1min_at_end": round(os.getloadavg()[0], 2),
         "build_s": round(build_total, 2),
-        "goals": {"final_ke_J": 0.1, "median_nlp_s": 2.0, "sweep_time_s": 120.0},
     }
+    if args.library:
+        out["library"] = library_figures(out, cases, overrides, [float(x) for x in args.library.split(",")])
     if args.plots:
         from humfall_ros.multicontact import plots
-        results = [c["_result"] for c in cases]
-        out["plots"] = plots.write_all(model, results, wall_case["_result"] if wall_case else None,
-                                       args.plots)
-    print(json.dumps(out, indent=1))
+        tag = "" if not overrides else "_" + out["transition_objective"]
+        out["plots"] = plots.write_all(planner.model, [c["_result"] for c in cases],
+                                       wall_case["_result"] if wall_case else None, args.plots + tag)
+    return out
+
+
+def library_figures(run: dict, cases: list, overrides: dict, queries: list[float]) -> dict:
+    """Online use: the sweep's plans as a library, re-planned warm at ``queries`` (J)."""
+    from humfall_ros.multicontact.library import LibraryEntry, PlanLibrary
+    entries = [LibraryEntry(c["ke"], 1.0, 0.0, c["contact_sequence"], c["_result"]["segments"])
+               for c in cases if c["success"]]
+    lib = PlanLibrary(entries)
+    planner = FallPlanner.from_params(**overrides)
+    t0 = time.perf_counter()
+    for e in entries:   # what a running node has done once: build the structures the library uses
+        for s in e.segments:
+            planner.opt.structures(s.mode, s.change, s.extremity, Environment())
+    out = {"entries": [e.kinetic_energy for e in entries], "structure_build_s": round(time.perf_counter() - t0, 2),
+           "queries": []}
+    for ke in queries:
+        r = lib.replan(planner, {"kinetic_energy": ke, "direction": 1.0})
+        out["queries"].append({
+            "ke": ke, "success": r.success, "reason": r.reason, "time_s": round(r.time_s, 3),
+            "nlp_times_s": [round(t, 3) for t in r.nlp_times_s],
+            "entry_ke": r.entry.kinetic_energy if r.entry else None,
+            "sequence": r.entry.contact_sequence if r.entry else None, "final_ke": r.final_ke,
+            "landings": [{k: (round(v, 3) if isinstance(v, float) else v) for k, v in x.to_dict().items()}
+                         for x in r.landings]})
+    ok = [q["time_s"] for q in out["queries"] if q["success"] and q["ke"] <= 50]
+    out["max_time_s_10_50J_successful"] = max(ok) if ok else None
+    out["success_10_50J"] = f"{len(ok)}/{sum(1 for q in out['queries'] if q['ke'] <= 50)}"
+    return out
+
+
+def _row(c: dict | None) -> dict | None:
+    if c is None:
+        return None
+    return {"success": c["success"], "sequence": " -> ".join(c["contact_sequence"]) or c["reason"],
+            "final_ke": c["final_ke"], "time_s": c["total_time_s"],
+            "landings": [f"{x['limb']}: {x['normal_speed']:.2f} m/s, pre {x['pre_impact_ke']:.1f} J, "
+                         f"absorbed {x['absorbed_energy']:.1f} J" for x in c["landings"]]}
+
+
+def table(paper: dict, departure: dict) -> list[dict]:
+    """The same cases side by side: paper's objective vs the departure."""
+    rows = []
+    for a, b in zip(paper["sweep"] + [paper["wall"]], departure["sweep"] + [departure["wall"]]):
+        if a is None:
+            continue
+        rows.append({"ke": a["ke"], "wall_distance": a["wall_distance"], "paper": a["paper_strategy"],
+                     "pre_impact_objective": _row(a), "post_impact_objective": _row(b)})
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--kes", default="10,20,30,40,50,60,70,80")
+    ap.add_argument("--wall", type=float, default=0.8, help="wall distance for the wall case (<= 0: skip)")
+    ap.add_argument("--wall-ke", type=float, default=40.0)
+    ap.add_argument("--budget", type=float, default=120.0, help="time budget per case (s; the node default)")
+    ap.add_argument("--plots", default="", help="directory for the figures (Fig. 1, 5-7 style)")
+    ap.add_argument("--no-resim", action="store_true", help="skip the independent re-simulation of the plans")
+    ap.add_argument("--resim", action="store_true", help="(default, kept for old command lines)")
+    ap.add_argument("--jobs", type=int, default=2, help="worker processes for the cases (1: in order, in-process)")
+    ap.add_argument("--set", "--opt", dest="set", default="",
+                    help="parameter overrides by yaml name, e.g. max_iter=300,transition_objective=post_impact")
+    ap.add_argument("--compare", action="store_true",
+                    help="also run the departure (post-impact objective) and print both side by side")
+    ap.add_argument("--library", default="",
+                    help="after the sweep: use its plans as a library and re-plan warm at these energies (J), "
+                         "e.g. 12,15,25,35,45")
+    args = ap.parse_args(argv)
+    overrides = parse_overrides(args.set)
+    out = {"machine_cpus": os.cpu_count(), "jobs": args.jobs,
+           "goals": {"final_ke_J": 0.1, "sweep_time_s": 120.0, "hand_touchdown_normal_speed_mps": 1.5,
+                     "pre_impact_ke_over_push": 1.0}}
+    main_run = run_sweep(args, overrides)
+    out.update(main_run)
+    if args.compare:
+        dep = run_sweep(args, {**overrides, **DEPARTURE})
+        out["departure"] = dep
+        out["table"] = table(main_run, dep)
+    print(json.dumps(out, indent=1, default=str))
     return 0
 
 

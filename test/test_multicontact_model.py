@@ -154,17 +154,17 @@ def _req(**kw):
 
 
 @pytest.mark.parametrize("change, match", [
-    (dict(kinetic_energy=float("nan")), "kinetic_energy is not a finite"),
-    (dict(q=[0.0] * 12 + [float("inf")]), "q contains a non-finite"),
-    (dict(q=[0.0] * 5), "q has 5 entries, expected 13"),
-    (dict(v=[0.0] * 14), "v has 14 entries"),
-    (dict(initial_mode="LF/RK"), "unknown extremity 'RK'"),
-    (dict(initial_mode="LF/RF/LH"), "does not match the configuration: LH"),
-    (dict(wall_distance=0.1), "wall .* inside the robot"),
-    (dict(kinetic_energy=5000.0), "exceeds the maximum"),
-    (dict(direction=0.0), "direction must be"),
-    (dict(time_budget=-1.0), "time_budget must be >= 0"),
-    (dict(wall_distance=float("inf")), "wall_distance is not a finite"),
+    ({"kinetic_energy": float("nan")}, "kinetic_energy is not a finite"),
+    ({"q": [0.0] * 12 + [float("inf")]}, "q contains a non-finite"),
+    ({"q": [0.0] * 5}, "q has 5 entries, expected 13"),
+    ({"v": [0.0] * 14}, "v has 14 entries"),
+    ({"initial_mode": "LF/RK"}, "unknown extremity 'RK'"),
+    ({"initial_mode": "LF/RF/LH"}, "does not match the configuration: LH"),
+    ({"wall_distance": 0.1}, "wall .* inside the robot"),
+    ({"kinetic_energy": 5000.0}, "exceeds the maximum"),
+    ({"direction": 0.0}, "direction must be"),
+    ({"time_budget": -1.0}, "time_budget must be >= 0"),
+    ({"wall_distance": float("inf")}, "wall_distance is not a finite"),
 ])
 def test_validation_rejects_bad_requests(model, change, match):
     with pytest.raises(InvalidRequest, match=match):

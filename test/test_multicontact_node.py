@@ -94,6 +94,8 @@ def test_plan_fall_service_valid_and_invalid(planner_process, in_ros_domain, tmp
     assert out.returncode == 0, out.stdout + out.stderr
     d = json.loads(out.stdout)
     assert d["success"] and d["contact_sequence"] == ["LF/RF"]
+    # issue 14: the paper's objective, and a landing report list (empty: no contact added at 10 J)
+    assert d["transition_objective"] == "pre_impact" and d["landings"] == [] and d["landings_within_limits"]
     names = sorted(pathlib.Path(f).name for f in d["plots"])
     assert names == ["plan_10J_ke.png", "plan_10J_sticks.png", "plan_10J_tree.png"]
     for f in d["plots"]:

@@ -224,3 +224,22 @@ def test_paper_objective_lands_the_hand_with_less_energy_than_the_departure(plan
     assert reps["paper"].pre_impact_ke < reps["departure"].pre_impact_ke
     assert reps["paper"].absorbed_energy < reps["departure"].absorbed_energy
     assert reps["paper"].normal_speed < reps["departure"].normal_speed
+
+
+def test_library_replan_reuses_a_stored_plan_warm(plan10, tmp_path):
+    """Online use (paper 2, Sec. V: a database of plans): the 10 J plan stored, saved
+    and loaded; a 12 J push re-planned from it with one warm-started NLP per segment
+    ends at rest with the stored sequence; no entry for a backward push."""
+    from humfall_ros.multicontact.library import LibraryEntry, PlanLibrary
+    planner = FallPlanner.from_params(nlp_max_wall_time=120.0)   # the machine may be shared: no wall-time cut
+    lib = PlanLibrary([LibraryEntry(10.0, 1.0, 0.0, plan10["contact_sequence"], plan10["segments"])])
+    lib.save(tmp_path / "lib.json")
+    lib = PlanLibrary.load(tmp_path / "lib.json")
+    r = lib.replan(planner, {"kinetic_energy": 12.0, "direction": 1.0})
+    assert r.success, r.reason
+    assert r.entry.kinetic_energy == 10.0 and len(r.segments) == len(plan10["segments"])
+    assert r.final_ke < planner.opt.cfg.eps_ke
+    assert r.segments[0].ke[0] == pytest.approx(12.0, rel=1e-6)     # from the request's state, not the entry's
+    assert r.segments[0].attempt_log[0]["seed_T"] == "warm" and len(r.nlp_times_s) == 1
+    miss = lib.replan(planner, {"kinetic_energy": 12.0, "direction": -1.0})
+    assert not miss.success and "no library entry" in miss.reason

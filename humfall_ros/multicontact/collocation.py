@@ -118,6 +118,9 @@ class OptConfig:
     # the landing foot (behind its toe for a forward fall): looks beyond the edge, which
     # eq. 9 does not (departure from the paper, off by default)
     step_capture_constraint: bool = False
+    # eq. 5 on the impulses of eq. 10 (|Lambda_t| <= mu Lambda_n per contact): the
+    # paper's impact map sticks whatever friction that needs (departure, off by default)
+    impact_friction_cone: bool = False
     step_capture_margin: float = 0.0
     landing_limits: LandingLimits = dataclasses.field(default_factory=LandingLimits)
 
@@ -364,6 +367,11 @@ class SegmentNLP:
             # eq. 10: D (v+ - v-) = J^T Lambda, J v+ = 0
             add("impact", N - 1, (model.f_D(qN) @ (v_plus - vN) - Jt.T @ imp) / self.imp_scale)
             add("impact_vel", N - 1, Jt @ v_plus)
+            # eq. 5 applied to the impulse of eq. 10 (bounded only when impact_friction_cone):
+            # a sticking impact must not need more friction than the contact has
+            for ti, ni in C.friction_groups(self.impact_rows):
+                fn = sum(imp[i] for i in ni)
+                add("imp_fric", N - 1, ca.vertcat(cfg.mu * fn - imp[ti], cfg.mu * fn + imp[ti]) / self.imp_scale)
             ke_post = model.f_ke(qN, v_plus)
             self.ke_post = ke_post
             # Sec. III-A: the pre-impact energy (default); 'post_impact' is the
@@ -535,6 +543,9 @@ class SegmentNLP:
         if len(idx):
             lo, hi = self._clearance_bounds(q0, env)
             lbg[idx], ubg[idx] = lo, hi
+        idx = self._block_idx.get("imp_fric", np.array([], int))
+        if len(idx):
+            lbg[idx], ubg[idx] = (0.0 if cfg.impact_friction_cone else -np.inf), np.inf
         idx = self._block_idx.get("capture", np.array([], int))
         if len(idx):
             lbg[idx], ubg[idx] = -np.inf, np.inf
@@ -861,8 +872,11 @@ class TrajectoryOptimizer:
         nlp, _ = self.structures(guess.mode, guess.change, guess.extremity, env)
         build_time = time.perf_counter() - t0
         lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env)
-        q, v = guess.q.copy(), guess.v.copy()
-        q[0], v[0] = q0, v0
+        # the stored knots moved so that they start at the new state, the shift fading
+        # out linearly to the last knot (which keeps the stored end)
+        fade = np.linspace(1.0, 0.0, len(guess.time))[:, None]
+        q = guess.q + fade * (q0 - guess.q[0])
+        v = guess.v + fade * (v0 - guess.v[0])
         w0 = np.clip(nlp.pack(float(guess.time[-1]), q, v, guess.a, guess.u, guess.lam), lbx, ubx)
         with nlp.lock:
             sol = nlp.solver(x0=w0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)

@@ -62,6 +62,8 @@ class LandingReport:
         absorbed_energy: pre_impact_ke - post_impact_ke [J].
         normal_impulse: normal impulse on the landing limb (sum over its points) [N s].
         tangential_impulse: tangential impulse on the landing limb [N s].
+        impulse_friction_ratio: |tangential| / normal impulse of the landing limb; above the friction
+            coefficient the sticking impact of eq. 10 needs more friction than eq. 5 allows (the limb would slide).
         within_limits: both limits of the limb met.
         exceeded: which limits were broken ('' if none).
     """
@@ -76,6 +78,7 @@ class LandingReport:
     absorbed_energy: float
     normal_impulse: float
     tangential_impulse: float
+    impulse_friction_ratio: float
     within_limits: bool
     exceeded: str
 
@@ -114,6 +117,7 @@ def landing_report(model: PlanarModel, q, v_minus, target_mode: Mode, limb: str,
     rep = LandingReport(limb=limb, surface=surface, time=float(time), normal_speed=best[0],
                         tangential_speed=best[1], pre_impact_ke=pre, post_impact_ke=post,
                         absorbed_energy=pre - post, normal_impulse=imp_n, tangential_impulse=imp_t,
+                        impulse_friction_ratio=abs(imp_t) / imp_n if imp_n > 1e-12 else float("inf"),
                         within_limits=not exceeded, exceeded="; ".join(exceeded))
     return rep, v_plus
 

@@ -137,7 +137,7 @@ def landing_msg(rep) -> LandingReport:
     for f in ("limb", "surface", "exceeded"):
         setattr(m, f, str(getattr(rep, f)))
     for f in ("time", "normal_speed", "tangential_speed", "pre_impact_ke", "post_impact_ke", "absorbed_energy",
-              "normal_impulse", "tangential_impulse"):
+              "normal_impulse", "tangential_impulse", "impulse_friction_ratio"):
         setattr(m, f, float(getattr(rep, f)))
     m.within_limits = bool(rep.within_limits)
     return m

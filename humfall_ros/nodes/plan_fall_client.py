@@ -57,7 +57,8 @@ def response_to_dict(resp) -> dict:
                      for s in resp.segments],
         "landings": [{f: getattr(x, f) for f in ("limb", "surface", "time", "normal_speed", "tangential_speed",
                                                   "pre_impact_ke", "post_impact_ke", "absorbed_energy",
-                                                  "normal_impulse", "tangential_impulse", "within_limits",
+                                                  "normal_impulse", "tangential_impulse",
+                                                  "impulse_friction_ratio", "within_limits",
                                                   "exceeded")} for x in resp.landings],
         "landings_within_limits": bool(resp.landings_within_limits),
         "transition_objective": resp.transition_objective,
@@ -77,8 +78,9 @@ def summary(d: dict) -> str:
     for x in d.get("landings", []):
         lines.append(f"  landing {x['limb']} on the {x['surface']} at {x['time']:.2f} s: touchdown "
                      f"{x['normal_speed']:.2f} m/s normal, {x['tangential_speed']:.2f} m/s tangential; KE "
-                     f"{x['pre_impact_ke']:.1f} -> {x['post_impact_ke']:.1f} J (absorbed {x['absorbed_energy']:.1f} J), "
-                     f"impulse {x['normal_impulse']:.1f} N s"
+                     f"{x['pre_impact_ke']:.1f} -> {x['post_impact_ke']:.1f} J "
+                     f"(absorbed {x['absorbed_energy']:.1f} J), "
+                     f"impulse {x['normal_impulse']:.1f} N s (|t|/n {x['impulse_friction_ratio']:.2f})"
                      + ("" if x["within_limits"] else f"  BEYOND LIMITS: {x['exceeded']}"))
     if d.get("transition_objective"):
         lines.append(f"transition objective: {d['transition_objective']}")

@@ -1,0 +1,161 @@
+"""A library of precomputed fall plans and the warm-started online re-plan.
+
+Paper 2 (Sec. V) names a database of optimal trajectories as the way to online
+use. Here: plans are computed offline with the full tree search (Algorithm 1)
+over a grid of pushes (kinetic energy [J], direction ±1, wall distance [m];
+``build``); online, a request takes the nearest stored plan with the same
+direction and wall presence, keeps its contact sequence, and re-solves each of
+its segments in order from the request's state with the stored segment as the
+initial point (``TrajectoryOptimizer.warm_solve``: one IPOPT run per segment,
+no seed sweep, no tree). Between segments the impact map of eq. 10 gives the
+post-impact state of an added contact, as in the tree. The re-plan is accepted
+when every segment converges and the last one ends below eps_KE; otherwise the
+caller falls back to the tree search (``FallPlanner.plan``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import pathlib
+import time
+
+from humfall_ros.multicontact.collocation import Segment
+from humfall_ros.multicontact.landing import LandingReport, landing_report
+from humfall_ros.multicontact.modes import mode_label
+from humfall_ros.multicontact.planner import FallPlanner, InvalidRequest, validate
+
+
+@dataclasses.dataclass
+class LibraryEntry:
+    """One stored plan.
+
+    Attributes:
+        kinetic_energy: push energy [J].
+        direction: +1 forward, -1 backward.
+        wall_distance: [m], <= 0 no wall.
+        contact_sequence: modes from the root.
+        segments: transitions then the terminal self-motion.
+    """
+
+    kinetic_energy: float
+    direction: float
+    wall_distance: float
+    contact_sequence: list[str]
+    segments: list[Segment]
+
+    def to_dict(self) -> dict:
+        return {"kinetic_energy": self.kinetic_energy, "direction": self.direction,
+                "wall_distance": self.wall_distance, "contact_sequence": self.contact_sequence,
+                "segments": [s.to_dict() for s in self.segments]}
+
+    @staticmethod
+    def from_dict(d: dict) -> "LibraryEntry":
+        return LibraryEntry(float(d["kinetic_energy"]), float(d["direction"]), float(d["wall_distance"]),
+                            list(d["contact_sequence"]), [Segment.from_dict(s) for s in d["segments"]])
+
+
+@dataclasses.dataclass
+class Replan:
+    """Result of a warm-started re-plan.
+
+    Attributes:
+        success: every segment converged and the last ends below eps_KE.
+        reason: why not, or which entry was used.
+        entry: the library entry used (None: none matched).
+        segments: the re-solved segments (as far as they got).
+        landings: severity of each landing (eq. 10).
+        final_ke: [J].
+        time_s: wall time of the re-plan [s].
+        nlp_times_s: per segment [s].
+    """
+
+    success: bool
+    reason: str
+    entry: LibraryEntry | None
+    segments: list[Segment]
+    landings: list[LandingReport]
+    final_ke: float
+    time_s: float
+    nlp_times_s: list[float]
+
+
+class PlanLibrary:
+    def __init__(self, entries: list[LibraryEntry] | None = None):
+        self.entries = list(entries or [])
+
+    # ------------------------------------------------------------- offline
+    @staticmethod
+    def build(planner: FallPlanner, kinetic_energies, directions=(1.0,), wall_distances=(0.0,),
+              time_budget: float = 120.0) -> "PlanLibrary":
+        """Full tree searches over the grid; failed pushes are left out."""
+        lib = PlanLibrary()
+        for w in wall_distances:
+            for d in directions:
+                for ke in kinetic_energies:
+                    r = planner.plan({"kinetic_energy": float(ke), "direction": float(d), "wall_distance": float(w),
+                                      "time_budget": time_budget})
+                    if r["success"]:
+                        lib.entries.append(LibraryEntry(float(ke), float(d), float(w), r["contact_sequence"],
+                                                        r["segments"]))
+        return lib
+
+    def save(self, path) -> None:
+        pathlib.Path(path).write_text(json.dumps([e.to_dict() for e in self.entries]))
+
+    @staticmethod
+    def load(path) -> "PlanLibrary":
+        return PlanLibrary([LibraryEntry.from_dict(d) for d in json.loads(pathlib.Path(path).read_text())])
+
+    # -------------------------------------------------------------- online
+    def nearest(self, kinetic_energy: float, direction: float, wall_distance: float) -> LibraryEntry | None:
+        """Same direction and wall presence; nearest in energy, then in wall distance."""
+        has_wall = wall_distance > 0
+        side = math.copysign(1.0, direction)
+        cands = [e for e in self.entries
+                 if math.copysign(1.0, e.direction) == side and (e.wall_distance > 0) == has_wall]
+        if not cands:
+            return None
+        return min(cands, key=lambda e: (abs(e.kinetic_energy - kinetic_energy), abs(e.wall_distance - wall_distance)))
+
+    def replan(self, planner: FallPlanner, req: dict) -> Replan:
+        """Re-solve the nearest entry's sequence from the request's state (see module doc)."""
+        t0 = time.perf_counter()
+        try:
+            vr = validate(planner.model, req, planner.cfg)
+        except InvalidRequest as e:
+            return Replan(False, f"invalid request: {e}", None, [], [], math.nan, time.perf_counter() - t0, [])
+        entry = self.nearest(float(req.get("kinetic_energy", 0.0) or 0.0), float(req.get("direction", 1.0) or 1.0),
+                             float(req.get("wall_distance", 0.0) or 0.0))
+        if entry is None:
+            return Replan(False, "no library entry for this direction and environment", None, [], [], math.nan,
+                          time.perf_counter() - t0, [])
+        if mode_label(vr.mode) != entry.contact_sequence[0]:
+            return Replan(False, f"library entry starts in {entry.contact_sequence[0]}, request in "
+                                 f"{mode_label(vr.mode)}", entry, [], [], math.nan, time.perf_counter() - t0, [])
+        q, v = vr.q, vr.v
+        segs, lands, times = [], [], []
+        t_plan = 0.0
+        limits = planner.opt.cfg.landing_limits
+        for stored in entry.segments:
+            seg = planner.opt.warm_solve(q, v, stored, vr.env)
+            segs.append(seg)
+            times.append(seg.nlp_time)
+            if not seg.success:
+                return Replan(False, f"warm-started {seg.kind} {mode_label(seg.mode)} -> "
+                                     f"{mode_label(seg.target_mode)} did not converge ({seg.status})", entry, segs,
+                              lands, math.nan, time.perf_counter() - t0, times)
+            t_plan += float(seg.time[-1])
+            q, v = seg.q[-1].copy(), seg.v[-1].copy()
+            if seg.change == "add":
+                rep, v = landing_report(planner.model, q, v, seg.target_mode, seg.extremity, vr.env, limits, t_plan)
+                lands.append(rep)
+        final = segs[-1].final_ke
+        ok = final < planner.opt.cfg.eps_ke
+        reason = (f"re-solved library plan for {entry.kinetic_energy:g} J "
+                  f"({' -> '.join(entry.contact_sequence)}): final kinetic energy {final:.3g} J")
+        return Replan(ok, reason if ok else reason + f" >= {planner.opt.cfg.eps_ke:g} J", entry, segs, lands,
+                      final, time.perf_counter() - t0, times)
+
+
+__all__ = ["LibraryEntry", "PlanLibrary", "Replan"]
