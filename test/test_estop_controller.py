@@ -75,13 +75,19 @@ def test_single_support_trigger_waits_for_double_support_and_starts_from_its_sta
 
 
 def test_step_and_phase_trigger():
+    # scenario step 3 = the 4th swing: its single support shows step_index 4 in walking/state
     ctl = EstopController(M, EstopConfig.defaults(trigger_step=3, trigger_phase="ss_end"), DT)
-    for frac in (0.5, 0.9):
+    for frac, index in ((0.5, 4), (0.9, 4), (0.97, 3)):
         assert ctl.step(obs(0.0, **{"walking/state": Pattern(support="single_right", phase_fraction=frac,
-                                                             step_index=3)})) is None
+                                                             step_index=index)})) is None
         assert ctl.state == EstopState.IDLE
-    ctl.step(obs(DT, **{"walking/state": Pattern(support="single_right", phase_fraction=0.96, step_index=3)}))
+    ctl.step(obs(DT, **{"walking/state": Pattern(support="single_right", phase_fraction=0.96, step_index=4)}))
     assert ctl.state == EstopState.WAITING and ctl.status.phase_fraction_at_trigger == pytest.approx(0.96)
+    # its double support (before that swing) shows step_index 3
+    ctl = EstopController(M, EstopConfig.defaults(trigger_step=3, trigger_phase="ds_mid"), DT)
+    assert ctl.step(obs(0.0, **{"walking/state": Pattern(phase_fraction=0.6, step_index=4)})) is None
+    assert ctl.step(obs(DT, **{"walking/state": Pattern(phase_fraction=0.4, step_index=3)})) is None
+    assert ctl.step(obs(2 * DT, **{"walking/state": Pattern(phase_fraction=0.5, step_index=3)})) is not None
 
 
 def test_bad_input_rules():

@@ -68,7 +68,7 @@ def _model():
     return load_model()
 
 
-def test_a_standing_stop_over_ros_is_identical_to_the_in_process_loop(run_up, monkeypatch):
+def test_a_standing_stop_over_ros_is_identical_to_the_in_process_loop(run_up, monkeypatch, tmp_path):
     _with_estop_node(monkeypatch, {"trigger_time": 0.7, "walking_state_input": False})
     ov = ["duration=2.0", PUSH]
     status, r = run_up("standing_quiet", *ov)
@@ -94,6 +94,13 @@ def test_a_standing_stop_over_ros_is_identical_to_the_in_process_loop(run_up, mo
     assert n3 == ctl.plan.major.n3
     feasible = dict(bag_topic(r["bag"], "/estop/status", "feasible"))[ticks[-1]]
     assert feasible is True and ctl.plan.feasible
+    # Fig. 4/5/10-style plots from the bag: the stop's start and n3 as the node published them
+    from humfall_ros.estop.plots import plot_run, run_from_bag
+
+    run = run_from_bag(r["bag"], "standing stop over ROS")
+    assert run.start == pytest.approx(0.7) and run.n3 == n3 and len(run.polygon) >= 4
+    for path in plot_run(run, tmp_path):
+        assert path.stat().st_size > 10_000
     print(f"standing stop over ROS: {len(ticks)} ticks identical; n3 {n3:.4f} m, end {ctl.plan.end_time:.2f} s, "
           f"final state {ctl.status.state}, wall {r['wall_time_s']:.1f} s")
 

@@ -112,4 +112,25 @@ class EstopConfig:
         return EstopConfig.from_params({**params.defaults("estop_planner"), **overrides})
 
 
-__all__ = ["BETA_POLICIES", "FALLBACKS", "NODE_KEYS", "SS_PHASES", "EstopConfig", "TriggerPhase"]
+def trigger_params(estop: dict) -> dict:
+    """The node parameters of a scenario's ``estop`` section (humfall_ros.scenario.Estop).
+
+    ``time`` >= 0 -> ``trigger_time``; ``at: {step, phase}`` -> ``trigger_step``, ``trigger_phase`` (the
+    e-stop's phase names: ds_start, ds_mid, ss_start / ss_mid / ss_end = 0.1 / 0.5 / 0.95 of the single
+    support); a ``random_window`` [lo, hi] with hi > 0 and neither of those -> ``trigger_time`` drawn
+    uniformly in it with ``seed`` (numpy's default_rng); nothing -> {} (no scheduled trigger).
+    """
+    if estop.get("at") is not None:
+        TriggerPhase.parse(estop["at"]["phase"])
+        return {"trigger_step": int(estop["at"]["step"]), "trigger_phase": str(estop["at"]["phase"])}
+    if float(estop.get("time", -1.0)) >= 0:
+        return {"trigger_time": float(estop["time"])}
+    lo, hi = (float(v) for v in estop.get("random_window", (0.0, 0.0)))
+    if hi > 0:
+        import numpy as np
+
+        return {"trigger_time": float(lo + (hi - lo) * np.random.default_rng(int(estop.get("seed", 0))).random())}
+    return {}
+
+
+__all__ = ["BETA_POLICIES", "FALLBACKS", "NODE_KEYS", "SS_PHASES", "EstopConfig", "TriggerPhase", "trigger_params"]

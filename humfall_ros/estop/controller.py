@@ -6,7 +6,8 @@ States (:class:`EstopState`; the transition rules are :data:`TRANSITIONS`, print
   ``observation.inputs["estop"]`` (a new :class:`TopicEvent` from the latched ``estop`` topic, or
   the rising edge of a truthy level), or the scheduled trigger
   (``trigger_time``: the first tick stamped at or after it; ``trigger_step`` + ``trigger_phase``:
-  the first tick of that walking step in that phase, from ``inputs["walking/state"]``).
+  the first tick of that walking step in that phase, from ``inputs["walking/state"]``; steps counted as
+  the scenario's ``estop.at.step``, see :meth:`EstopController._at_phase`).
 * ``waiting`` -- triggered in single support: keeps releasing (walking plays its pattern) until
   the first double-support tick, then plans from the pattern state of that tick.
 * ``stopping`` -- plans at once from the current pattern state (paper 3 §III-A: reference CoG and
@@ -415,10 +416,17 @@ class EstopController:
         return _truthy(x)
 
     def _at_phase(self, ws) -> bool:
-        """This tick is the configured gait phase of step ``trigger_step`` (first tick that qualifies)."""
-        if not getattr(ws, "walking", True) or int(ws.step_index) != self.cfg.trigger_step:
-            return False
+        """This tick is the configured gait phase of step ``trigger_step`` (first tick that qualifies).
+
+        Step K is the scenario's (humfall_ros.walking.scenario): the K-th swing (0 = the first) with the
+        double support before it. ``walking/state.step_index`` is j during swing j (1 = the first) and in
+        the double support after it, so step K's double support shows step_index K and its single
+        support step_index K + 1.
+        """
         ph = self._phase
+        k = self.cfg.trigger_step + (1 if ph.kind == "ss" else 0)
+        if not getattr(ws, "walking", True) or int(ws.step_index) != k:
+            return False
         frac = float(ws.phase_fraction)
         if ph.kind == "ds_start":
             return ws.support == "double"

@@ -1,0 +1,278 @@
+"""Issue 12's e-stop trials in process: ClosedLoop(walking_estop) with the walking controller and the e-stop.
+
+``run_trial(speed_kmh, phase)`` walks the scenario ``walking_estop`` at that speed and triggers the e-stop at
+``estop.at = {step: 5, phase}`` (phases: ds_start, ds_mid, ss_start = ss at 0.1, ss_mid = 0.5, ss_end = 0.95),
+then records, per tick, the estimator's CoG / CoP (what ``centroidal_state`` carries), walking's references
+and the e-stop's status. ``metrics`` is result.json's ``estop`` section (humfall_ros.estop.metrics) plus the
+acceptance figures; ``trace`` feeds humfall_ros.estop.plots.
+
+The e-stop reads ``walking/state`` of the same tick (the node waits for it per tick): in process the
+``WithInputs`` adapter puts the walking controller's ``state`` into the e-stop's observation after walking has
+stepped (controllers step in list order). The walking controller yields when ``observation.active_source``
+shows the e-stop drove the robot (the mux's take-over), as it would over ROS.
+
+Run: ``python benchmarks/estop_trials.py [SPEED_KMH ...] [--phases ds_start,...] [--json out.json]``
+(one JSON object per trial on stdout; the full table with ``--json``).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))   # the source tree, not an installed copy
+
+from humfall_ros import scenario  # noqa: E402
+from humfall_ros.control.contract import Observation
+from humfall_ros.estop.config import EstopConfig, trigger_params
+from humfall_ros.estop.controller import EstopController
+from humfall_ros.estop.metrics import estop_result
+from humfall_ros.estop.statespace import fit_zmp_lag
+from humfall_ros.model.humanoid import point_in_polygon_margin
+from humfall_ros.sim.closed_loop import ClosedLoop, node_params
+from humfall_ros.walking.controller import LocomotionController
+from humfall_ros.walking.scenario import walk_schedule, walking_config
+
+PHASES = ("ds_start", "ds_mid", "ss_start", "ss_mid", "ss_end")
+SPEEDS = (0.5, 1.0, 1.35, 1.8, 2.5)
+
+
+class WithInputs:
+    """A contract controller whose observation gets further inputs from callables at its step.
+
+    ``WithInputs(estop, {"walking/state": lambda: walking.state})`` gives the e-stop walking's state of
+    the same tick (walking steps first in the ClosedLoop's list), as the node's per-tick subscription does.
+    """
+
+    def __init__(self, controller, providers: dict):
+        self.inner = controller
+        self.source = controller.source
+        self.providers = dict(providers)
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def step(self, observation: Observation):
+        extra = {k: f() for k, f in self.providers.items()}
+        return self.inner.step(dataclasses.replace(observation, inputs={**observation.inputs, **extra}))
+
+
+@dataclasses.dataclass
+class Trial:
+    speed_kmh: float
+    phase: str
+    metrics: dict
+    trace: dict
+    plan: object | None
+    messages: list
+
+
+def estop_config(sc: dict, **overrides) -> EstopConfig:
+    """The e-stop's settings of scenario ``sc``: declared defaults, ``params.estop_planner``, the trigger."""
+    p = node_params(sc, "estop_planner")
+    p.update(trigger_params(sc["estop"]))
+    p.update(overrides)
+    return EstopConfig.from_params(p)
+
+
+def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: float = 4.0,
+              overrides: list[str] | None = None, **estop_overrides) -> Trial:
+    """One trial (module docstring). ``after`` [s]: how long to run past the stop's start."""
+    sc = scenario.load("walking_estop", [f"walk.speed_kmh={speed_kmh}", f"estop.at.step={step}",
+                                         f"estop.at.phase={phase}", *(overrides or [])])
+    loop = ClosedLoop(sc, controllers=[])
+    model = loop.model
+    dt = 1.0 / sc["sim"]["control_rate"]
+    walk = LocomotionController(model, walking_config(sc), dt)
+    estop = EstopController(model, estop_config(sc, **estop_overrides), dt)
+    from humfall_ros.control.mux import CommandMux, mux_order
+
+    loop.controllers = [walk, WithInputs(estop, {"walking/state": lambda: walk.state})]
+    loop.mux = CommandMux(mux_order([c.source for c in loop.controllers]), model.joint_names, loop.mux.timeout)
+    for c in loop.controllers:
+        c.reset()
+    schedule = walk_schedule(sc)
+    cmd = [(t, (c.speed, c.yaw_rate, c.n_steps)) for t, c in schedule]
+
+    def inputs(_loop, obs: Observation) -> None:
+        for t, c in cmd:
+            if obs.time >= t - 1e-9:
+                obs.inputs["cmd_walk"] = c    # the same object every tick: acted on once
+
+    loop.inputs = inputs
+    tr = {k: [] for k in ("t", "com", "com_velocity", "cop", "margin", "zmp_ref", "com_ref", "support", "state",
+                          "estop_com_ref", "estop_zmp_ref", "active", "cop_truth", "walking")}
+    walk_refused = None
+    fell = False
+    t_end = sc["duration"]
+    wall0 = time.perf_counter()
+    try:
+        while loop.world.time < t_end:
+            obs = loop.step()
+            st = obs.state
+            ws = walk.state
+            es = estop.status
+            tr["t"].append(obs.time)
+            tr["com"].append(st.com.copy())
+            tr["com_velocity"].append(st.com_velocity.copy())
+            tr["cop"].append(st.cop.copy())
+            tr["margin"].append(point_in_polygon_margin(st.cop, st.support_polygon) if len(st.support_polygon) >= 3
+                                else -math.inf)
+            tr["zmp_ref"].append(np.asarray(ws.zmp_ref, float).copy())
+            tr["com_ref"].append(np.asarray(ws.com_ref, float).copy())
+            tr["support"].append(ws.support if ws.walking else "stand")
+            tr["walking"].append(bool(ws.walking))
+            tr["state"].append(es.state)
+            tr["estop_com_ref"].append(np.array(es.com_ref))
+            tr["estop_zmp_ref"].append(np.array(es.zmp_ref))
+            tr["active"].append(loop.active)
+            cop = loop.world.ground_truth_cop()
+            tr["cop_truth"].append(np.full(3, np.nan) if cop is None else np.asarray(cop, float).copy())
+            if walk_refused is None and any("refused" in m for m in walk.messages):
+                walk_refused = next(m for m in walk.messages if "refused" in m)
+                break
+            if loop.ground_truth.metrics.result()["fell"]:
+                fell = True
+                t_end = min(t_end, loop.world.time + 0.2)
+            if math.isfinite(estop.status.start_time):
+                t_end = min(t_end, estop.status.start_time + after)
+    finally:
+        metrics_gt = loop.ground_truth.metrics.result()
+        loop.close()
+    wall = time.perf_counter() - wall0
+    trace = {k: np.array(v) for k, v in tr.items()}
+    fell = fell or bool(metrics_gt["fell"])
+    plan = estop.plan
+    s = estop.status
+    m = {"speed_kmh": speed_kmh, "phase": phase, "walk_refused": walk_refused, "wall_s": round(wall, 1),
+         "state": s.state, "fallback": s.fallback, "reason": s.reason, "crouch": s.crouch,
+         "crouch_height_m": s.crouch_height}
+    if plan is not None:
+        start = float(s.start_time)
+        m.update(estop_result(plan, trace["t"], trace["com"], trace["cop"], trace["margin"], start, fell,
+                              estop.cfg.settle_speed))
+        m.update(acceptance(plan, s, trace, start))
+    else:
+        m.update({"feasible": None, "fell": fell})
+    m["trigger_time_s"] = s.trigger_time
+    m["wait_s"] = (s.start_time - s.trigger_time) if plan is not None else math.nan
+    return Trial(speed_kmh, phase, m, trace, plan, list(estop.messages) + list(walk.messages))
+
+
+def acceptance(plan, status, trace: dict, start: float) -> dict:
+    """The issue's per-trial figures beyond result.json's section."""
+    t = trace["t"]
+    after = t >= start
+    local_com = plan.frame.to_local(trace["com"][:, :2])
+    local_cop = plan.frame.to_local(trace["cop"][:, :2])
+    # the feet's centre line is the Minor axis' x = 0 (through both sole centres, Fig. 3)
+    v0 = float(np.hypot(*plan.state.com_velocity[:2]))
+    bound = math.log(max(v0, 0.01) / 0.01) / plan.omega_c + 0.3
+    speed = np.hypot(*trace["com_velocity"][:, :2].T)
+    moving = np.nonzero(after & (speed >= 0.01))[0]
+    settle = float(t[moving[-1] + 1] - start) if len(moving) and moving[-1] + 1 < len(t) else (
+        0.0 if not len(moving) else math.nan)
+    fin = local_com[-1]
+    in_poly = point_in_polygon_margin(np.array([*trace["com"][-1, :2], 0.0]), plan.support_polygon)
+    cop_major = local_cop[after, 1]
+    tail = t >= start + plan.stop_time
+    return {
+        "n3_lower_bound_m": float(plan.major.lower_bound),
+        "v0_mps": v0,
+        "final_cog_vs_n3_m": float(fin[1] - plan.major.n3),
+        "min_cop_margin_after_0.3s_m": float(np.min(trace["margin"][t >= start + 0.3])),
+        "min_cop_margin_at_s": float(t[after][np.argmin(trace["margin"][after])] - start),
+        "final_cog_inside_m": float(in_poly),
+        "predicted_max_zmp_minor_m": float(plan.minor.max_zmp),
+        "predicted_max_zmp_major_m": float(plan.major.max_zmp),
+        "predicted_min_margin_m": float(plan.min_zmp_margin),
+        "predicted_stop_time_s": float(plan.stop_time),
+        "stop_time_estimator_v_s": settle,
+        "stop_time_bound_s": bound,
+        "max_cop_major_m": float(np.max(cop_major)) if len(cop_major) else math.nan,
+        "cop_major_settled_m": float(np.median(local_cop[tail, 1])) if tail.any() else math.nan,
+        "max_displacement_m": float(np.max(np.abs(local_com[after, 1]))) if after.any() else math.nan,
+        "omega_c": float(plan.omega_c), "beta": float(plan.beta),
+    }
+
+
+def fit_omega_f(trace: dict) -> dict:
+    """eq. 2's omega_f fitted per world axis on the walking part (executed CoP vs walking's zmp_ref)."""
+    w = trace["walking"] & (trace["active"] == "locomotion") & np.isfinite(trace["margin"])
+    idx = np.nonzero(w)[0]
+    if len(idx) < 50:
+        return {}
+    idx = idx[idx >= idx[0] + 250]        # skip the first 0.5 s of the walk (crouch start)
+    t = trace["t"][idx]
+    out = {}
+    for a, name in ((0, "x"), (1, "y")):
+        om, rms = fit_zmp_lag(t, trace["zmp_ref"][idx, a], trace["cop"][idx, a])
+        out[f"omega_f_{name}"] = om
+        out[f"rms_{name}_m"] = rms
+    return out
+
+
+def save_trace(path, trial: Trial) -> None:
+    """The trace and the plan's frame / polygon / start (what humfall_ros.estop.plots.load_trace reads)."""
+    p = trial.plan
+    extra = {}
+    if p is not None:
+        extra = {"frame_origin": p.frame.origin, "frame_major": p.frame.major, "polygon": p.support_polygon,
+                 "n3": p.major.n3, "start": trial.metrics.get("trigger_time_s", np.nan) + trial.metrics.get(
+                     "wait_s", 0.0)}
+    np.savez_compressed(path, **{k: v for k, v in trial.trace.items()}, **extra,
+                        metrics=json.dumps(_clean(trial.metrics)))
+
+
+def _clean(d: dict) -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, (float, np.floating)):
+            v = float(v)
+            out[k] = None if not math.isfinite(v) else round(v, 5)
+        elif isinstance(v, (np.bool_,)):
+            out[k] = bool(v)
+        else:
+            out[k] = v
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("speeds", nargs="*", type=float, default=list(SPEEDS))
+    ap.add_argument("--phases", default=",".join(PHASES))
+    ap.add_argument("--json", default="")
+    ap.add_argument("--fallback", default="")
+    ap.add_argument("--fit", action="store_true", help="fit omega_f on each trial's walking part")
+    ap.add_argument("--save", default="", help="folder for one .npz trace per trial (humfall_ros.estop.plots)")
+    a = ap.parse_args(argv)
+    rows = []
+    over = {"fallback": a.fallback} if a.fallback else {}
+    for v in a.speeds:
+        for ph in a.phases.split(","):
+            tr = run_trial(v, ph, **over)
+            m = tr.metrics
+            if a.fit:
+                m.update(fit_omega_f(tr.trace))
+            m = _clean(m)
+            rows.append(m)
+            print(json.dumps(m), flush=True)
+            if a.save and tr.plan is not None:
+                pathlib.Path(a.save).mkdir(parents=True, exist_ok=True)
+                save_trace(pathlib.Path(a.save) / f"estop_{v:g}_{ph}.npz", tr)
+            if m.get("walk_refused"):
+                break
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(rows, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
