@@ -1,27 +1,30 @@
-"""An in-process walking loop (SimWorld + Sensors + CentroidalEstimator + LocomotionController) and its metrics.
+"""Walking runs through the suite's in-process loop (ClosedLoop) and their issue-10 metrics, against ground truth.
 
-Shared by benchmarks/bench_walking.py and test/test_walking_sim.py until the lead's
-ClosedLoop runs contract controllers with walking inputs. Measured against ground truth.
+    python benchmarks/walk_loop.py [SPEED_KMH] [STEPS] [--set key=value ...]   # one JSON object
+
+The scenario is config/scenarios/walking.yaml with ``walk.speed_kmh`` / ``walk.steps`` and the
+given overrides; the controller is ``walking.controller.from_scenario`` (what the locomotion
+node builds), run by ``ClosedLoop`` (what the ROS graph runs, tick for tick). Used by
+benchmarks/bench_walking.py and test/test_walking_sim.py.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
+import pathlib
+import sys
 import time
 
 import numpy as np
 
-from humfall_ros.control.contract import (
-    Observation,
-    centroidal_from_estimate,
-    stamp_ns_of,
-)
-from humfall_ros.model.estimation import CentroidalEstimator, estimate_error
-from humfall_ros.model.humanoid import SIDES, point_in_polygon_margin, support_polygon
-from humfall_ros.sim.sensors import SensorNoise, Sensors
-from humfall_ros.sim.world import SimWorld
-from humfall_ros.walking.config import LocomotionConfig
-from humfall_ros.walking.controller import LocomotionController
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # this checkout, not an installed copy
+
+from humfall_ros import scenario as scenario_mod
+from humfall_ros.model.humanoid import SIDES, load_model, point_in_polygon_margin, support_polygon
+from humfall_ros.sim.closed_loop import ClosedLoop
+from humfall_ros.sim.sensors import SensorNoise
+from humfall_ros.walking.controller import LocomotionController, from_scenario, yaw_of
+from humfall_ros.walking.scenario import walk_schedule
 
 
 @dataclasses.dataclass
@@ -29,19 +32,21 @@ class WalkResult:
     fell: bool
     speed_kmh: float
     steps: int
-    zmp_rms_ss: float            # m, ground-truth CoP vs reference in single support
+    zmp_rms_ss: float            # m, ground-truth CoP vs reference ZMP in single support
     zmp_max_ss: float
-    cop_margin_ok_fraction: float  # ticks with the true CoP >= 1 cm inside the stance polygon
+    zmp_rms_ss_est: float        # m, the estimator's CoP vs reference (what the stabiliser sees)
+    cop_margin_ok_fraction: float  # walking ticks with the true CoP >= 1 cm inside the stance polygon
     distance: float              # m, walked (ground-truth feet centre, start to end)
     planned_distance: float
-    lateral_drift: float         # m, off the planned line
+    lateral_drift: float         # m, off the planned line (straight walks)
     heading_drift_deg: float
-    max_slip: float              # m, largest stance-foot slide during one stance
+    max_slip: float              # m, largest stance-foot slide during one single support
+    touchdown_err_ms: float      # largest |actual - planned| touchdown time [ms]
     peak_speed_ratio: float      # max |joint velocity| / URDF limit
     peak_speed_joint: str
-    est_com_err: float           # m, feet relative
+    est_com_err: float           # m, feet relative, max while walking
     est_cp_err: float
-    tick_ms_median: float
+    tick_ms_median: float        # controller step only
     tick_ms_p99: float
     sim_time: float
     messages: list
@@ -51,58 +56,59 @@ class WalkResult:
         return {k: (round(v, 5) if isinstance(v, float) else v) for k, v in d.items()}
 
 
-def run_walk(speed_kmh: float, steps: int = 20, yaw_rate_deg_s: float = 0.0, config: LocomotionConfig | None = None,
-             noise: SensorNoise | None = None, stand_time: float = 0.5, max_time: float | None = None,
-             trace: bool = False, on_tick=None) -> tuple[WalkResult, dict]:
-    """Stand ``stand_time``, walk ``steps`` steps (start + stop included) and settle."""
-    world = SimWorld(1000.0, 500.0)
-    model = world.model
+def walking_scenario(speed_kmh: float = 1.0, steps: int = 20, overrides: list[str] | None = None,
+                     name: str = "walking") -> dict:
+    ov = [f"walk.speed_kmh={speed_kmh}", f"walk.steps={steps}", *(overrides or [])]
+    return scenario_mod.load(name, ov)
+
+
+def walk_duration(sc: dict, ctl: LocomotionController) -> float:
+    c, w = ctl.cfg, sc["walk"]
+    return w["start_time"] + c.crouch_duration + c.start_duration + (w["steps"] + 1) * c.step_period \
+        + c.stop_duration + c.settle_duration + 0.5
+
+
+def run_walk(speed_kmh: float = 1.0, steps: int = 20, overrides: list[str] | None = None,
+             noise: SensorNoise | None = None, trace: bool = False, sc: dict | None = None,
+             inputs=None, on_tick=None) -> tuple[WalkResult, dict]:
+    """Run the walking scenario in ClosedLoop; metrics against ground truth (module docstring)."""
+    sc = sc or walking_scenario(speed_kmh, steps, overrides)
+    model = load_model()
+    ctl = from_scenario(sc, model)
+    schedule = walk_schedule(sc)
+    cmd = schedule[0][1] if schedule else None
+    loop = ClosedLoop(sc, controllers=[ctl], noise=noise, inputs=inputs, track_errors=True)
+    world = loop.world
     try:
-        sensors = Sensors(world, noise)
-        est = CentroidalEstimator(model)
-        truth_est = CentroidalEstimator(model)
-        ctl = LocomotionController(model, config, dt=1.0 / world.control_rate)
-        ctl.reset()
-        cfg = ctl.cfg
-        walk_time = cfg.crouch_duration + cfg.start_duration + (steps + 1) * cfg.step_period + cfg.stop_duration \
-            + cfg.settle_duration
-        total = max_time or (stand_time + walk_time + 1.0)
-        speed = speed_kmh / 3.6
-        zmp_err_ss, margin_ok, margin_n = [], 0, 0
+        total = walk_duration(sc, ctl)
+        zmp_err_ss, zmp_err_est, margin_ok, margin_n = [], [], 0, 0
         tick_times = []
         peak = np.zeros(model.njoints)
-        est_com, est_cp = 0.0, 0.0
         fell = False
-        started = False
         stance_anchor: dict = {}
         max_slip = 0.0
-        tr = {k: [] for k in ("t", "cop", "zmp", "com", "com_ref", "support", "feet")} if trace else {}
+        tr = {k: [] for k in ("t", "cop", "cop_est", "zmp", "mbzmp", "com", "com_ref", "support",
+                                                    "feet")} if trace else {}
         start_feet = None
-        active = "none"
-        while world.time < total:
-            r = sensors.read()
-            stamp = stamp_ns_of(world.time)
-            e = est.update(stamp * 1e-9, r.joint_position, r.joint_velocity, r.imu_orientation, r.gyro, r.wrenches)
-            obs = Observation(stamp, np.asarray(r.joint_position, float), np.asarray(r.joint_velocity, float),
-                              centroidal_from_estimate(e), active, {})
-            if not started and world.time >= stand_time:
-                started = True
-                reason = ctl.set_walk_command(speed, math.radians(yaw_rate_deg_s), n_steps=steps)
-                if reason:
-                    raise RuntimeError(reason)
-                q_true = world.pinocchio_configuration()
-                model.forward(q_true)
-                start_feet = {s: model.frame_placement(model.sole_frame[s]).copy() for s in SIDES}
-            if on_tick is not None:
-                on_tick(world, ctl, obs)
+        prev_support = "double"
+        planned_td, actual_td = [], []
+        contact_prev = {"l": True, "r": True}
+        orig_step = ctl.step
+
+        def timed(obs):
             t0 = time.perf_counter()
-            out = ctl.step(obs)
+            out = orig_step(obs)
             tick_times.append(time.perf_counter() - t0)
-            if out is not None:
-                world.set_joint_targets(out.positions, out.velocities)
-                active = ctl.source
-            world.step_control()
-            # ---- ground truth
+            return out
+
+        ctl.step = timed
+        while world.time < total:
+            if start_feet is None and world.time >= sc["walk"]["start_time"] - 1e-9:
+                model.forward(world.pinocchio_configuration())
+                start_feet = {s: model.frame_placement(model.sole_frame[s]).copy() for s in SIDES}
+            obs = loop.step()
+            if on_tick is not None:
+                on_tick(loop, ctl, obs)
             qj, vj, _ = world.joint_states()
             peak = np.maximum(peak, np.abs(vj))
             if world.trunk_tilt() > math.radians(30) or world.non_foot_contact():
@@ -112,10 +118,21 @@ def run_walk(speed_kmh: float, steps: int = 20, yaw_rate_deg_s: float = 0.0, con
             cop = world.ground_truth_cop()
             q_true = world.pinocchio_configuration()
             model.forward(q_true)
+            # touchdowns: planned = the tick the pattern leaves single support; actual = the swing sole loaded
+            contacts = {s: bool(c) for s, c in zip(SIDES, _sole_loaded(world))}
+            if st.walking and prev_support != "double" and st.support == "double":
+                planned_td.append((world.time, "r" if prev_support == "single_left" else "l"))
+            for s in SIDES:
+                if contacts[s] and not contact_prev[s] and st.walking:
+                    actual_td.append((world.time, s))
+            contact_prev = contacts
+            prev_support = st.support if st.walking else "double"
             if st.walking and cop is not None:
                 if st.support != "double":
                     side = "l" if st.support == "single_left" else "r"
                     zmp_err_ss.append(np.linalg.norm(cop[:2] - st.zmp_ref[:2]))
+                    zmp_err_est.append(np.linalg.norm(obs.state.cop[:2] - obs.state.feet_center[:2]
+                                                      - (st.zmp_ref[:2] - _ref_feet_center(st))))
                     poly = support_polygon(model.sole_corners(side)[:, :2])
                     pos = model.frame_placement(model.sole_frame[side]).translation.copy()
                     if side not in stance_anchor:
@@ -126,15 +143,12 @@ def run_walk(speed_kmh: float, steps: int = 20, yaw_rate_deg_s: float = 0.0, con
                     stance_anchor = {}
                 margin_n += 1
                 margin_ok += point_in_polygon_margin(cop, poly) >= 0.01
-                g = truth_est.update(world.time, qj, vj, r.imu_orientation, r.gyro, r.wrenches,
-                                     base_truth=world.base_state())
-                err = estimate_error(e, g)
-                est_com = max(est_com, err["com_error_feet_relative"])
-                est_cp = max(est_cp, err["capture_point_error_feet_relative"])
             if trace:
                 tr["t"].append(world.time)
                 tr["cop"].append(cop[:2] if cop is not None else [np.nan, np.nan])
+                tr["cop_est"].append(obs.state.cop[:2].copy())
                 tr["zmp"].append(st.zmp_ref[:2].copy())
+                tr["mbzmp"].append(st.multibody_zmp[:2].copy())
                 tr["com"].append(model.com(q_true))
                 tr["com_ref"].append(st.com_ref.copy())
                 tr["support"].append(st.support if st.walking else "stand")
@@ -145,29 +159,56 @@ def run_walk(speed_kmh: float, steps: int = 20, yaw_rate_deg_s: float = 0.0, con
         c0 = 0.5 * (start_feet["l"].translation + start_feet["r"].translation) if start_feet else np.zeros(3)
         c1 = 0.5 * (end_feet["l"].translation + end_feet["r"].translation)
         d = c1 - c0
-        planned = steps * speed * cfg.step_period
-        yaw1 = math.atan2(end_feet["l"].rotation[1, 0] + end_feet["r"].rotation[1, 0],
-                          end_feet["l"].rotation[0, 0] + end_feet["r"].rotation[0, 0])
+        T = ctl.cfg.step_period
+        turning = cmd is not None and abs(cmd.yaw_rate) > 1e-9
+        planned = (cmd.n_steps * cmd.speed * T) if cmd else 0.0
+        yaw1 = 0.5 * (yaw_of(end_feet["l"].rotation) + yaw_of(end_feet["r"].rotation))
+        planned_yaw = math.degrees(cmd.yaw_rate * cmd.n_steps * T) if cmd else 0.0
         ratio = peak / model.limits.velocity
         j = int(np.argmax(ratio))
         ts = np.array(tick_times) * 1e3
         zr = np.array(zmp_err_ss) if zmp_err_ss else np.array([np.nan])
-        res = WalkResult(fell, speed_kmh, steps, float(np.sqrt(np.mean(zr ** 2))), float(np.max(zr)),
-                         margin_ok / max(margin_n, 1), float(np.hypot(d[0], d[1]) if yaw_rate_deg_s else d[0]),
-                         planned, float(abs(d[1])) if not yaw_rate_deg_s else float("nan"),
-                         math.degrees(yaw1) - (yaw_rate_deg_s * steps * cfg.step_period),
-                         max_slip, float(ratio[j]), model.joint_names[j], est_com, est_cp,
+        ze = np.array(zmp_err_est) if zmp_err_est else np.array([np.nan])
+        td = _touchdown_errors(planned_td, actual_td)
+        est_com = loop.errors.get("com_error_feet_relative", float("nan"))  # max over the run (ClosedLoop)
+        est_cp = loop.errors.get("capture_point_error_feet_relative", float("nan"))
+        res = WalkResult(fell, sc["walk"]["speed_kmh"], sc["walk"]["steps"], float(np.sqrt(np.mean(zr ** 2))),
+                         float(np.max(zr)), float(np.sqrt(np.mean(ze ** 2))), margin_ok / max(margin_n, 1),
+                         float(np.hypot(d[0], d[1]) if turning else d[0]), planned,
+                         float("nan") if turning else float(abs(d[1])), math.degrees(yaw1) - planned_yaw,
+                         max_slip, td, float(ratio[j]), model.joint_names[j], est_com, est_cp,
                          float(np.median(ts)), float(np.percentile(ts, 99)), world.time, list(ctl.messages))
         return res, tr
     finally:
-        world.close()
+        loop.close()
+
+
+def _ref_feet_center(st) -> np.ndarray:
+    return 0.5 * (np.array(st.left_foot[:2]) + np.array(st.right_foot[:2]))
+
+
+def _sole_loaded(world, threshold: float = 30.0) -> list[bool]:
+    """Each sole carries more than ``threshold`` [N] (ground truth, the simulator's contact forces)."""
+    return [float(np.linalg.norm(world.foot_wrench(s)[0])) > threshold for s in SIDES]
+
+
+def _touchdown_errors(planned: list, actual: list) -> float:
+    """Largest |actual - planned| [ms] over the planned touchdowns (nearest actual of the same foot)."""
+    worst = 0.0
+    for t, s in planned:
+        cand = [ta for ta, sa in actual if sa == s and abs(ta - t) < 0.3]
+        if not cand:
+            return float("inf")
+        worst = max(worst, min(abs(ta - t) for ta in cand))
+    return 1e3 * worst
 
 
 if __name__ == "__main__":
     import json
-    import sys
 
-    kmh = float(sys.argv[1]) if len(sys.argv) > 1 else 1.0
-    n = int(sys.argv[2]) if len(sys.argv) > 2 else 4
-    res, _ = run_walk(kmh, n)
+    args = [a for a in sys.argv[1:] if not a.startswith("--set")]
+    sets = [a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--set=")]
+    kmh = float(args[0]) if args else 1.0
+    n = int(args[1]) if len(args) > 1 else 20
+    res, _ = run_walk(kmh, n, sets)
     print(json.dumps(res.as_dict()))

@@ -8,6 +8,10 @@ from typing import Any
 from humfall_ros import params
 
 
+# declared parameters of the node that are not controller settings (``scenario``: the file the node reads)
+NODE_ONLY = ("scenario",)
+
+
 @dataclasses.dataclass(frozen=True)
 class LocomotionConfig:
     """Standing and walking settings (units in brackets; meanings in config/locomotion.yaml)."""
@@ -48,6 +52,8 @@ class LocomotionConfig:
         values = params.defaults("locomotion")
         if d:
             values.update(params.check_overrides("locomotion", d))
+        for k in NODE_ONLY:
+            values.pop(k, None)
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(values) - names
         if unknown:

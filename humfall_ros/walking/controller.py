@@ -103,8 +103,10 @@ class LocomotionController:
 
     source = "locomotion"
 
-    def __init__(self, model: HumanoidModel, config: LocomotionConfig | None = None, dt: float = 0.002):
+    def __init__(self, model: HumanoidModel, config: LocomotionConfig | None = None, dt: float = 0.002,
+                 schedule: list[tuple[float, WalkCommand]] | None = None):
         self.m = model
+        self.schedule = sorted(schedule or [], key=lambda e: e[0])  # (sim time [s], command), e.g. a scenario's
         self.cfg = config or LocomotionConfig.from_params()
         self.dt = float(dt)
         c = self.cfg
@@ -140,6 +142,7 @@ class LocomotionController:
         self.heading = 0.0          # the feet's yaw in the estimator's world (the observation has no yaw)
         self.state = WalkingState()
         self._last_input = None
+        self._schedule_i = 0
         self.stabilizer.reset()
         self.last_stabilizer = None
 
@@ -186,11 +189,15 @@ class LocomotionController:
         if self.released:  # control comes back: stand from the measured posture
             self.released = False
             self._resume_standing(observation)
+        while self._schedule_i < len(self.schedule) and self.schedule[self._schedule_i][0] <= observation.time + 1e-9:
+            cmd = self.schedule[self._schedule_i][1]
+            self._schedule_i += 1
+            self.set_walk_command(cmd.speed, cmd.yaw_rate, cmd.n_steps)
         cmd_in = inp.get("cmd_walk")
         if cmd_in is not None and cmd_in is not self._last_input:
             self._last_input = cmd_in
             if isinstance(cmd_in, WalkCommand):
-                self.set_walk_command(cmd_in.speed, cmd_in.yaw_rate)
+                self.set_walk_command(cmd_in.speed, cmd_in.yaw_rate, cmd_in.n_steps)
             else:  # (speed, yaw_rate) or (speed, yaw_rate, n_steps)
                 n = int(cmd_in[2]) if len(cmd_in) > 2 and cmd_in[2] is not None else None
                 self.set_walk_command(float(cmd_in[0]), float(cmd_in[1]), n)
@@ -391,4 +398,15 @@ class LocomotionController:
         return None
 
 
-__all__ = ["LocomotionController", "WalkingState", "rot_z", "yaw_of"]
+def from_scenario(sc: dict, model: HumanoidModel, params: dict | None = None) -> LocomotionController:
+    """The locomotion controller of scenario ``sc`` (what the ``locomotion`` node builds when its
+    ``scenario`` parameter names ``sc``): settings from :func:`walking_config` (``params``: the
+    node's declared values, default the declared defaults with the scenario's ``params.locomotion``),
+    the scenario's control period and its walk schedule."""
+    from humfall_ros.walking import scenario as walk_scenario
+
+    return LocomotionController(model, walk_scenario.walking_config(sc, params), walk_scenario.control_period(sc),
+                                walk_scenario.walk_schedule(sc))
+
+
+__all__ = ["LocomotionController", "WalkingState", "from_scenario", "rot_z", "yaw_of"]

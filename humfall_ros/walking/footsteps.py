@@ -20,10 +20,12 @@ from humfall_ros.model.humanoid import HumanoidModel
 
 @dataclasses.dataclass(frozen=True)
 class WalkCommand:
-    """A walking command: forward speed [m/s] and yaw rate [rad/s] (REP 103: +z, to the left)."""
+    """A walking command: forward speed [m/s] and yaw rate [rad/s] (REP 103: +z, to the left);
+    ``n_steps``: walk that many steps, then stop (None: until a zero command)."""
 
     speed: float = 0.0
     yaw_rate: float = 0.0
+    n_steps: int | None = None
 
     @property
     def is_zero(self) -> bool:

@@ -273,6 +273,24 @@ class WalkingPattern:
                              np.array([zr[0], zr[1], 0.0]), cp, feet, upcoming, ph.kind, finished)
 
     # ------------------------------------------------------------------ offline
+    def single_support_phase(self, step_count: int) -> Phase:
+        """The single support of swing ``step_count`` (1 = the first), planning ahead as needed
+        (the timeline does not depend on when it is planned). KeyError if the walk has no such step."""
+        while True:
+            for ph in self.phases:
+                if ph.kind == "ss" and ph.step_index == step_count:
+                    return ph
+            if self.ended:
+                raise KeyError(f"the walk has no step {step_count}")
+            self._plan_step()
+
+    def phase_before(self, phase: Phase) -> Phase:
+        """The timeline phase that ends where ``phase`` starts (a single support's double support)."""
+        for ph in self.phases:
+            if ph.end == phase.start:
+                return ph
+        raise KeyError(f"no phase before tick {phase.start}")
+
     def planned_footsteps(self) -> list[Footstep]:
         return [p.swing_to for p in self.phases if p.swing_to is not None]
 
