@@ -4,7 +4,7 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = "humfall_ros"
-NODES = ["sim_bridge", "state_estimator", "locomotion", "recorder", "multicontact_planner"]
+NODES = ["sim_bridge", "state_estimator", "locomotion", "recorder", "multicontact_planner", "estop_planner"]
 
 setup(
     name=PACKAGE,

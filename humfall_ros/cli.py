@@ -14,7 +14,7 @@ import math
 import os
 import sys
 
-NODES = ("sim_bridge", "state_estimator", "locomotion", "recorder", "multicontact_planner")
+NODES = ("sim_bridge", "state_estimator", "locomotion", "recorder", "multicontact_planner", "estop_planner")
 
 
 def _cmd_up(a) -> int:

@@ -145,7 +145,19 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[NodeSpec]:
     for n in ["locomotion", *CONTROLLER_NODES[controller]]:
         src = NODE_SOURCE.get(n)
         own = dict(CONTROLLER_PARAMS.get(controller, {}).get(n, {}))
+        if "scenario" in params_mod.declarations(n):  # it reads its part of the scenario (e.g. the walk)
+            own["scenario"] = str(run_dir / "scenario.yaml")
         nodes.append(NodeSpec(n, f"humfall_ros.nodes.{n}", own, src, builtin.get(src) if src else None))
+    est = sc["estop"]
+    trigger = est["time"] >= 0 or est.get("at") is not None
+    walks = sc["walk"].get("steps", 0) > 0 and sc["walk"].get("speed_kmh", 0.0) > 0
+    if trigger or walks:
+        # the e-stop listens on `estop` whenever the robot walks (humfall estop), and a scenario
+        # trigger acts on exactly its tick
+        p = {"trigger_time": float(est["time"]) if est["time"] >= 0 else -1.0}
+        if est.get("at") is not None:
+            p.update(trigger_step=int(est["at"]["step"]), trigger_phase=str(est["at"]["phase"]))
+        nodes.append(NodeSpec("estop_planner", "humfall_ros.nodes.estop_planner", p, "estop", builtin.get("estop")))
     for c in sc.get("controllers") or []:
         node = c["node"]
         mod = node if (node.endswith(".py") or "." in node) else f"humfall_ros.nodes.{node}"
