@@ -10,7 +10,8 @@ arrives; then it takes over and never releases:
 2. the swing (``fall.step_control``, eq. 9-10) to the landing pose, foot flat;
 3. from touchdown, inertia shaping (``fall.inertia_shaping``, eq. 11-14) when enabled.
 
-Inputs (``observation.inputs``): ``fall_event`` (``fall.ftb.FallEvent``), ``obstacles`` (a list
+Inputs (``observation.inputs``): ``ftb/status`` (``fall.ftb.FtbStatus``: the event it carries; without
+a status, the latched ``fall_event``), ``obstacles`` (a list
 of boxes: dicts or objects with name, position (3,), size (3,), yaw, is_target), ``imu``
 (orientation x, y, z, w and gyro, a tuple or an object with ``orientation``/``angular_velocity``).
 
@@ -66,8 +67,9 @@ class SafeFallConfig:
     zone_velocity_fraction: float = 1.0
     reach_fraction: float = 0.98
     hip_drop_m: float = 0.08
-    cell_xy: float = 0.04
-    cell_yaw: float = 0.15
+    max_yaw_change_rad: float = 0.3
+    cell_xy: float = 0.035
+    cell_yaw: float = 0.1
     capture_margin: float = 0.02
     obstacle_clearance: float = 0.03
     swing_clearance: float = 0.05
@@ -168,6 +170,15 @@ def _imu_quat(imu) -> np.ndarray | None:
     return q if q.shape == (4,) and np.all(np.isfinite(q)) and np.linalg.norm(q) > 0.5 else None
 
 
+def fall_event_of(obs: Observation):
+    """The fall event to act on this tick: the one ``ftb/status`` of this tick carries (lockstep-repeatable:
+    it does not depend on when the latched ``fall_event`` arrives), else the latched ``fall_event`` input."""
+    st = obs.inputs.get("ftb/status")
+    if st is not None:
+        return _get(st, "fall_event") or _get(st, "event")
+    return obs.inputs.get("fall_event")
+
+
 class SafeFallController:
     """Paper 1's fall controller (module docstring); ``source = "safe_fall"``."""
 
@@ -200,7 +211,7 @@ class SafeFallController:
     # ------------------------------------------------------------------ contract
     def step(self, obs: Observation) -> JointTargets | None:
         if not self.taken_over:
-            ev = obs.inputs.get("fall_event")
+            ev = fall_event_of(obs)
             if ev is None:
                 return None
             stamp = _get(ev, "stamp_ns", obs.stamp_ns)
@@ -310,7 +321,8 @@ class SafeFallController:
             lift_pred[swing] = (pivots[k], G[k], Q[k])
             if c.stepping and target is not None:
                 zones[swing] = stepping_zone(self.m, q, swing, touchdown, Q[k] - pivots[k].mean(axis=0), G[k],
-                                             c.zone_velocity_fraction, c.reach_fraction, hip_drop=c.hip_drop_m)
+                                             c.zone_velocity_fraction, c.reach_fraction, hip_drop=c.hip_drop_m,
+                                             max_yaw_change=c.max_yaw_change_rad)
         sit.zones = zones
         res = ss.search(sit, self._sole_local, scfg, prediction=(G, Q))
         search_time = time.perf_counter() - t_dec
@@ -418,4 +430,4 @@ class SafeFallController:
         return out
 
 
-__all__ = ["SafeFallConfig", "SafeFallController", "SafeFallDecision"]
+__all__ = ["SafeFallConfig", "SafeFallController", "SafeFallDecision", "fall_event_of"]

@@ -96,6 +96,8 @@ class FtbConfig:
     min_normal_force_fraction: float = 0.3
     walking_capture_point_error: float = 0.08
     robot_weight: float = 0.0   # [N]; 0: taken as the first observations' normal force
+    push_end_time_s: float = -1.0  # [s] fixed mode without a push_end_time input (< 0: unknown)
+    use_walking_state: bool = False  # the node's tick also waits for walking/state (the gait reference)
 
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> FtbConfig:
@@ -209,7 +211,13 @@ class FallEvent:
 
 @dataclasses.dataclass
 class FtbStatus:
-    """``ftb/status`` of one tick: the state, the features, and the event on the tick it fires."""
+    """``ftb/status`` of one tick: the state, the features, and the fall event.
+
+    Attributes:
+        event: the fall event on the tick it fires (the edge), else None.
+        fall_event: the latched event on every tick from the trigger on (until ``reset``): a
+            per-tick consumer acts on the status of tick k, never on when ``fall_event`` arrives.
+    """
 
     stamp_ns: int
     state: FtbState
@@ -218,6 +226,7 @@ class FtbStatus:
     time_in_state: float
     reason: str = ""
     event: FallEvent | None = None
+    fall_event: FallEvent | None = None
 
 
 def polygon_width(poly) -> float:
@@ -323,11 +332,22 @@ def features_of(s: CentroidalObservation, polygon=None, g: float = GRAVITY,
 
 
 class FtbMonitor:
-    """The FTB state machine (see the module docstring); ``step`` once per control tick."""
+    """The FTB state machine (see the module docstring); ``step`` once per control tick.
+
+    A monitor of ``sim.closed_loop.ClosedLoop``: its value is ``ftb/status`` and it latches
+    ``fall_event`` (as the node's transient-local topic) from the trigger on.
+    """
+
+    name = "ftb/status"
 
     def __init__(self, config: FtbConfig | None = None):
         self.config = config or FtbConfig()
         self.reset()
+
+    @property
+    def latched(self) -> dict[str, FallEvent]:
+        """``{"fall_event": event}`` once it fired (the transient-local topic's last message)."""
+        return {} if self.event is None else {"fall_event": self.event}
 
     def reset(self) -> None:
         """Back to BALANCED, timers and the latched event cleared (``ftb/reset``)."""
@@ -346,6 +366,8 @@ class FtbMonitor:
         t = obs.time
         if c.mode is TriggerMode.FIXED:
             end = obs.inputs.get("push_end_time")
+            if end is None and c.push_end_time_s >= 0:
+                end = c.push_end_time_s
             if end is not None and math.isfinite(float(end)) and t >= float(end) + c.fixed_delay_s - 1e-9:
                 return f"fixed: {c.fixed_delay_s:.3f} s after the push ended at {float(end):.3f} s"
             return ""
@@ -413,7 +435,7 @@ class FtbMonitor:
             elif t - self.state_since >= c.falling_timeout_s:
                 self._enter(FtbState.FALLEN, t)
                 reason = f"{c.falling_timeout_s:.1f} s in falling"
-        return FtbStatus(obs.stamp_ns, self.state, c.mode.value, f, t - self.state_since, reason, event)
+        return FtbStatus(obs.stamp_ns, self.state, c.mode.value, f, t - self.state_since, reason, event, self.event)
 
     def _enter(self, state: FtbState, t: float) -> None:
         self.state = state

@@ -3,6 +3,14 @@
 Avoidance angle (paper 1, Fig. 5): the angle at the initial CoP P between the
 fall direction (P to the CoM's ground projection when the trunk lands) and
 P to the target T: 0 deg falls onto the target, 180 deg straight away.
+
+Safe-fall facts (issue 11), when fed: ``note_fall_event`` (the FTB's trigger time),
+``note_decision`` (the fall controller's ``safe_fall/decision``) and ``update_feet`` each
+tick (:func:`foot_state` of the world: ground-truth CoP, which soles touch, their poses).
+Then ``avoidance_angle_p2_deg`` is the paper's alpha2: at P2, the mean ground-truth CoP
+0.05-0.15 s after the swing sole's touchdown, between P2 -> landing CoM and P2 -> T;
+``lead_time_s`` is trigger to first trunk contact; ``prediction`` compares the decision's
+touchdown time, landing pose and alpha2 with the outcome.
 """
 from __future__ import annotations
 
@@ -42,6 +50,54 @@ class FallMetrics:
         self.min_target_distance = math.inf
         self.max_trunk_tilt = 0.0
         self.last_com = None
+        self.fall_event_time = None
+        self.decision: dict | None = None
+        self._feet_t = None
+        self._lifted: dict[str, bool] = {}
+        self.touchdowns: dict[str, tuple] = {}   # side -> (t, (x, y, yaw), tilt [deg]): first after a lift-off
+        self._cops: dict[str, list] = {}
+
+    def note_fall_event(self, t: float) -> None:
+        """The FTB's trigger time [s] (``fall_event``'s stamp); the first one counts."""
+        if self.fall_event_time is None and t is not None and math.isfinite(float(t)):
+            self.fall_event_time = float(t)
+
+    def note_decision(self, d) -> None:
+        """The fall controller's decision (``fall.controller.SafeFallDecision`` or the message's fields).
+
+        Reads: stamp_ns or time [s], case, swing_side, landing (x, y, yaw), alpha2 [rad] (NaN: capture),
+        captured, touchdown_time [s after the decision]. The first one counts.
+        """
+        if self.decision is not None or d is None:
+            return
+        def get(k, default=None):
+            return d.get(k, default) if isinstance(d, dict) else getattr(d, k, default)
+
+        t = get("time")
+        if t is None:
+            t = get("stamp_ns", 0) * 1e-9
+        self.decision = {"time": float(t), "case": str(get("case", get("step_case", ""))),
+                         "swing_side": str(get("swing_side", "")),
+                         "landing": [float(x) for x in np.asarray(get("landing", [math.nan] * 3), float)],
+                         "alpha2": float(get("alpha2", math.nan)), "captured": bool(get("captured", False)),
+                         "touchdown_time": float(get("touchdown_time", math.nan))}
+
+    def update_feet(self, t: float, cop, down: dict, poses: dict) -> None:
+        """Per tick: ground-truth CoP (None airborne), soles touching {side: bool}, sole poses
+        {side: (x, y, yaw [rad], tilt from flat [deg])}. A repeated ``t`` is ignored."""
+        if self._feet_t is not None and t <= self._feet_t:
+            return
+        self._feet_t = t
+        for side, is_down in down.items():
+            if not is_down:
+                self._lifted[side] = True
+            elif self._lifted.get(side) and side not in self.touchdowns:
+                x, y, yaw, tilt = poses[side]
+                self.touchdowns[side] = (float(t), (float(x), float(y), float(yaw)), float(tilt))
+                self._cops[side] = []
+            td = self.touchdowns.get(side)
+            if td is not None and cop is not None and td[0] + 0.05 - 1e-9 <= t <= td[0] + 0.15 + 1e-9:
+                self._cops[side].append(np.asarray(cop, float)[:2].copy())
 
     def set_reference_cop(self, cop) -> None:
         """The P of Fig. 5: the CoP when the disturbance begins."""
@@ -82,4 +138,62 @@ class FallMetrics:
             out["fall_direction_deg"] = math.degrees(math.atan2(d[1], d[0]))
             if self.target_xy is not None:
                 out["avoidance_angle_deg"] = avoidance_angle_deg(self.initial_cop, land, self.target_xy)
+        out.update(self._safe_fall(land))
         return out
+
+    def _safe_fall(self, land) -> dict:
+        d = self.decision or {}
+        out = {"fall_event_time_s": self.fall_event_time,
+               "lead_time_s": None if self.fall_event_time is None or self.landing_time is None
+               else round(self.landing_time - self.fall_event_time, 4),
+               "avoidance_angle_p2_deg": None, "measured_p2": None,
+               "predicted_avoidance_deg": None if not math.isfinite(d.get("alpha2", math.nan))
+               else math.degrees(d["alpha2"]),
+               "predicted_captured": d.get("captured"), "decision_case": d.get("case"),
+               "captured": None, "prediction": None}
+        side = d.get("swing_side") or None
+        if side is None and self.fall_event_time is not None:  # no decision fed: the first step after the trigger
+            after = [(v[0], s) for s, v in self.touchdowns.items() if v[0] > self.fall_event_time]
+            side = min(after)[1] if after else None
+        td = self.touchdowns.get(side) if side else None
+        if self.decision is not None:
+            stepped = td is not None and d["case"].startswith("step")
+            out["captured"] = bool(stepped and not self.fell)
+        if td is not None and self._cops.get(side):
+            p2 = np.mean(self._cops[side], axis=0)
+            out["measured_p2"] = [float(x) for x in p2]
+            if self.fell and land is not None and self.target_xy is not None:
+                out["avoidance_angle_p2_deg"] = avoidance_angle_deg(p2, land, self.target_xy)
+        if self.decision is not None and td is not None and d["case"].startswith("step"):
+            pred_td = d["time"] + d["touchdown_time"]
+            lx, ly, lyaw = d["landing"]
+            (x, y, yaw), tilt = td[1], td[2]
+            yaw_err = math.degrees(abs((yaw - lyaw + math.pi) % (2 * math.pi) - math.pi))
+            out["prediction"] = {
+                "touchdown_time_s": td[0], "predicted_touchdown_time_s": pred_td,
+                "touchdown_error_s": round(td[0] - pred_td, 4),
+                "landing": [x, y, yaw], "predicted_landing": [lx, ly, lyaw],
+                "landing_error_m": float(math.hypot(x - lx, y - ly)), "landing_yaw_error_deg": yaw_err,
+                "landing_tilt_deg": tilt,
+                "alpha2_error_deg": None if out["avoidance_angle_p2_deg"] is None
+                or out["predicted_avoidance_deg"] is None
+                else abs(out["avoidance_angle_p2_deg"] - out["predicted_avoidance_deg"])}
+        return out
+
+
+def foot_state(world) -> tuple:
+    """(ground-truth CoP or None, {side: sole touches the ground}, {side: (x, y, yaw, tilt [deg])}) of a SimWorld.
+
+    What ``FallMetrics.update_feet`` takes (GroundTruth.track may pass ``*foot_state(world)``).
+    """
+    m = world.model
+    m.forward(world.pinocchio_configuration())
+    contacts = world.ground_contacts()
+    down, poses = {}, {}
+    for side, link in world.foot_links.items():
+        down[side] = any(cp[3] == link for cp in contacts)
+        M = m.frame_placement(m.sole_frame[side])
+        R = M.rotation
+        tilt = math.degrees(math.acos(float(np.clip(R[2, 2], -1.0, 1.0))))
+        poses[side] = (float(M.translation[0]), float(M.translation[1]), math.atan2(R[1, 0], R[0, 0]), tilt)
+    return world.ground_truth_cop(), down, poses

@@ -1,0 +1,138 @@
+"""Safe-fall runs in process, on the suite's ``ClosedLoop`` (the shell of the fall experiments, not core).
+
+What ``humfall up SCENARIO --controller none|stepping|stepping_inertia`` starts, in one
+process and tick for tick the same (tested against real processes): the standing balance
+(``locomotion``), the FTB as a monitor (``ftb_monitor``: ``ftb/status`` each tick, latched
+``fall_event``) and, with a fall controller, ``SafeFallController`` (``safe_fall``) with the
+launcher's ``inertia_shaping`` for the choice; every node's parameters from its declaration
+plus the scenario's ``params.<node>``. The FTB also runs for ``none`` (in process only: it
+commands nothing) so the uncontrolled runs have trigger and lead times.
+
+The ground-truth metrics are ``sim.metrics.FallMetrics`` fed with the fall event, the
+decision and the feet (``FallMetrics.update_feet``) each tick. Imports the simulator: this
+module is for experiments (``fall.sweep``, benchmarks, tests), not for nodes.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from humfall_ros.fall.controller import SafeFallConfig, SafeFallController
+from humfall_ros.fall.ftb import FtbConfig, FtbMonitor
+
+CONTROLLERS = ("none", "stepping", "stepping_inertia")
+
+
+@dataclasses.dataclass
+class FallRun:
+    """One run's outcome.
+
+    Attributes:
+        metrics: ``FallMetrics.result()`` (ground truth, with the safe-fall facts).
+        joint_positions: measured joint positions per tick (ticks x joints) [rad].
+        active_sources: the mux's source per tick.
+        decision: the controller's ``SafeFallDecision`` (None: no take-over).
+        fall_event: the FTB's ``FallEvent`` (None: no trigger).
+        trace: per tick (t, CoM (3,), estimated CoP (3,), ground-truth CoP (3,) or None, FTB state) for plots.
+        reasons: the controller's notes.
+        search: the controller's ``StepDecision`` (every case's best candidate), for plots.
+    """
+
+    metrics: dict
+    joint_positions: np.ndarray
+    active_sources: list
+    decision: object | None
+    fall_event: object | None
+    trace: list
+    reasons: list
+    search: object | None = None
+
+
+def controllers_for(sc: dict, kind: str, model=None):
+    """(controllers, monitors) of the run, as the launcher would start them for ``kind``."""
+    from humfall_ros.launch import CONTROLLER_PARAMS
+    from humfall_ros.model.humanoid import load_model
+    from humfall_ros.sim.closed_loop import node_params, standing_controller
+
+    if kind not in CONTROLLERS:
+        raise ValueError(f"controller must be one of {CONTROLLERS}, got {kind!r}")
+    model = model or load_model()
+    ftb = FtbMonitor(FtbConfig.from_params(node_params(sc, "ftb_monitor")))
+    ctrls = [standing_controller(sc, model)]
+    if kind != "none":
+        p = node_params(sc, "safe_fall_controller")
+        p.update(CONTROLLER_PARAMS.get(kind, {}).get("safe_fall_controller", {}))
+        ctrls.append(SafeFallController(model, SafeFallConfig.from_params(p)))
+    return ctrls, [ftb]
+
+
+def run(sc: dict, kind: str | None = None, noise=None, duration: float | None = None,
+        stop_after_landing_s: float | None = 0.6, keep_trace: bool = False) -> FallRun:
+    """Run a validated scenario with a fall controller ``kind`` (default: the scenario's ``controller``).
+
+    Args:
+        noise: sensor noise (default: the scenario's ``params.sim_bridge.noise_*``).
+        duration: [s] (default: the scenario's).
+        stop_after_landing_s: end this long after the trunk first lands (None: run the whole duration).
+        keep_trace: keep the per-tick trace (plots).
+    """
+    from humfall_ros.sim.closed_loop import ClosedLoop
+    from humfall_ros.sim.metrics import foot_state
+
+    kind = kind or sc["controller"]
+    ctrls, monitors = controllers_for(sc, kind)
+    loop = ClosedLoop(sc, ctrls, monitors, noise=noise)
+    ftb = monitors[0]
+    safe = ctrls[1] if len(ctrls) > 1 else None
+    m = loop.ground_truth.metrics
+    trace = []
+    try:
+        ticks = int(round((duration or sc["duration"]) * sc["sim"]["control_rate"]))
+        for _ in range(ticks):
+            obs = loop.step()
+            w = loop.world
+            cop, down, poses = foot_state(w)
+            m.update_feet(w.time, cop, down, poses)
+            if ftb.event is not None:
+                m.note_fall_event(ftb.event.time)
+            if safe is not None and safe.decision is not None:
+                m.note_decision(safe.decision)
+            if keep_trace:
+                q = w.pinocchio_configuration()
+                trace.append((w.time, w.model.com(q), np.asarray(obs.state.cop, float).copy(), cop,
+                              ftb.state.value, dict(down)))
+            if stop_after_landing_s is not None and m.landing_time is not None \
+                    and w.time > m.landing_time + stop_after_landing_s:
+                break
+        res = m.result()
+    finally:
+        loop.close()
+    return FallRun(res, np.array(loop.joint_positions), list(loop.active_sources),
+                   None if safe is None else safe.decision, ftb.event, trace,
+                   [] if safe is None else list(safe.reasons), None if safe is None else safe.search_result)
+
+
+def summary(r: FallRun) -> dict:
+    """The acceptance figures of one run (JSON-ready)."""
+    m = r.metrics
+    out = {k: m.get(k) for k in ("fell", "fall_direction_deg", "avoidance_angle_deg", "avoidance_angle_p2_deg",
+                                 "predicted_avoidance_deg", "predicted_captured", "captured", "decision_case",
+                                 "min_target_distance_m", "fall_event_time_s", "lead_time_s", "landing_time_s",
+                                 "prediction", "measured_p2")}
+    d = r.decision
+    if d is not None:
+        out["decision"] = {"case": d.case, "landing": np.asarray(d.landing).round(4).tolist(),
+                           "p2": np.asarray(d.p2).round(4).tolist(), "q2": np.asarray(d.q2).round(4).tolist(),
+                           "cells": d.cell_count, "search_ms": round(d.search_time * 1e3, 2),
+                           "touchdown_time_s": d.touchdown_time, "control_duration_s": d.control_duration,
+                           "case_alpha2_deg": {k: None if not math.isfinite(v) else round(math.degrees(v), 1)
+                                               for k, v in d.case_alpha2.items()},
+                           "reason": d.reason}
+    if r.reasons:
+        out["reasons"] = r.reasons
+    return out
+
+
+__all__ = ["CONTROLLERS", "FallRun", "controllers_for", "run", "summary"]

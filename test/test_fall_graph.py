@@ -1,0 +1,68 @@
+"""The safe fall over ROS, with real processes: ftb_monitor + safe_fall_controller in the launched suite.
+
+``humfall up standing_push --controller stepping_inertia``: the FTB fires, the fall controller
+takes over through the mux, publishes its decision, steps and does not touch the target; the
+joint states are bit-identical to the in-process run (``fall.runs`` on ``ClosedLoop``).
+Each test runs in its own ROS_DOMAIN_ID on localhost (conftest.in_ros_domain).
+"""
+import math
+
+import numpy as np
+import pytest
+
+from humfall_ros import launch, scenario
+from humfall_ros.fall import runs
+
+from test_suite_graph import joint_states_from_bag
+
+DURATION = 2.4  # s: trigger 0.60 s, touchdown ~1.0 s, the trunk lands ~2.1 s
+
+
+def bag_messages(bag, topic):
+    from mcap_ros2.reader import read_ros2_messages
+
+    return [m.ros_msg for m in read_ros2_messages(str(bag), topics=[topic])]
+
+
+@pytest.fixture
+def run_up(in_ros_domain, tmp_path):
+    def run(name, controller, *overrides):
+        return launch.up(name, controller, list(overrides), runs_dir=str(tmp_path / "runs"), quiet=True)
+    return run
+
+
+def test_stepping_inertia_standing_push_over_ros_equals_in_process(run_up):
+    ov = [f"duration={DURATION}"]
+    status, r = run_up("standing_push", "stepping_inertia", *ov)
+    assert status == 0, r
+    bag = r["bag"]
+    # the FTB: a status every tick, the event latched once
+    events = bag_messages(bag, "/fall_event")
+    assert len(events) == 1
+    ev = events[0]
+    assert ev.trigger_mode == "ftb" and math.isfinite(ev.control_duration) and len(ev.support_polygon) >= 2
+    statuses = bag_messages(bag, "/ftb/status")
+    stamps = sorted({s.header.stamp.sec * 10**9 + s.header.stamp.nanosec for s in statuses})
+    assert len(stamps) >= int(DURATION * 500) - 2
+    assert sum(s.event_tick for s in statuses) >= 1
+    # the decision, once
+    decisions = bag_messages(bag, "/safe_fall/decision")
+    assert len(decisions) == 1
+    d = decisions[0]
+    assert d.step_case in ("step_left", "step_right") and d.cell_count >= 2000
+    # the mux: safe_fall drives from the tick after the trigger on
+    active = [(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, m.active) for m in bag_messages(bag, "/mux/state")]
+    t_ev = ev.header.stamp.sec * 10**9 + ev.header.stamp.nanosec
+    assert all(a == "safe_fall" for k, a in active if k > t_ev)
+    assert all(a == "locomotion" for k, a in active if 0 < k <= t_ev)
+    # identical to the in-process loop
+    sc = scenario.load("standing_push", ov + ["controller=stepping_inertia"])
+    mine = runs.run(sc, stop_after_landing_s=None)
+    ros = np.array([p for _, _, p in joint_states_from_bag(bag)])[:len(mine.joint_positions)]
+    assert ros.shape == mine.joint_positions.shape
+    assert np.array_equal(ros, mine.joint_positions)
+    assert mine.decision.case == d.step_case
+    assert np.array_equal(np.asarray(mine.decision.landing), np.asarray(d.landing))
+    assert mine.fall_event.stamp_ns == t_ev
+    # the target is not touched (ground truth, the bridge's metrics)
+    assert r["metrics"]["min_target_distance_m"] >= 0.05
