@@ -19,9 +19,6 @@ import time
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-
-from fall_closed_loop import run  # noqa: E402
 
 from humfall_ros import params, scenario  # noqa: E402
 from humfall_ros.dynamics.toppling import time_to_lean  # noqa: E402
@@ -35,19 +32,25 @@ def _stats(xs: list[float]) -> dict:
             "n": len(xs)}
 
 
-def capture_takeover():
-    """(observations of the run up to the trigger, the trigger observation, the event)."""
-    got = {}
+def capture_takeover(name: str = "standing_push", overrides: list[str] | None = None):
+    """(observations of the run up to the trigger, the trigger observation, the event), on ClosedLoop."""
+    from humfall_ros.fall import runs
+    from humfall_ros.sim.closed_loop import ClosedLoop
+
+    sc = scenario.load(name, overrides)
+    ctrls, monitors = runs.controllers_for(sc, "none")
+    loop = ClosedLoop(sc, ctrls, monitors)
     seen = []
-
-    def tick(world, obs, st):
-        seen.append(obs)
-        if st.event is not None and "obs" not in got:
-            got["obs"], got["event"] = obs, st.event
-
-    sc = scenario.load("standing_push")
-    run(sc, duration=0.7, on_tick=tick)
-    return seen, got["obs"], got["event"]
+    try:
+        for _ in range(int(1.5 * sc["sim"]["control_rate"])):
+            obs = loop.step()
+            seen.append(obs)
+            st = obs.inputs["ftb/status"]
+            if st.event is not None:
+                return seen, obs, st.event
+    finally:
+        loop.close()
+    raise RuntimeError("the FTB did not fire")
 
 
 def main() -> None:

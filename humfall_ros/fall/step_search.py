@@ -22,9 +22,9 @@ polygon is the hull of the stance sole's pivot corner(s) and the landing sole's 
 Captures rank above every fall (among them the deepest Q2 wins); falls rank by the avoidance
 angle alpha2 = angle(Q2 P2 T) (eq. 4, Fig. 5).
 
-Vectorisation: for N cells the landing corners are (N, 4, 2); the hull edges of the N point sets
-(4 corners + 1-2 pivots) are found among all point pairs by the side test, then the nearest
-boundary point and the inside margin come from those edges alone; no Python loop over cells.
+Vectorisation: for N cells everything is evaluated in each cell's sole frame, where the landing
+sole is one fixed rectangle and only Q2 and the 1-2 pivots move (``_hull_eval``: a clamp, the
+pivot -> corner segments and a separation test); no Python loop over cells.
 """
 from __future__ import annotations
 
@@ -217,38 +217,78 @@ def predict_touchdown(com, com_velocity, pivots: list[np.ndarray], duration: flo
     return G, v, Q
 
 
-def _hull_eval(pts: np.ndarray, q: np.ndarray, target: np.ndarray):
-    """Per point set (N, M, 2): nearest hull point to q, inside margin, alpha (vectorised).
+def _hull_eval(cells: np.ndarray, sole_local: np.ndarray, pivot: np.ndarray, q: np.ndarray, target: np.ndarray):
+    """Per landing cell: nearest point P2 of hull(landing sole, pivot) to q, inside margin, alpha (vectorised).
 
-    Outside the hull, the nearest point of the hull is the nearest point over all segments between
-    the set's points (interior chords are never nearer than the boundary), so no hull is built.
-    Inside (no angular gap of pi or more among the points around q), the margin reported is the
-    distance to the nearest segment: a lower bound of the depth (a chord may be nearer than the
-    boundary), exact when the nearest segment is a hull edge; ``_inside_margin`` gives the exact
-    depth (hull edges found by the side test) and is what the tests compare against.
+    Evaluated in each cell's sole frame, where the sole is one fixed axis-aligned rectangle and
+    only q and the pivot point(s) move. The hull's boundary lies on the rectangle's boundary and
+    the segments pivot -> sole corner (and pivot -> pivot), so for q outside the hull the nearest
+    point over those pieces (the rectangle taken filled: a clamp) is the nearest hull point. q is
+    inside iff it is in the rectangle, or some point of the set lies beyond the line through that
+    nearest point normal to it (the separation test). Inside, the margin reported is the distance
+    to the nearest piece: a lower bound of the depth (exact when the nearest piece is a hull edge);
+    ``_inside_margin`` gives the exact depth and is what the tests compare against.
+
+    Args:
+        cells: landing sole poses (N, 3) = (x, y, yaw) [m, m, rad].
+        sole_local: the sole rectangle's corners in its frame (4, 2) [m].
+        pivot: the stance pivot corner(s) (K, 2) [m], K = 1 or 2.
+        q: Q2 [m], (2,). target: T [m], (2,).
+    Returns:
+        (P2 (N, 2) [m], margin (N,) [m], > 0 inside, alpha (N,) [rad]).
     """
-    N, M, _ = pts.shape
-    pairs = np.array([(i, j) for i, j in itertools.combinations(range(M), 2) if (i, j) not in ((0, 2), (1, 3))])
-    a = pts[:, pairs[:, 0]]                      # (N, P, 2); the sole's diagonals 0-2 and 1-3 are skipped
-    e = pts[:, pairs[:, 1]] - a
-    qa = q - a
-    den = np.maximum(e[..., 0] ** 2 + e[..., 1] ** 2, 1e-18)
-    t = np.clip((qa[..., 0] * e[..., 0] + qa[..., 1] * e[..., 1]) / den, 0.0, 1.0)
-    dx = qa[..., 0] - t * e[..., 0]
-    dy = qa[..., 1] - t * e[..., 1]
-    d2 = dx * dx + dy * dy
+    x0, y0 = sole_local.min(axis=0)
+    x1, y1 = sole_local.max(axis=0)
+    corners = np.array([[x1, y1], [x0, y1], [x0, y0], [x1, y0]])
+    c, s = np.cos(cells[:, 2]), np.sin(cells[:, 2])
+    dx, dy = q[0] - cells[:, 0], q[1] - cells[:, 1]
+    qx, qy = c * dx + s * dy, -s * dx + c * dy                     # q in each sole frame (N,)
+    pdx = pivot[None, :, 0] - cells[:, None, 0]
+    pdy = pivot[None, :, 1] - cells[:, None, 1]
+    px, py = c[:, None] * pdx + s[:, None] * pdy, -s[:, None] * pdx + c[:, None] * pdy   # (N, K)
+    # the rectangle, filled
+    rx, ry = np.clip(qx, x0, x1), np.clip(qy, y0, y1)
+    in_rect = (rx == qx) & (ry == qy)
+    inner = np.minimum(np.minimum(qx - x0, x1 - qx), np.minimum(qy - y0, y1 - qy))
+    d2_rect = np.where(in_rect, inner * inner, (qx - rx) ** 2 + (qy - ry) ** 2)
+    # segments pivot -> corner (N, K, 4) and pivot -> pivot
+    ax, ay = px[:, :, None], py[:, :, None]
+    ex, ey = corners[None, None, :, 0] - ax, corners[None, None, :, 1] - ay
+    n = len(cells)
+    ax, ay = np.broadcast_to(ax, ex.shape).reshape(n, -1), np.broadcast_to(ay, ey.shape).reshape(n, -1)
+    ex, ey = ex.reshape(n, -1), ey.reshape(n, -1)
+    if pivot.shape[0] == 2:
+        ax, ay = np.concatenate([ax, px[:, :1]], axis=1), np.concatenate([ay, py[:, :1]], axis=1)
+        ex = np.concatenate([ex, px[:, 1:] - px[:, :1]], axis=1)
+        ey = np.concatenate([ey, py[:, 1:] - py[:, :1]], axis=1)
+    wx, wy = qx[:, None] - ax, qy[:, None] - ay
+    t = np.clip((wx * ex + wy * ey) / np.maximum(ex * ex + ey * ey, 1e-18), 0.0, 1.0)
+    nx, ny = ax + t * ex, ay + t * ey
+    d2 = (qx[:, None] - nx) ** 2 + (qy[:, None] - ny) ** 2
     k = np.argmin(d2, axis=1)
-    rows = np.arange(N)
-    p2 = q - np.column_stack([dx[rows, k], dy[rows, k]])
-    dist = np.sqrt(d2[rows, k])
-    # inside: no half-plane through q holds every point, i.e. the largest angular gap of the
-    # points seen from q is below pi (one arctan2 and a sort of M angles per cell)
-    ang = np.sort(np.arctan2(pts[..., 1] - q[1], pts[..., 0] - q[0]), axis=1)
-    gaps = np.diff(ang, axis=1, append=ang[:, :1] + 2 * np.pi)
-    inside = np.max(gaps, axis=1) < np.pi
-    # inside: the distance to the nearest segment is a lower bound of the depth (chords are inside)
+    rows = np.arange(len(cells))
+    d2_seg = d2[rows, k]
+    use_rect = d2_rect <= d2_seg
+    # nearest point in the sole frame (inside the rectangle: q itself; not used for captures)
+    bx = np.where(use_rect, rx, nx[rows, k])
+    by = np.where(use_rect, ry, ny[rows, k])
+    dist = np.sqrt(np.minimum(d2_rect, d2_seg))
+    # separation test: some point of the set beyond the line through the nearest point, normal to q - it
+    mx, my = qx - bx, qy - by
+    beyond = np.max(np.concatenate([(corners[None, :, 0] - bx[:, None]) * mx[:, None]
+                                    + (corners[None, :, 1] - by[:, None]) * my[:, None],
+                                    (px - bx[:, None]) * mx[:, None] + (py - by[:, None]) * my[:, None]], axis=1),
+                    axis=1)
+    inside = in_rect | (beyond > 1e-9 * np.maximum(np.hypot(mx, my), 1e-12))
     margin = np.where(inside, dist, -dist)
-    alpha = avoidance_angle(p2, np.broadcast_to(q, p2.shape), np.broadcast_to(target, p2.shape))
+    p2 = np.column_stack([cells[:, 0] + c * bx - s * by, cells[:, 1] + s * bx + c * by])
+    # alpha = angle(Q2 P2 T) (Fig. 5)
+    ux, uy = q[0] - p2[:, 0], q[1] - p2[:, 1]
+    vx, vy = target[0] - p2[:, 0], target[1] - p2[:, 1]
+    nu, nv = np.hypot(ux, uy), np.hypot(vx, vy)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        alpha = np.arccos(np.clip((ux * vx + uy * vy) / (nu * nv), -1.0, 1.0))
+    alpha = np.where((nu < 1e-9) | (nv < 1e-9), np.nan, alpha)
     return p2, margin, alpha
 
 
@@ -396,16 +436,15 @@ def _cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, target, g_t
            cfg: SearchConfig) -> CaseResult | None:
     if len(cells) == 0:
         return None
-    corners = sole_corners_at(cells, sole_local)
     n = len(cells)
-    pts = np.concatenate([corners, np.broadcast_to(pivot, (n, len(pivot), 2))], axis=1)
-    p2, margin, alpha = _hull_eval(pts, q2, target)
+    p2, margin, alpha = _hull_eval(cells, sole_local, np.asarray(pivot, float), np.asarray(q2, float)[:2],
+                                   np.asarray(target, float)[:2])
     inside = margin > 0
     captured = margin >= cfg.capture_margin
     # inside but shallow (by the lower bound): ranks above every fall, below the captures
     score = np.where(captured, 1e3 + margin, np.where(inside, 5e2 + margin, np.where(np.isfinite(alpha), alpha, -1.0)))
     i = int(np.argmax(score))
-    poly = support_polygon(pts[i])
+    poly = support_polygon(np.vstack([sole_corners_at(cells[i:i + 1], sole_local)[0], pivot]))
     return CaseResult(case, p2[i].copy(), q2.copy(), math.nan if inside[i] else float(alpha[i]), bool(inside[i]),
                       float(margin[i]), cells[i].copy(), poly, g_td, n, cfg.capture_margin)
 
