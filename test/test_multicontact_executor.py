@@ -89,3 +89,34 @@ def test_executor_waits_for_a_late_touchdown_then_moves_on(models):
     assert ex.switches == [] and ex._t0 is None
     with pytest.raises(ValueError, match="not in the robot"):
         MulticontactExecutor([landing], ["no_such_joint"], hm.joint_names)
+
+
+def test_planar_state_of_a_sagittal_3d_state_puts_the_points_where_the_3d_model_has_them(models):
+    """The executor's bridge from the 3-D robot to the planner: for a state in the
+    sagittal plane, the planar model's contact points and their velocities equal the
+    3-D model's frames (pinocchio, free flyer) in x and z."""
+    from humfall_ros.multicontact.executor import planar_state
+    from humfall_ros.multicontact.initial_state import nominal_configuration
+    pm, hm = models
+    rng = np.random.default_rng(2)
+    qp = nominal_configuration(pm)
+    qp[2] = 0.3
+    qp[3:] += rng.uniform(-0.2, 0.2, pm.m)
+    vp = rng.normal(0, 1.0, pm.n)
+    joints = np.zeros(len(hm.joint_names))
+    rates = np.zeros(len(hm.joint_names))
+    for i, j in enumerate(pm.joint_names):
+        joints[hm.joint_names.index(j)] = qp[3 + i]
+        rates[hm.joint_names.index(j)] = vp[3 + i]
+    quat = np.array([0.0, np.sin(qp[2] / 2), 0.0, np.cos(qp[2] / 2)])      # pitch about y, xyzw
+    q3 = hm.configuration([qp[0], 0.0, qp[1]], quat, joints)
+    v3 = hm.velocity([vp[0], 0.0, vp[1]], [0.0, vp[2], 0.0], quat, rates)
+    q, v = planar_state(pm, hm.joint_names, q3, v3)
+    np.testing.assert_allclose(q, qp, atol=1e-12)
+    np.testing.assert_allclose(v, vp, atol=1e-12)
+    hm.forward(q3, v3)
+    import pinocchio as pin
+    for point, frame in (("LH", "l_hand"), ("RH", "r_hand")):
+        np.testing.assert_allclose(pm.point(point, q), hm.frame_position(frame)[[0, 2]], atol=1e-9)
+        vel = pin.getFrameVelocity(hm.model, hm.data, hm.frame_ids[frame], pin.LOCAL_WORLD_ALIGNED).linear
+        np.testing.assert_allclose(pm.point_jacobian(point, q) @ v, vel[[0, 2]], atol=1e-9)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.multicontact.collocation import Segment, hermite_eval
@@ -114,4 +115,29 @@ class MulticontactExecutor:
         return JointTargets(positions=pos, velocities=vel)
 
 
-__all__ = ["ExecutorConfig", "MulticontactExecutor"]
+def planar_state(planar_model, joint_names: list[str], q3, v3) -> tuple[np.ndarray, np.ndarray]:
+    """The planar planner's state (x, z, pitch, sagittal joints) of a 3-D free-flyer state.
+
+    ``q3``, ``v3``: pinocchio free-flyer configuration (base position, quaternion xyzw,
+    joints in ``joint_names`` order) and velocity (base twist in the base frame, joint
+    rates), e.g. ``SimWorld.pinocchio_state()``. The planar root is the same root link
+    (a PX-PZ-RY composite joint, so its rates are the world x, z velocities and the
+    pitch rate); out-of-plane motion is dropped, not checked.
+    """
+    q3 = np.asarray(q3, float)
+    v3 = np.asarray(v3, float)
+    R = Rotation.from_quat(q3[3:7]).as_matrix()
+    q = np.zeros(planar_model.n)
+    v = np.zeros(planar_model.n)
+    q[0], q[1] = q3[0], q3[2]
+    q[2] = float(np.arctan2(R[0, 2], R[2, 2]))          # rotation about the world y axis
+    lin, ang = R @ v3[:3], R @ v3[3:6]
+    v[0], v[1], v[2] = lin[0], lin[2], ang[1]
+    for i, j in enumerate(planar_model.joint_names):
+        k = joint_names.index(j)
+        q[3 + i] = q3[7 + k]
+        v[3 + i] = v3[6 + k]
+    return q, v
+
+
+__all__ = ["ExecutorConfig", "MulticontactExecutor", "planar_state"]
