@@ -1,24 +1,126 @@
-"""locomotion: the balance and walking controller's node (standing now; walking lands with its issue).
+"""locomotion: the balance and walking controller's node (issue 10), lockstep source ``joint_command/locomotion``.
 
-A lockstep command source (``joint_command/locomotion``) under the controller
-contract: see humfall_ros/nodes/controller_node.py for the tick handling and
-humfall_ros/control/standing.py for the controller.
+The controller is :class:`humfall_ros.walking.controller.LocomotionController` (it stands, walks,
+releases on a fall event or an e-stop; all the logic); this file only converts messages, run by
+:class:`humfall_ros.nodes.controller_node.ControllerNode` like every controller of the suite.
+
+Parameters: config/locomotion.yaml. ``scenario`` (a scenario name or file, default empty): the
+node follows that scenario's ``walk:`` section (its walk schedule, ``walk.step_period`` and
+``walk.double_support``) and control rate, exactly as an in-process user of
+``walking.controller.from_scenario(sc, model)`` does.
+
+Inputs besides the tick's:
+
+* ``cmd_walk`` (``geometry_msgs/Twist``, reliable, latest value kept): ``linear.x`` forward speed
+  [m/s], ``angular.z`` yaw rate [rad/s]; starts a walk, changes its speed or turn, zero ends it with
+  a planned stop. A non-finite command is refused and logged; clamps and refusals of the
+  controller (speed, turn rate, kinematics, while released) are logged too;
+* ``fall_event`` (``humfall_interfaces/FallEvent``, latched): release;
+* ``estop/status`` (``humfall_interfaces/EstopStatus``, latest): release while ``active``.
+
+Output besides the command: ``walking/state`` (``humfall_interfaces/WalkingState``) every tick,
+stamped like the tick.
 """
 from __future__ import annotations
 
-from humfall_ros.control.standing import StandingController
-from humfall_ros.nodes.common import run_node
-from humfall_ros.nodes.controller_node import ControllerNode
+import math
+
+import numpy as np
+from geometry_msgs.msg import Point, Pose, Twist, Vector3
+from humfall_interfaces.msg import EstopStatus, FallEvent
+from humfall_interfaces.msg import Footstep as FootstepMsg
+from humfall_interfaces.msg import WalkingState as WalkingStateMsg
+
+from humfall_ros import params as params_mod
+from humfall_ros.control.contract import JointTargets, Observation
+from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, run_node
+from humfall_ros.nodes.controller_node import ControllerNode, Input
+from humfall_ros.walking.controller import LocomotionController, WalkingState, from_scenario
+from humfall_ros.walking.footsteps import WalkCommand
+from humfall_ros.walking.scenario import walking_config
 
 
-def make_controller(p: dict, model) -> StandingController:
-    return StandingController(model, model.standing_posture, p["ankle_kp"], p["ankle_kd"], p["ankle_max_offset"],
-                              p["resume_time"])
+def make_controller(p: dict, model) -> LocomotionController:
+    """The node's controller: ``from_scenario`` of the ``scenario`` parameter's file, else the declared
+    parameters at the bridge's default control rate, standing until a ``cmd_walk``."""
+    if p.get("scenario"):
+        from humfall_ros import scenario as scenario_mod
+
+        return from_scenario(scenario_mod.load(p["scenario"]), model, p)
+    rate = float(params_mod.defaults("sim_bridge")["control_rate"])
+    cfg = walking_config({"walk": {"step_period": p["step_period"], "double_support": p["double_support"]}}, p)
+    return LocomotionController(model, cfg, 1.0 / rate)
+
+
+def walk_command_from_twist(msg: Twist) -> WalkCommand:
+    """``cmd_walk`` -> :class:`WalkCommand`; ValueError (logged by the node) when not finite."""
+    v, w = float(msg.linear.x), float(msg.angular.z)
+    if not (math.isfinite(v) and math.isfinite(w)):
+        raise ValueError(f"non-finite walk command (linear.x {v!r}, angular.z {w!r})")
+    ignored = [n for n, x in (("linear.y", msg.linear.y), ("linear.z", msg.linear.z),
+                              ("angular.x", msg.angular.x), ("angular.y", msg.angular.y)) if x != 0.0]
+    if ignored:
+        raise ValueError(f"only linear.x and angular.z are walkable; {', '.join(ignored)} given")
+    return WalkCommand(v, w)
+
+
+def _point(v) -> Point:
+    return Point(x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+
+def _pose(foot) -> Pose:
+    x, y, z, yaw = foot
+    p = Pose()
+    p.position = Point(x=float(x), y=float(y), z=float(z))
+    p.orientation.z, p.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+    return p
+
+
+def walking_state_to_msg(s: WalkingState) -> WalkingStateMsg:
+    """The controller's :class:`WalkingState` as the message (stamp set by the caller)."""
+    m = WalkingStateMsg()
+    m.walking, m.released, m.support = bool(s.walking), bool(s.released), str(s.support)
+    m.phase_fraction, m.step_index = float(s.phase_fraction), int(s.step_index)
+    m.com_ref = _point(s.com_ref)
+    m.com_velocity_ref = Vector3(x=float(s.com_velocity_ref[0]), y=float(s.com_velocity_ref[1]),
+                                 z=float(s.com_velocity_ref[2]))
+    m.zmp_ref, m.capture_point_ref = _point(s.zmp_ref), _point(s.capture_point_ref)
+    m.multibody_zmp = _point(np.asarray(s.multibody_zmp, float))
+    m.left_foot, m.right_foot = _pose(s.left_foot), _pose(s.right_foot)
+    steps = []
+    for side, x, y, yaw, *rest in s.next_footsteps:
+        f = FootstepMsg(side=FootstepMsg.LEFT if side == "l" else FootstepMsg.RIGHT, yaw=float(yaw))
+        f.position = Point(x=float(x), y=float(y), z=0.0)
+        if rest:
+            f.index, f.stop = int(rest[0]), bool(rest[1])
+        steps.append(f)
+    m.next_footsteps = steps
+    m.speed, m.yaw_rate = float(s.speed), float(s.yaw_rate)
+    return m
+
+
+def node_inputs() -> list[Input]:
+    return [Input("cmd_walk", Twist, "cmd_walk", walk_command_from_twist, qos=QOS_RELIABLE),
+            Input("fall_event", FallEvent, "fall_event", lambda _msg: True),
+            Input("estop", EstopStatus, "estop/status", lambda msg: msg, qos=QOS_RELIABLE)]
 
 
 class Locomotion(ControllerNode):
     def __init__(self):
-        super().__init__("locomotion", make_controller)
+        super().__init__("locomotion", make_controller, node_inputs())
+        self.state_pub = self.create_publisher(WalkingStateMsg, "walking/state", QOS_RELIABLE,
+                                               event_callbacks=NO_PUB_EVENTS)
+        self._logged = 0
+
+    def after_step(self, observation: Observation, targets: JointTargets | None) -> None:
+        msg = walking_state_to_msg(self.controller.state)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(observation.stamp_ns), 1_000_000_000)
+        self.state_pub.publish(msg)
+        log = self.controller.messages
+        for line in log[self._logged:]:
+            (self.get_logger().warning if ("refused" in line or "clamped" in line or "ignored" in line)
+             else self.get_logger().info)(line)
+        self._logged = len(log)
 
 
 def main(args=None) -> int:

@@ -24,6 +24,8 @@ class LocomotionConfig:
     double_support: float = 0.1           # s
     com_height: float = 0.70              # m
     swing_apex: float = 0.05              # m
+    landing_height: float = 0.0008        # m, the swing ends this high; the foot descends in the double support
+    landing_duration: float = 0.02        # s
     step_width_offset: float = 0.0        # m
     crouch_duration: float = 1.0          # s
     start_duration: float = 0.8           # s
@@ -38,6 +40,8 @@ class LocomotionConfig:
     multibody_horizon: float = 0.6        # s
     dcm_gain: float = 0.0                 # m/m
     com_feedback_max: float = 0.03        # m
+    zmp_integral_gain: float = 0.0        # 1/s
+    zmp_integral_max: float = 0.06        # m
     cop_damping_gain: float = 0.0         # rad/(m s)
     cop_damping_time_constant: float = 0.2  # s
     walk_ankle_max_offset: float = 0.05   # rad

@@ -59,7 +59,7 @@ class WalkingState:
         capture_point_ref: reference capture point [m] (3,), z = 0.
         multibody_zmp: ZMP of the planned whole-body motion [m] (3,) (NaN when not computed).
         left_foot, right_foot: current reference sole poses (x, y, z [m], yaw [rad]).
-        next_footsteps: upcoming footsteps, (side "l"/"r", x [m], y [m], yaw [rad]), in flight first.
+        next_footsteps: upcoming footsteps, (side "l"/"r", x [m], y [m], yaw [rad], index, stop), in flight first.
         speed, yaw_rate: the command in force [m/s], [rad/s].
     """
 
@@ -121,7 +121,8 @@ class LocomotionController:
         corners = model.sole_corners_local["l"]
         self.zmp_offset_x = float(0.5 * (corners[:, 0].max() + corners[:, 0].min()))
         self.stabilizer = WalkingStabilizer(model, dt, c.dcm_gain, c.com_feedback_max, c.cop_damping_gain,
-                                            c.cop_damping_time_constant, c.walk_ankle_max_offset)
+                                            c.cop_damping_time_constant, c.walk_ankle_max_offset,
+                                            c.zmp_integral_gain, c.zmp_integral_max)
         self.messages: list[str] = []
         self.reset()
 
@@ -347,7 +348,7 @@ class LocomotionController:
             capture_point_ref=sample.capture_point.copy(),
             left_foot=(*map(float, f["l"].position), float(f["l"].yaw)),
             right_foot=(*map(float, f["r"].position), float(f["r"].yaw)),
-            next_footsteps=[(n.side, n.x, n.y, n.yaw) for n in sample.next_footsteps],
+            next_footsteps=[(n.side, n.x, n.y, n.yaw, n.index, n.stop) for n in sample.next_footsteps],
             speed=self.command.speed, yaw_rate=self.command.yaw_rate)
 
     # ------------------------------------------------------------------ feasibility

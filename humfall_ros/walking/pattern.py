@@ -52,6 +52,7 @@ class Phase:
     feet: dict                     # side -> Footstep at the phase start
     step_index: int
     swing_to: Footstep | None = None  # ss: where the swing foot lands
+    landing: str | None = None     # ds after a swing: the foot that just landed (it finishes its descent)
 
     @property
     def end(self) -> int:
@@ -206,14 +207,14 @@ class WalkingPattern:
         if stop:
             center = 0.5 * (new_zmp + stance_zmp)
             self._append(Phase("ds", self._end(), self._ticks(cfg.stop_duration), stance_zmp, center, dict(feet),
-                               self.step_count))
+                               self.step_count, landing=side))
             self._append(Phase("hold", self._end(), self._ticks(cfg.settle_duration), center, center, dict(feet),
                                self.step_count))
             self.ended = True
             self.finish_tick = self._end()
         else:
             self._append(Phase("ds", self._end(), self._ticks(cfg.double_support), stance_zmp, new_zmp, dict(feet),
-                             self.step_count))
+                             self.step_count, landing=side))
             self.next_swing = other(side)
 
     # ------------------------------------------------------------------ per tick
@@ -257,15 +258,22 @@ class WalkingPattern:
         feet = {}
         for s_, fs in ph.feet.items():
             feet[s_] = FootState(np.array([fs.x, fs.y, 0.0]), fs.yaw, np.zeros(3), 0.0)
+        h = self.cfg.landing_height
         if ph.kind == "ss":
             sw = ph.swing_to
             a = ph.feet[sw.side]
-            pos, yaw, v, wz = swing_foot(np.array([a.x, a.y, 0.0]), np.array([sw.x, sw.y, 0.0]), a.yaw, sw.yaw,
+            pos, yaw, v, wz = swing_foot(np.array([a.x, a.y, 0.0]), np.array([sw.x, sw.y, h]), a.yaw, sw.yaw,
                                          self.cfg.swing_apex, frac, ph.ticks * self.dt)
             feet[sw.side] = FootState(pos, yaw, v, wz)
             support = SupportPhase.SINGLE_LEFT if ph.stance == "l" else SupportPhase.SINGLE_RIGHT
         else:
             support = SupportPhase.DOUBLE
+            if ph.landing is not None and h > 0:  # the landed foot descends the last landing_height
+                T = self.cfg.landing_duration
+                s_, ds_ = min_jerk((k - ph.start) * self.dt / T)
+                f = feet[ph.landing]
+                f.position[2] = h * (1.0 - s_)
+                f.velocity[2] = -h * ds_ / T
         zr = self.zmp_reference(k)
         upcoming = [p.swing_to for p in self.phases[self._phase_i:] if p.swing_to is not None][:4]
         finished = self.ended and k >= self.finish_tick
