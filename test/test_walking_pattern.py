@@ -142,7 +142,16 @@ def test_pattern_phases_and_references():
             assert s.feet[stance].position[2] == 0.0
             # in single support the reference ZMP is the stance sole's centre
             assert np.allclose(s.zmp[:2], [s.feet[stance].position[0] + 0.025, s.feet[stance].position[1]])
-    assert max(s.feet["r"].position[2] for s in samples) == pytest.approx(cfg.swing_apex, abs=1e-4)
+    # apex at mid-swing (plus half the landing height the swing ends at)
+    assert max(s.feet["r"].position[2] for s in samples) == pytest.approx(cfg.swing_apex + cfg.landing_height / 2,
+                                                                           abs=1e-4)
+    # the swing ends landing_height above the ground, the foot is down landing_duration into the double support
+    k = next(i for i, (a, b) in enumerate(itertools.pairwise(kinds)) if a == SupportPhase.SINGLE_LEFT
+             and b == SupportPhase.DOUBLE)
+    assert samples[k].feet["r"].position[2] == pytest.approx(cfg.landing_height, abs=2e-5)
+    assert samples[k + 1].feet["r"].position[2] == pytest.approx(cfg.landing_height)
+    assert 0 < samples[k + 2].feet["r"].position[2] < cfg.landing_height
+    assert samples[k + 1 + round(cfg.landing_duration / DT)].feet["r"].position[2] == pytest.approx(0.0, abs=1e-9)
     end = samples[-1]
     assert end.com[2] == pytest.approx(cfg.com_height)
     assert np.linalg.norm(end.com_velocity) < 0.01
