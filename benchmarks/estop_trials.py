@@ -73,6 +73,37 @@ class Trial:
     messages: list
 
 
+def average_cop_per_tick(world) -> dict:
+    """Measure the CoP averaged over the physics substeps of each control tick (normal-force weighted).
+
+    The rubber-sole contact chatters between PyBullet substeps (measured: the horizontal ground force jumps
+    by a median 370 N from one 1 kHz substep to the next), and the sensors read the last substep only, which
+    biases the measured CoP by centimetres while the tick-averaged one obeys Newton-Euler with the
+    centroidal momentum rate (residual < 2 N). The world is stepped exactly as before (the same
+    stepSimulation calls and pushes, one substep per call); returns a dict whose ``"cop"`` is updated
+    every tick (world xy, z = 0; NaN when airborne)."""
+    n_sub = world.substeps
+    step = world.step_control
+    out = {"cop": np.full(3, np.nan)}
+
+    def step_averaged() -> None:
+        world.substeps = 1
+        m, fz = np.zeros(2), 0.0
+        try:
+            for _ in range(n_sub):
+                step()
+                for cp in world.ground_contacts():
+                    f = cp[9] * cp[7][2]
+                    fz += f
+                    m += f * np.asarray(cp[6][:2])
+        finally:
+            world.substeps = n_sub
+        out["cop"] = np.array([m[0] / fz, m[1] / fz, 0.0]) if fz > 1.0 else np.full(3, np.nan)
+
+    world.step_control = step_averaged
+    return out
+
+
 def estop_config(sc: dict, **overrides) -> EstopConfig:
     """The e-stop's settings of scenario ``sc``: declared defaults, ``params.estop_planner``, the trigger."""
     p = node_params(sc, "estop_planner")
@@ -82,8 +113,9 @@ def estop_config(sc: dict, **overrides) -> EstopConfig:
 
 
 def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: float = 4.0,
-              overrides: list[str] | None = None, **estop_overrides) -> Trial:
-    """One trial (module docstring). ``after`` [s]: how long to run past the stop's start."""
+              overrides: list[str] | None = None, on_tick=None, **estop_overrides) -> Trial:
+    """One trial (module docstring). ``after`` [s]: how long to run past the stop's start; ``on_tick(loop,
+    obs, estop)`` is called after each tick (extra measurements)."""
     sc = scenario.load("walking_estop", [f"walk.speed_kmh={speed_kmh}", f"estop.at.step={step}",
                                          f"estop.at.phase={phase}", *(overrides or [])])
     loop = ClosedLoop(sc, controllers=[])
@@ -106,21 +138,26 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
                 obs.inputs["cmd_walk"] = c    # the same object every tick: acted on once
 
     loop.inputs = inputs
+    tick_cop = average_cop_per_tick(loop.world)
     tr = {k: [] for k in ("t", "com", "com_velocity", "cop", "margin", "zmp_ref", "com_ref", "support", "state",
-                          "estop_com_ref", "estop_zmp_ref", "active", "cop_truth", "walking")}
+                          "estop_com_ref", "estop_zmp_ref", "active", "cop_truth", "walking",
+                          "angular_momentum")}
     walk_refused = None
-    fell = False
+    fell, fell_at = False, None
     t_end = sc["duration"]
     wall0 = time.perf_counter()
     try:
         while loop.world.time < t_end:
             obs = loop.step()
+            if on_tick is not None:
+                on_tick(loop, obs, estop)
             st = obs.state
             ws = walk.state
             es = estop.status
             tr["t"].append(obs.time)
             tr["com"].append(st.com.copy())
             tr["com_velocity"].append(st.com_velocity.copy())
+            tr["angular_momentum"].append(np.asarray(st.angular_momentum, float).copy())
             tr["cop"].append(st.cop.copy())
             tr["margin"].append(point_in_polygon_margin(st.cop, st.support_polygon) if len(st.support_polygon) >= 3
                                 else -math.inf)
@@ -132,13 +169,12 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
             tr["estop_com_ref"].append(np.array(es.com_ref))
             tr["estop_zmp_ref"].append(np.array(es.zmp_ref))
             tr["active"].append(loop.active)
-            cop = loop.world.ground_truth_cop()
-            tr["cop_truth"].append(np.full(3, np.nan) if cop is None else np.asarray(cop, float).copy())
+            tr["cop_truth"].append(tick_cop["cop"].copy())
             if walk_refused is None and any("refused" in m for m in walk.messages):
                 walk_refused = next(m for m in walk.messages if "refused" in m)
                 break
-            if loop.ground_truth.metrics.result()["fell"]:
-                fell = True
+            if not fell and loop.ground_truth.metrics.result()["fell"]:
+                fell, fell_at = True, obs.time
                 t_end = min(t_end, loop.world.time + 0.2)
             if math.isfinite(estop.status.start_time):
                 t_end = min(t_end, estop.status.start_time + after)
@@ -158,9 +194,16 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
         m.update(estop_result(plan, trace["t"], trace["com"], trace["cop"], trace["margin"], start, fell,
                               estop.cfg.settle_speed))
         m.update(acceptance(plan, s, trace, start))
+        truth = dict(trace, cop=trace["cop_truth"], margin=truth_margins(trace, plan, start))
+        m.update({f"{k}_tick_avg": v for k, v in acceptance(plan, s, truth, start).items()
+                  if "cop" in k or "margin" in k})
+        m["max_cop_minor_m_tick_avg"] = float(np.nanmax(np.abs(plan.frame.to_local(
+            trace["cop_truth"][trace["t"] >= start, :2])[:, 0])))
     else:
         m.update({"feasible": None, "fell": fell})
     m["trigger_time_s"] = s.trigger_time
+    m["step"] = step
+    m["fell_at_s"] = fell_at
     m["wait_s"] = (s.start_time - s.trigger_time) if plan is not None else math.nan
     return Trial(speed_kmh, phase, m, trace, plan, list(estop.messages) + list(walk.messages))
 
@@ -186,6 +229,7 @@ def acceptance(plan, status, trace: dict, start: float) -> dict:
         "n3_lower_bound_m": float(plan.major.lower_bound),
         "v0_mps": v0,
         "final_cog_vs_n3_m": float(fin[1] - plan.major.n3),
+        "min_cop_margin_from_start_m": float(np.min(trace["margin"][after])),
         "min_cop_margin_after_0.3s_m": float(np.min(trace["margin"][t >= start + 0.3])),
         "min_cop_margin_at_s": float(t[after][np.argmin(trace["margin"][after])] - start),
         "final_cog_inside_m": float(in_poly),
@@ -202,6 +246,16 @@ def acceptance(plan, status, trace: dict, start: float) -> dict:
     }
 
 
+def truth_margins(trace: dict, plan, start: float) -> np.ndarray:
+    """Distance [m] of the tick-averaged CoP inside the stop's double-support polygon (the plan's, from the
+    feet at the start) from ``start`` [s] on; NaN before; -inf when airborne."""
+    out = np.full(len(trace["t"]), np.nan)
+    for i in np.nonzero(trace["t"] >= start)[0]:
+        c = trace["cop_truth"][i]
+        out[i] = point_in_polygon_margin(c, plan.support_polygon) if np.isfinite(c).all() else -math.inf
+    return out
+
+
 def fit_omega_f(trace: dict) -> dict:
     """eq. 2's omega_f fitted per world axis on the walking part (executed CoP vs walking's zmp_ref)."""
     w = trace["walking"] & (trace["active"] == "locomotion") & np.isfinite(trace["margin"])
@@ -211,10 +265,11 @@ def fit_omega_f(trace: dict) -> dict:
     idx = idx[idx >= idx[0] + 250]        # skip the first 0.5 s of the walk (crouch start)
     t = trace["t"][idx]
     out = {}
-    for a, name in ((0, "x"), (1, "y")):
-        om, rms = fit_zmp_lag(t, trace["zmp_ref"][idx, a], trace["cop"][idx, a])
-        out[f"omega_f_{name}"] = om
-        out[f"rms_{name}_m"] = rms
+    for src, tag in (("cop", ""), ("cop_truth", "_tick_avg")):
+        for a, name in ((0, "x"), (1, "y")):
+            om, rms = fit_zmp_lag(t, trace["zmp_ref"][idx, a], trace[src][idx, a])
+            out[f"omega_f_{name}{tag}"] = om
+            out[f"rms_{name}{tag}_m"] = rms
     return out
 
 
@@ -249,6 +304,7 @@ def main(argv=None) -> int:
     ap.add_argument("--phases", default=",".join(PHASES))
     ap.add_argument("--json", default="")
     ap.add_argument("--fallback", default="")
+    ap.add_argument("--step", type=int, default=5, help="estop.at.step (default 5: after the 5th step)")
     ap.add_argument("--fit", action="store_true", help="fit omega_f on each trial's walking part")
     ap.add_argument("--save", default="", help="folder for one .npz trace per trial (humfall_ros.estop.plots)")
     a = ap.parse_args(argv)
@@ -256,7 +312,7 @@ def main(argv=None) -> int:
     over = {"fallback": a.fallback} if a.fallback else {}
     for v in a.speeds:
         for ph in a.phases.split(","):
-            tr = run_trial(v, ph, **over)
+            tr = run_trial(v, ph, step=a.step, **over)
             m = tr.metrics
             if a.fit:
                 m.update(fit_omega_f(tr.trace))

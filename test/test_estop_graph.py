@@ -101,6 +101,13 @@ def test_a_standing_stop_over_ros_is_identical_to_the_in_process_loop(run_up, mo
     assert run.start == pytest.approx(0.7) and run.n3 == n3 and len(run.polygon) >= 4
     for path in plot_run(run, tmp_path):
         assert path.stat().st_size > 10_000
+    # result.json's estop section from the bag
+    from humfall_ros.estop.metrics import estop_result_from_bag
+
+    sec = estop_result_from_bag(r["bag"], fell=r["metrics"]["fell"])
+    assert sec["feasible"] is True and sec["fell"] is False and sec["n3_m"] == n3
+    assert abs(sec["final_cog_major_m"] - n3) < 0.02 and abs(sec["final_cog_minor_m"]) < 0.01
+    assert np.isfinite(sec["min_cop_margin_m"]) and np.isfinite(sec["max_cop_minor_m"])
     print(f"standing stop over ROS: {len(ticks)} ticks identical; n3 {n3:.4f} m, end {ctl.plan.end_time:.2f} s, "
           f"final state {ctl.status.state}, wall {r['wall_time_s']:.1f} s")
 

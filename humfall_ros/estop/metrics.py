@@ -50,4 +50,37 @@ def estop_result(plan: StopPlan | None, t, com, cop, cop_margin, start_time: flo
             "stop_time_s": stop, "fell": bool(fell)}
 
 
-__all__ = ["estop_result"]
+def estop_result_from_bag(bag, fell: bool, settle_speed: float = 0.01) -> dict:
+    """The same section from a run's bag (what ``humfall up`` can add to result.json): the measured CoG / CoP
+    and polygon margins from ``/centroidal_state``, the plan's frame, n3, feasibility and start from the last
+    ``/estop/status`` that started a stop (humfall_ros.estop.plots.run_from_bag). No stop: the empty section."""
+    import types
+
+    from humfall_ros.estop.frame import StopFrame
+    from humfall_ros.estop.plots import run_from_bag
+    from humfall_ros.model.humanoid import point_in_polygon_margin
+    from humfall_ros.recording.reader import read_messages, resolve_bag
+
+    try:
+        run = run_from_bag(bag)
+    except ValueError:
+        return estop_result(None, [], [], [], [], math.nan, fell, settle_speed)
+    feasible = False
+    margins = {}
+    for raw, m in read_messages(resolve_bag(bag), ["/estop/status", "/centroidal_state"]):
+        k = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+        if raw.topic == "/estop/status":
+            if math.isfinite(m.start_time):
+                feasible = bool(m.feasible)
+        else:
+            poly = np.array([(q.x, q.y) for q in m.support_polygon], float).reshape(-1, 2)
+            margins[k] = point_in_polygon_margin(np.array([m.cop.x, m.cop.y, 0.0]), poly) if len(poly) >= 3 \
+                else -math.inf
+    major = run.frame_major / np.linalg.norm(run.frame_major)
+    frame = StopFrame(run.frame_origin, major, np.array([major[1], -major[0]]))
+    plan = types.SimpleNamespace(frame=frame, feasible=feasible, major=types.SimpleNamespace(n3=run.n3))
+    cop_margin = [margins.get(int(round(t * 1e9)), -math.inf) for t in run.t]
+    return estop_result(plan, run.t, run.com, run.cop, cop_margin, run.start, fell, settle_speed)
+
+
+__all__ = ["estop_result", "estop_result_from_bag"]

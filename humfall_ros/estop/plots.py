@@ -71,9 +71,10 @@ def _plan(primary: np.ndarray, fallback: np.ndarray | None) -> np.ndarray:
     return out
 
 
-def run_from_trace(tr, label: str = "") -> EstopRun:
+def run_from_trace(tr, label: str = "", cop_key: str = "cop") -> EstopRun:
     """From a dict / npz of per-tick arrays: ``t, com, cop, estop_com_ref, estop_zmp_ref`` and optionally
-    ``com_ref, zmp_ref, walking`` (walking's references), plus ``frame_origin, frame_major, start, polygon, n3``."""
+    ``com_ref, zmp_ref, walking`` (walking's references), plus ``frame_origin, frame_major, start, polygon, n3``;
+    ``cop_key`` names the measured CoP series (e.g. ``cop_truth``: the trial harness's tick-averaged CoP)."""
     g = tr.get if hasattr(tr, "get") else (lambda k, d=None: tr[k] if k in tr else d)
     walking = g("walking")
     wc, wz = g("com_ref"), g("zmp_ref")
@@ -81,7 +82,7 @@ def run_from_trace(tr, label: str = "") -> EstopRun:
         w = np.asarray(walking, bool)
         wc = np.where(w[:, None], wc, np.nan)
         wz = np.where(w[:, None], wz, np.nan)
-    return EstopRun(np.asarray(tr["t"], float), np.asarray(tr["com"], float), np.asarray(tr["cop"], float),
+    return EstopRun(np.asarray(tr["t"], float), np.asarray(tr["com"], float), np.asarray(tr[cop_key], float),
                     _plan(tr["estop_com_ref"], wc), _plan(tr["estop_zmp_ref"], wz),
                     np.asarray(tr["frame_origin"], float), np.asarray(tr["frame_major"], float),
                     float(tr["start"]), np.asarray(tr["polygon"], float).reshape(-1, 2), float(g("n3", math.nan)),
