@@ -76,6 +76,9 @@ class SafeFallConfig:
     press_depth: float = 0.01
     swing_gain: float = 0.5
     ik_velocity_fraction: float = 0.95
+    stance_leg_weight: float = 10.0
+    replan_s: float = 0.0
+    shaping_lean_deg: float = 20.0
     shaping_gain: float = 0.02
     shaping_sign: float = -1.0
     shaping_recruit: str = "pitch"
@@ -97,7 +100,8 @@ class SafeFallConfig:
     @property
     def step(self) -> StepControlConfig:
         return StepControlConfig(clearance=self.swing_clearance, press_depth=self.press_depth,
-                                 swing_gain=self.swing_gain, velocity_fraction=self.ik_velocity_fraction)
+                                 swing_gain=self.swing_gain, velocity_fraction=self.ik_velocity_fraction,
+                                 stance_leg_weight=self.stance_leg_weight)
 
     @property
     def shaping(self) -> ShapingConfig:
@@ -131,6 +135,8 @@ class SafeFallDecision:
         ik_reachable: the eq.-9 IK check passed (True when no IK was needed).
         case_alpha2: best predicted alpha2 per case [rad] (NaN: capture or case absent).
         reason: why this choice (fallbacks, bad input).
+        replans: times the landing was re-decided during the swing (``replan_s``); the fields above
+            are then the last re-decision's (``replan_stamp_ns``), the case and swing side stay.
     """
 
     stamp_ns: int
@@ -156,6 +162,8 @@ class SafeFallDecision:
     ik_reachable: bool
     case_alpha2: dict
     reason: str = ""
+    replans: int = 0
+    replan_stamp_ns: int = 0
 
 
 def _get(o, key, default=None):
@@ -366,6 +374,7 @@ class SafeFallController:
                                                            0.10 + self.stepper.config.press_depth)
             self.stepper.start(q, swing, landing, obs.time, touchdown)
             self.phase = "swing"
+            self.lift_off_yaw = math.atan2(placements[swing].rotation[1, 0], placements[swing].rotation[0, 0])
         else:
             self.phase = "hold"
         zone = zones.get(swing) if swing else None
@@ -393,8 +402,11 @@ class SafeFallController:
             if (landed and not is_lift) or tau > 1.3:
                 if not is_lift:
                     self.touchdown_at = obs.time
-                self.phase = "shaping" if c.inertia_shaping and self.target is not None and not is_lift else "hold"
+                shape = c.inertia_shaping and self.target is not None and not is_lift
+                # a predicted capture holds and shapes only once the robot is seen falling about its new support
+                self.phase = ("shaping" if not self.chosen.captured else "landed") if shape else "hold"
                 self.hold = self.last_command.copy()
+                self.falling_since = None
             else:
                 quat = _imu_quat(obs.inputs.get("imu"))
                 if quat is None:
@@ -402,9 +414,21 @@ class SafeFallController:
                     self.phase = "hold"
                     return JointTargets(self.last_command.copy())
                 q = configuration_from_sensors(self.m, obs.joint_position, quat, obs.state.com)
+                if not is_lift and obs.time - p.start_time < c.replan_s - 1e-9:
+                    self._replan(obs, q)
                 pos, vel, _ = self.stepper.command(q, obs.time, c.control_period_s)
                 self.last_command = pos
                 return JointTargets(pos, vel)
+        if self.phase == "landed":
+            f = features_of(obs.state)
+            if f.valid and (f.separatrix_margin > 0.0 or f.lean_angle > math.radians(c.shaping_lean_deg)):
+                self.falling_since = obs.time if self.falling_since is None else self.falling_since
+                if obs.time - self.falling_since >= 0.01 - 1e-9:
+                    self.phase = "shaping"
+                    self.reasons.append(f"captured step, but falling about the new support at {obs.time:.3f} s: "
+                                        "inertia shaping")
+            else:
+                self.falling_since = None
         if self.phase == "shaping":
             quat = _imu_quat(obs.inputs.get("imu"))
             if quat is not None:
@@ -416,6 +440,48 @@ class SafeFallController:
                 self.last_command = pos
                 return JointTargets(pos, qd)
         return JointTargets(self.hold.copy() if self.hold is not None else np.asarray(obs.joint_position, float))
+
+    def _replan(self, obs: Observation, q: np.ndarray) -> None:
+        """Re-decide the landing of the chosen swing side from this tick's state (ours, not the paper's).
+
+        The FTB may fire while the push still acts (measured: 1.3x standing_push fires at 0.578 s, the
+        push ends at 0.6 s); a landing decided then misses the velocity the push still adds (the
+        predicted capture point at touchdown was 0.2 m short). For the first ``replan_s`` of the swing
+        the decision of eq. 4 is repeated each tick for the same swing foot, with the remaining time to
+        the planned touchdown, and the swing re-targets (minimum jerk: the early change is small).
+        """
+        c = self.config
+        plan = self.stepper.plan
+        swing, stance = plan.swing, ("r" if plan.swing == "l" else "l")
+        remaining = self.predicted_touchdown_time - obs.time
+        if remaining < c.min_swing_s * 0.5 or self.target is None:
+            return
+        t0 = time.perf_counter()
+        s = obs.state
+        self.m.forward(q)
+        soles = {sd: self.m.sole_corners(sd)[:, :2] for sd in SIDES}
+        u = np.asarray(s.capture_point, float)[:2] - np.asarray(s.cop, float)[:2]
+        if np.linalg.norm(u) < 1e-6:
+            return
+        u = u / np.linalg.norm(u)
+        pivot = ss._pivot(soles, stance, u, c.search.corner_tie)
+        G, _, Q = ss.predict_touchdown(s.com, s.com_velocity, [pivot], remaining, c.search.rk4_steps)
+        zone = stepping_zone(self.m, q, swing, remaining, Q[0] - pivot.mean(axis=0), G[0], c.zone_velocity_fraction,
+                             c.reach_fraction, hip_drop=c.hip_drop_m, max_yaw_change=c.max_yaw_change_rad,
+                             yaw_reference=self.lift_off_yaw)
+        cells = ss.zone_cells(zone, c.search, self._obstacle_footprints(obs))
+        case = self.chosen.case
+        r = ss._cells(case, cells, pivot, Q[0], self.target, G[0], self._sole_local, c.search)
+        if r is None:
+            return
+        self.chosen = r
+        plan.landing = StepController.landing_placement(*r.landing)
+        d = self.decision
+        d.p2, d.q2 = np.asarray(r.p2, float)[:2].copy(), np.asarray(r.q2, float)[:2].copy()
+        d.alpha2, d.captured, d.landing = r.alpha2, r.captured, np.asarray(r.landing, float).copy()
+        d.cell_count, d.search_time = r.cells, time.perf_counter() - t0
+        d.replans += 1
+        d.replan_stamp_ns = obs.stamp_ns
 
     def info(self) -> dict:
         """Predictions for comparison with the outcome."""

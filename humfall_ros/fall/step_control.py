@@ -28,6 +28,8 @@ import pinocchio as pin
 from humfall_ros.model.humanoid import HumanoidModel, quat_matrix
 from humfall_ros.model.ik import FrameTask, PostureTask, WholeBodyIK
 
+LEG_JOINTS = ("hip_yaw", "hip_roll", "hip_pitch", "knee", "ankle_pitch", "ankle_roll")
+
 
 def configuration_from_sensors(model: HumanoidModel, joints, imu_quat_xyzw, com_world) -> np.ndarray:
     """Floating-base configuration (nq,) from encoders, the IMU orientation and the estimated CoM.
@@ -75,6 +77,9 @@ class StepControlConfig:
         swing_gain: IK error gain per tick [-].
         velocity_fraction: joint speeds within this fraction of the URDF limits [-].
         damping: damping of the least squares (eq. 10) [-].
+        stance_leg_weight: posture weight of the stance leg's joints [-] (ours: with the posture weight
+            alone the IK lifted the swing sole by extending the stance leg, which pushed the CoM up 3 cm
+            and forward: the passive pendulum the decision predicted was not what the robot did).
     """
 
     clearance: float = 0.05
@@ -84,6 +89,7 @@ class StepControlConfig:
     swing_gain: float = 0.5
     velocity_fraction: float = 0.95
     damping: float = 1e-6
+    stance_leg_weight: float = 10.0
 
 
 @dataclasses.dataclass
@@ -119,6 +125,10 @@ class StepController:
         lift = self.m.frame_placement(self.m.sole_frame[swing]).copy()
         self.plan = SwingPlan(swing, t, max(duration, 0.05), lift, landing)
         self.posture = np.asarray(q, float)[7:].copy()
+        stance = "r" if swing == "l" else "l"
+        w = np.full(self.m.njoints, self.config.posture_weight)
+        w[[self.m.joint_index(f"{stance}_{j}") for j in LEG_JOINTS]] = self.config.stance_leg_weight
+        self.posture_weights = w
 
     def reachable(self, q, swing: str, stance_landed: pin.SE3, landing: pin.SE3,
                   iterations: int = 60) -> tuple[bool, float]:
@@ -168,7 +178,7 @@ class StepController:
         tasks = [FrameTask(self.m.sole_frame[stance], stance_now, hard=True),
                  FrameTask(self.m.sole_frame[p.swing], target, weight=c.swing_weight, gain=c.swing_gain,
                            twist=twist),
-                 PostureTask(self.posture, weight=c.posture_weight)]
+                 PostureTask(self.posture, weight=self.posture_weights)]
         r = self.ik.solve(q, tasks, dt)
         return r.q[7:].copy(), r.v[6:].copy(), float(r.errors[1]) if len(r.errors) > 1 else math.nan
 

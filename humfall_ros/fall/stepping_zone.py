@@ -145,7 +145,8 @@ def sole_pose_2d(placement: pin.SE3) -> np.ndarray:
 
 def stepping_zone(model: HumanoidModel, q, swing: str, duration: float, fall_direction, predicted_com,
                   velocity_fraction: float = 1.0, reach_fraction: float = 0.98, gap: float = 0.02,
-                  hip_drop: float = 0.0, max_yaw_change: float = math.inf) -> SteppingZone:
+                  hip_drop: float = 0.0, max_yaw_change: float = math.inf,
+                  yaw_reference: float | None = None) -> SteppingZone:
     """The allowable stepping zone (module docstring) at configuration ``q`` (world placement).
 
     Args:
@@ -158,7 +159,8 @@ def stepping_zone(model: HumanoidModel, q, swing: str, duration: float, fall_dir
         reach_fraction: usable fraction of thigh + shank [-].
         gap: clearance between the soles [m].
         hip_drop: how far the stance knee may lower the swing hip below the pendulum's prediction [m].
-        max_yaw_change: landing yaw within this of the swing sole's yaw now [rad].
+        max_yaw_change: landing yaw within this of ``yaw_reference`` [rad].
+        yaw_reference: [rad] (default: the swing sole's yaw now; a re-plan passes the lift-off yaw).
     """
     stance = "r" if swing == "l" else "l"
     J = foot_to_foot_jacobian(model, q, swing)   # also updates the frame placements
@@ -180,8 +182,9 @@ def stepping_zone(model: HumanoidModel, q, swing: str, duration: float, fall_dir
     u = np.asarray(fall_direction, float)[:2]
     u = u / max(float(np.linalg.norm(u)), 1e-12)
     hy = model.joint_index(f"{swing}_hip_yaw")
-    yaw_lo = max(st[2] + float(model.limits.lower[hy]), sw[2] - max_yaw_change)
-    yaw_hi = min(st[2] + float(model.limits.upper[hy]), sw[2] + max_yaw_change)
+    yref = sw[2] if yaw_reference is None else float(yaw_reference)
+    yaw_lo = max(st[2] + float(model.limits.lower[hy]), yref - max_yaw_change)
+    yaw_hi = min(st[2] + float(model.limits.upper[hy]), yref + max_yaw_change)
     x_range = (max(sw[0] - half[0], hip_pred[0] - rho), min(sw[0] + half[0], hip_pred[0] + rho))
     y_range = (max(sw[1] - half[1], hip_pred[1] - rho), min(sw[1] + half[1], hip_pred[1] + rho))
     return SteppingZone(swing, sw, half, gamma, float(duration), u, hip_pred[:2].copy(), float(rho), (yaw_lo, yaw_hi),

@@ -66,9 +66,10 @@ class FallMetrics:
         """The fall controller's decision (``fall.controller.SafeFallDecision`` or the message's fields).
 
         Reads: stamp_ns or time [s], case, swing_side, landing (x, y, yaw), alpha2 [rad] (NaN: capture),
-        captured, touchdown_time [s after the decision]. The first one counts.
+        captured, touchdown_time [s after the decision]. The first one sets the decision time; a later
+        one (a re-planned landing, same decision) updates the rest.
         """
-        if self.decision is not None or d is None:
+        if d is None:
             return
         def get(k, default=None):
             return d.get(k, default) if isinstance(d, dict) else getattr(d, k, default)
@@ -76,6 +77,8 @@ class FallMetrics:
         t = get("time")
         if t is None:
             t = get("stamp_ns", 0) * 1e-9
+        if self.decision is not None:
+            t = self.decision["time"]
         self.decision = {"time": float(t), "case": str(get("case", get("step_case", ""))),
                          "swing_side": str(get("swing_side", "")),
                          "landing": [float(x) for x in np.asarray(get("landing", [math.nan] * 3), float)],
