@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from humfall_ros import launch, scenario
-from humfall_ros.sim.closed_loop import ClosedLoop, standing_controller
+from humfall_ros.sim.closed_loop import ClosedLoop, locomotion_controller
 
 import takeover_controller as tc
 from test_suite_graph import joint_states_from_bag
@@ -36,7 +36,7 @@ def in_process(sc, with_takeover):
         c = sc["controllers"][0]
         test = tc.TakeoverController(loop.model, c["source"], c["params"]["take_over_time"],
                                      c["params"]["release_time"])
-        loop.controllers = [standing_controller(sc, loop.model), test]
+        loop.controllers = [locomotion_controller(sc, loop.model), test]
         from humfall_ros.control.mux import CommandMux, mux_order
 
         loop.mux = CommandMux(mux_order(["locomotion", "test"], {"test": 50}), loop.model.joint_names,

@@ -68,8 +68,15 @@ def sensor_noise(sc: dict) -> SensorNoise:
                        seed=b["noise_seed"])
 
 
+def locomotion_controller(sc: dict, model):
+    """The locomotion node's controller for this scenario (what the node builds from the same file)."""
+    from humfall_ros.walking.controller import from_scenario
+
+    return from_scenario(sc, model, node_params(sc, "locomotion"))
+
+
 def standing_controller(sc: dict, model) -> StandingController:
-    """The locomotion node's controller for this scenario (standing until walking lands)."""
+    """The standing balance alone as the "locomotion" source (the walking controller stands with it too)."""
     p = node_params(sc, "locomotion")
     return StandingController(model, model.standing_posture, p["ankle_kp"], p["ankle_kd"], p["ankle_max_offset"],
                               p["resume_time"])
@@ -89,7 +96,7 @@ class ClosedLoop:
 
     Args:
         sc: a validated scenario (humfall_ros.scenario).
-        controllers: contract controllers (default: the standing controller as "locomotion").
+        controllers: contract controllers (default: the locomotion node's, ``locomotion_controller``).
         monitors: per-tick stages whose values feed the controllers' inputs.
         priorities: mux priorities of the controllers' sources (higher wins; defaults for the built-ins).
         noise: sensor noise (default: the scenario's ``params.sim_bridge.noise_*``).
@@ -115,7 +122,7 @@ class ClosedLoop:
         self.sensors = Sensors(self.world, sensor_noise(sc) if noise is None else noise)
         est = node_params(sc, "state_estimator")
         self.estimator = CentroidalEstimator(self.model, contact_force=est["contact_force"])
-        self.controllers = list(controllers) if controllers is not None else [standing_controller(sc, self.model)]
+        self.controllers = list(controllers) if controllers is not None else [locomotion_controller(sc, self.model)]
         self.monitors = list(monitors or [])
         order = mux_order([c.source for c in self.controllers], priorities)
         self.mux = CommandMux(order, self.model.joint_names, bridge["command_timeout"])
