@@ -125,12 +125,15 @@ def part_speedup(quick: bool, n: int) -> dict:
     one = _run(_with(spec, OUT / f"speedup-ray1-{stamp()}", n, extra), "ray", 1)
     two = _run(_with(spec, OUT / f"speedup-ray2-{stamp()}", n, extra), "ray", 2)
     loc = _run(_with(spec, OUT / f"speedup-local2-{stamp()}", n, extra), "local", 2)
-    tables = [load_results(r["results"])[0] for r in (one, two, loc)]
+    tables = [comparable(load_results(r["results"])[0]) for r in (one, two, loc)]
+    common = [c for c in tables[0].column_names if all(c in t.column_names for t in tables)]
     return {"n": n, "ray_1_worker": one, "ray_2_workers": two, "local_2_workers": loc,
             "speedup_1_to_2_campaign_wall": round(one["campaign_wall_s"] / two["campaign_wall_s"], 3),
             "speedup_1_to_2_incl_ray_startup": round(one["wall_incl_startup_s"] / two["wall_incl_startup_s"], 3),
-            "identical_table_ray1_ray2_local": comparable(tables[0]).equals(comparable(tables[1]))
-            and comparable(tables[1]).equals(comparable(tables[2]))}
+            "identical_table_ray1_ray2_local": tables[0].equals(tables[1]) and tables[1].equals(tables[2]),
+            # a commit landing between the runs can add metric columns: compare what all three have
+            "identical_on_common_columns": all(t.select(common).equals(tables[0].select(common)) for t in tables),
+            "columns_not_in_all": sorted({c for t in tables for c in t.column_names} - set(common))}
 
 
 def _tree_pids(tag: str) -> list[int]:
