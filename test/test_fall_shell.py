@@ -1,0 +1,113 @@
+"""The safe fall's shell without a graph: message converters (exact round trips), the FTB as a ClosedLoop
+monitor (latched event), the fall controller acting on the tick's ftb/status, the safe-fall metrics."""
+import math
+
+import numpy as np
+import pytest
+
+from humfall_ros.control.contract import CentroidalObservation, Observation
+from humfall_ros.fall import ftb as core
+from humfall_ros.fall.controller import fall_event_of
+from humfall_ros.sim.metrics import FallMetrics
+
+
+def _state(com=(0.05, 0.0, 0.75), vel=(0.0, 0.0, 0.0)):
+    poly = np.array([[0.145, -0.16], [0.145, 0.16], [-0.095, 0.16], [-0.095, -0.16]])
+    return CentroidalObservation(np.array(com, float), np.array(vel, float), np.array([0.14, 0.0, 0.0]),
+                                 np.array([0.05, 0.0, 0.0]) + np.array(vel) * math.sqrt(0.75 / 9.81),
+                                 np.zeros(3), poly, np.zeros(3), 0.05, 0.0, 570.0, True, True, False)
+
+
+def _obs(t, state):
+    return Observation(int(round(t * 1e9)), np.zeros(0), np.zeros(0), state)
+
+
+def _event(t=0.6):
+    z = np.array([0.1, 0.2, 0.0])
+    return core.FallEvent(int(t * 1e9), "ftb", "why", z, z + 0.1, True, z, z * 2, 0.3, 0.81, 0.26, 1.001, 0.001,
+                          0.12, np.array([0.05, 0.0, 0.75]), np.array([0.6, -0.1, 0.0]),
+                          np.array([[0.145, 0.02], [0.145, -0.16]]), False)
+
+
+def test_monitor_latches_the_event_from_the_trigger_on():
+    mon = core.FtbMonitor(core.FtbConfig(debounce_ms=4.0))
+    assert mon.name == "ftb/status" and mon.latched == {}
+    st = mon.step(_obs(0.0, _state()))
+    assert st.fall_event is None and mon.latched == {}
+    fast = _state(com=(0.12, 0.0, 0.75), vel=(0.9, 0.0, 0.0))  # well past the crest of the toe edge
+    events = []
+    for k in range(1, 8):
+        st = mon.step(_obs(0.002 * k, fast))
+        events.append(st.event)
+    fired = [e for e in events if e is not None]
+    assert len(fired) == 1                                  # once, on the edge
+    assert st.fall_event is fired[0] and mon.latched == {"fall_event": fired[0]}   # carried on every later tick
+    mon.reset()
+    assert mon.latched == {} and mon.state is core.FtbState.BALANCED
+
+
+def test_controller_acts_on_the_status_of_the_tick_not_on_the_latched_topic():
+    ev = _event()
+    st = core.FtbStatus(ev.stamp_ns, core.FtbState.FALLING, "ftb", core.FtbFeatures(), 0.0, "", None, ev)
+    obs = _obs(0.7, _state())
+    obs.inputs = {"ftb/status": st, "fall_event": _event(0.3)}
+    assert fall_event_of(obs) is ev
+    obs.inputs = {"ftb/status": core.FtbStatus(0, core.FtbState.BALANCED, "ftb", core.FtbFeatures(), 0.0),
+                  "fall_event": _event(0.3)}
+    assert fall_event_of(obs) is None   # a latched event the status does not carry is not acted on
+    obs.inputs = {"fall_event": ev}
+    assert fall_event_of(obs) is ev     # no status at all: the latched input
+
+
+def test_messages_round_trip_exactly():
+    pytest.importorskip("humfall_interfaces.msg")
+    from humfall_interfaces.msg import FtbStatus
+
+    from humfall_ros.nodes.ftb_monitor import event_from_msg, event_to_msg, status_from_msg, status_to_msg
+
+    ev = _event()
+    back = event_from_msg(event_to_msg(ev))
+    for f in ("stamp_ns", "trigger_mode", "reason", "leading_corner", "fall_direction", "control_duration",
+              "energy_ratio", "walking"):
+        assert getattr(back, f) == getattr(ev, f)
+    for f in ("leading_edge_start", "cop", "reference_point", "com", "com_velocity", "support_polygon"):
+        assert np.array_equal(getattr(back, f), getattr(ev, f))
+    feats = core.features_of(_state(com=(0.12, 0.0, 0.75), vel=(0.9, 0.0, 0.0)))
+    st = core.FtbStatus(ev.stamp_ns, core.FtbState.FALLING, "ftb", feats, 0.25, "r", ev, ev)
+    msg = status_to_msg(st, FtbStatus())
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(ev.stamp_ns, 10**9)
+    b = status_from_msg(msg)
+    assert b.state is core.FtbState.FALLING and b.event is not None and b.fall_event.stamp_ns == ev.stamp_ns
+    assert b.features.energy_ratio == feats.energy_ratio and np.array_equal(b.features.edge_normal, feats.edge_normal)
+    # inf control duration (never falls, by the model) survives
+    ev.control_duration = math.inf
+    assert event_from_msg(event_to_msg(ev)).control_duration == math.inf
+
+
+def test_metrics_alpha2_at_the_measured_p2_and_prediction():
+    m = FallMetrics([1.2, 0.0])
+    m.set_reference_cop([0.0, 0.0, 0.0])
+    m.note_fall_event(0.6)
+    m.note_decision({"stamp_ns": int(0.6e9), "case": "step_right", "swing_side": "r", "landing": [0.3, -0.1, 0.2],
+                     "alpha2": math.radians(90.0), "captured": False, "touchdown_time": 0.45})
+    poses = {"l": (0.0, 0.1, 0.0, 0.0), "r": (0.0, -0.1, 0.0, 0.0)}
+    t = 0.0
+    for k in range(1000):
+        t = 0.002 * k
+        down = {"l": True, "r": not (0.61 <= t < 1.04)}
+        poses["r"] = (0.31, -0.1, 0.21, 1.0) if t >= 1.04 else poses["r"]
+        cop = [0.3, -0.3, 0.0] if t >= 1.04 else [0.14, 0.0, 0.0]
+        m.update_feet(t, cop, down, poses)
+        m.update_feet(t, [9.0, 9.0, 0.0], down, poses)   # a repeated tick is ignored
+        fell = t > 1.5
+        m.update(t, [0.3, -1.0, 0.3] if fell else [0.1, 0, 0.75], 1.2 if fell else 0.1, 0.8, 0.5, fell and t > 1.6)
+    r = m.result()
+    assert r["fall_event_time_s"] == 0.6 and r["lead_time_s"] == pytest.approx(r["landing_time_s"] - 0.6)
+    assert r["measured_p2"] == pytest.approx([0.3, -0.3])
+    # at P2 = (0.3, -0.3): landing CoM straight along -y is 90 deg... from P2 -> T = (0.9, 0.3)
+    u, v = np.array([0.0, -0.7]), np.array([0.9, 0.3])
+    assert r["avoidance_angle_p2_deg"] == pytest.approx(math.degrees(math.acos(u @ v / 0.7 / np.hypot(*v))))
+    p = r["prediction"]
+    assert p["touchdown_error_s"] == pytest.approx(1.04 - 1.05, abs=1e-9)
+    assert p["landing_error_m"] == pytest.approx(0.01) and p["landing_yaw_error_deg"] == pytest.approx(0.573, abs=1e-3)
+    assert r["predicted_avoidance_deg"] == pytest.approx(90.0) and r["captured"] is False
