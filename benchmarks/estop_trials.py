@@ -298,6 +298,31 @@ def _clean(d: dict) -> dict:
     return out
 
 
+COLUMNS = (("speed_kmh", "km/h"), ("step", "step"), ("phase", "phase"), ("wait_s", "SS wait s"),
+           ("feasible", "pred. feasible"), ("crouch_height_m", "CoG height m"), ("fell", "fell"),
+           ("n3_m", "n3 m"), ("final_cog_vs_n3_m", "final CoG - n3 m"), ("final_cog_minor_m", "final CoG Minor m"),
+           ("predicted_max_zmp_minor_m", "pred. max ZMP Minor m"), ("max_cop_minor_m_tick_avg", "max CoP Minor m"),
+           ("min_cop_margin_from_start_m_tick_avg", "min CoP margin m"),
+           ("min_cop_margin_after_0.3s_m_tick_avg", "min margin after 0.3 s m"),
+           ("max_cop_major_m_tick_avg", "max CoP Major m"), ("cop_major_settled_m_tick_avg", "CoP Major settled m"),
+           ("stop_time_estimator_v_s", "stop time s"), ("stop_time_bound_s", "bound s"))
+
+
+def markdown_table(rows: list[dict]) -> str:
+    """The trial table (docs/estop.md), tick-averaged CoP figures; signed Major values as measured."""
+    def f(v):
+        if v is None:
+            return "—"
+        if isinstance(v, bool):
+            return "yes" if v else "no"
+        return f"{v:.3f}" if isinstance(v, float) else str(v)
+
+    head = "| " + " | ".join(h for _, h in COLUMNS) + " |"
+    sep = "|" + "---|" * len(COLUMNS)
+    body = ["| " + " | ".join(f(r.get(k)) for k, _ in COLUMNS) + " |" for r in rows]
+    return "\n".join([head, sep, *body])
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("speeds", nargs="*", type=float, default=list(SPEEDS))
@@ -307,7 +332,12 @@ def main(argv=None) -> int:
     ap.add_argument("--step", type=int, default=5, help="estop.at.step (default 5: after the 5th step)")
     ap.add_argument("--fit", action="store_true", help="fit omega_f on each trial's walking part")
     ap.add_argument("--save", default="", help="folder for one .npz trace per trial (humfall_ros.estop.plots)")
+    ap.add_argument("--markdown", nargs="*", default=None, help="print the table of these --json files and exit")
     a = ap.parse_args(argv)
+    if a.markdown:
+        rows = [r for path in a.markdown for r in json.load(open(path))]
+        print(markdown_table(rows))
+        return 0
     rows = []
     over = {"fallback": a.fallback} if a.fallback else {}
     for v in a.speeds:
