@@ -102,8 +102,10 @@ def fig11(runs: dict, obstacles, path) -> pathlib.Path:
     for kind, r in runs.items():
         if not r.trace:
             continue
-        t = np.array([x[0] for x in r.trace])
-        com = np.array([x[1][:2] for x in r.trace])
+        land = r.metrics.get("landing_time_s")
+        keep = [x for x in r.trace if land is None or x[0] <= land + 0.05]  # until the trunk lands (no rebound)
+        t = np.array([x[0] for x in keep])
+        com = np.array([x[1][:2] for x in keep])
         c = COLORS.get(kind, None)
         a1.plot(com[:, 0], com[:, 1], color=c, label=kind)
         p0 = r.metrics.get("initial_cop")
