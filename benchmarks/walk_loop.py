@@ -203,12 +203,51 @@ def _touchdown_errors(planned: list, actual: list) -> float:
     return 1e3 * worst
 
 
+def momentum_check(speed_kmh: float = 1.0, steps: int = 3) -> dict:
+    """Single-support means of (measured CoP - reference ZMP), (ZMP of the actual motion - reference) and the
+    reported contact force vs the momentum rate: the ground-truth state's centroidal momentum rate (pinocchio,
+    backward difference) against PyBullet's reported contact wrench (docs/walking.md, "the CoP bias")."""
+    import pinocchio as pin
+
+    from humfall_ros.walking.multibody import MomentumZmp
+
+    model = load_model()
+    mz, data = MomentumZmp(model, 0.002), model.model.createData()
+    rows, prev = [], [None]
+
+    def on_tick(loop, ctl, obs):
+        w, st = loop.world, ctl.state
+        q, v = w.pinocchio_state()
+        p = mz.update(q, v)
+        pin.computeCentroidalMomentum(model.model, data, q, v)
+        h = data.hg.linear.copy()
+        dh, prev[0] = (None if prev[0] is None else (h - prev[0]) / 0.002), h
+        if p is None or dh is None or not st.walking or st.support == "double":
+            return
+        f = np.zeros(3)
+        for cp in w.ground_contacts():
+            f += cp[9] * np.array(cp[7]) + cp[10] * np.array(cp[11]) + cp[12] * np.array(cp[13])
+        cop = w.ground_truth_cop()
+        rows.append([*(cop[:2] - st.zmp_ref[:2]), *(p[:2] - st.zmp_ref[:2]), f[0] - dh[0], f[2] - dh[2]
+                     - model.total_mass * 9.81])
+
+    run_walk(speed_kmh, steps, on_tick=on_tick)
+    r = np.array(rows)
+    return {"cop_minus_ref_mean_m": r[:, :2].mean(0).round(4).tolist(),
+            "actual_motion_zmp_minus_ref_mean_m": r[:, 2:4].mean(0).round(4).tolist(),
+            "contact_force_minus_momentum_rate_mean_N": {"x": round(float(r[:, 4].mean()), 1),
+                                                          "z": round(float(r[:, 5].mean()), 1)}}
+
+
 if __name__ == "__main__":
     import json
 
-    args = [a for a in sys.argv[1:] if not a.startswith("--set")]
+    args = [a for a in sys.argv[1:] if not a.startswith("--")]
     sets = [a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--set=")]
     kmh = float(args[0]) if args else 1.0
     n = int(args[1]) if len(args) > 1 else 20
-    res, _ = run_walk(kmh, n, sets)
-    print(json.dumps(res.as_dict()))
+    if "--momentum" in sys.argv:
+        print(json.dumps(momentum_check(kmh, n)))
+    else:
+        res, _ = run_walk(kmh, n, sets)
+        print(json.dumps(res.as_dict()))
