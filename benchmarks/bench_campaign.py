@@ -136,6 +136,13 @@ def part_speedup(quick: bool, n: int) -> dict:
             "columns_not_in_all": sorted({c for t in tables for c in t.column_names} - set(common))}
 
 
+def _cmdline(pid: int) -> str:
+    try:
+        return pathlib.Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
 def _tree_pids(tag: str) -> list[int]:
     return tagged_pids(TAG_ENV, tag)
 
@@ -166,16 +173,23 @@ def part_interrupt(repeats: int, max_delay: float) -> dict:
             os.killpg(p.pid, signal.SIGKILL)
         t_exit = time.monotonic()
         left = _tree_pids(tag)
-        while left and time.monotonic() - t_exit < 10:
+        left_10 = None
+        while left and time.monotonic() - t_exit < 60:
             time.sleep(0.5)
             left = _tree_pids(tag)
+            if left_10 is None and time.monotonic() - t_exit >= 10:
+                left_10 = [_cmdline(q)[:80] for q in left]
         try:
             done = load_results(d)[0].num_rows
         except FileNotFoundError:
             done = 0
         out.append({"delay_s": round(delay, 2), "processes_before": before, "exit": p.returncode,
-                    "processes_left_after_10s": len(left), "trials_finished": done})
-    return {"repeats": out, "max_left": max(r["processes_left_after_10s"] for r in out)}
+                    "processes_left_after_10s": len(left_10 or []), "left_after_10s": left_10 or [],
+                    "processes_left_after_60s": len(left),
+                    "seconds_to_none_left": None if left else round(time.monotonic() - t_exit, 1),
+                    "trials_finished": done})
+    return {"repeats": out, "max_left_10s": max(r["processes_left_after_10s"] for r in out),
+            "max_left_60s": max(r["processes_left_after_60s"] for r in out)}
 
 
 def main() -> int:
