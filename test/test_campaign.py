@@ -210,7 +210,7 @@ def test_campaign_runs_resumes_and_refuses_another_spec(tmp_path):
 
 
 def test_timeout_row_is_kept_in_the_table(tmp_path):
-    d = tiny(tmp_path, design={"grid": {"duration": [0.2, 300.0]}}, 
+    d = tiny(tmp_path, design={"grid": {"duration": [0.2, 300.0]}},
              trial={"time_limit_s": 8.0})  # slack for a loaded machine
     s = run_campaign(spec_mod.from_dict(d), RunOptions(executor="local", workers=2, progress=False))
     table, _ = load_results(s.results)
