@@ -238,3 +238,25 @@ def test_stop_when_fallen_keeps_the_fall_metrics(tmp_path):
         assert b[k] == a[k], k
     assert held["metrics"]["fell"] is False and held["metrics"]["stopped_early_at_s"] is None
     assert held["metrics"]["sim_duration_s"] == 1.0
+
+
+def test_check_validates_and_runs_nothing(tmp_path, capsys):
+    d = tiny(tmp_path, design={"grid": {"push.0.direction_deg": {"circle": 12}, "push.0.height_m": [0.1, 0.3]}},
+             study={"type": "threshold-map", "low": 100.0, "high": 600.0, "tolerance": 5.0})
+    assert cli.main([write_spec(tmp_path, d), "--check"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["trials"] == 24 * 7 and out["study"] == "threshold-map" and len(out["spec_hash"]) == 64
+    assert not (tmp_path / "out").exists()
+
+
+def test_threshold_report_from_a_stored_map(tmp_path):
+    spec, rows = _bisect({}, 237.0, tmp_path)
+    _, base0, _, digest = prepare(spec, RunOptions())
+    store = ResultStore(tmp_path / "out")
+    store.open(spec.model_dump(mode="json"), digest, base0)
+    for r in rows:
+        store.add(r)
+    store.merge()
+    text = write_report(tmp_path / "out").read_text()
+    assert "Fall threshold" in text and text.count("data:image/png;base64,") >= 2
+    assert "below_range" not in text and ">ok<" in text
