@@ -6,6 +6,7 @@ import math
 import time
 
 import pyarrow as pa
+import pyarrow.compute  # noqa: F401 - pa.compute
 import pytest
 import yaml
 
@@ -260,3 +261,30 @@ def test_threshold_report_from_a_stored_map(tmp_path):
     text = write_report(tmp_path / "out").read_text()
     assert "Fall threshold" in text and text.count("data:image/png;base64,") >= 2
     assert "below_range" not in text and ">ok<" in text
+
+
+def test_threshold_map_resumes_mid_bisection(tmp_path):
+    import pyarrow.parquet as pq
+
+    d = tiny(tmp_path, design={"grid": {"push.0.direction_deg": [0.0]}},
+             study={"type": "threshold-map", "low": 100.0, "high": 500.0, "tolerance": 100.0})
+    spec = spec_mod.from_dict(d)
+    s = run_campaign(spec, RunOptions(executor="local", workers=1, progress=False))
+    assert (s.ran, s.resumed) == (2, 0)          # 400 N -> 200 -> 100 N bracket: 2 trials
+    full, _ = load_results(s.results)
+    # as if the campaign had died after its first trial
+    store = ResultStore(tmp_path / "out")
+    first = store.read_fragments().filter(pa.compute.equal(store.read_fragments().column("step"), 0))
+    for f in store.fragments.glob("part-*.parquet"):
+        f.unlink()
+    pq.write_table(first, store.fragments / "part-000000-0.parquet")
+    s = run_campaign(spec, RunOptions(executor="local", workers=1, progress=False))
+    assert (s.ran, s.resumed) == (1, 1)
+    again, _ = load_results(s.results)
+    assert comparable_eq(full, again)
+
+
+def comparable_eq(a, b) -> bool:
+    from humfall_ros.campaign.store import comparable
+
+    return comparable(a).equals(comparable(b))
