@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from humfall_ros import params
-from humfall_ros.estop.config import EstopConfig, TriggerPhase
+from humfall_ros.estop.config import NODE_KEYS, EstopConfig, TriggerPhase
 from humfall_ros.estop.frame import FootPose, StopFrame
 from humfall_ros.estop.planner import EstopInputError, EstopPlanner, PatternState
 from humfall_ros.estop.posture import configuration_from_feet
@@ -37,7 +37,7 @@ def planner():
 def test_config_is_the_declared_one_and_refuses_unknown_keys():
     d = params.defaults("estop_planner")
     cfg = EstopConfig.from_params(d)
-    assert {f.name for f in dataclasses.fields(EstopConfig)} == set(d)
+    assert {f.name for f in dataclasses.fields(EstopConfig)} == set(d) - NODE_KEYS   # the rest is the node's
     for f in dataclasses.fields(EstopConfig):           # the dataclass defaults are the declared ones
         declared = d[f.name]
         got = getattr(cfg, f.name)
@@ -192,3 +192,16 @@ def test_result_section_from_the_plan_played_back(planner):
     assert res["stop_time_s"] == pytest.approx(plan.stop_time, abs=0.02)
     assert res["max_cop_minor_m"] == pytest.approx(abs(plan.minor.max_zmp), abs=2e-3)
     assert res["min_cop_margin_m"] >= plan.min_zmp_margin - 2e-3 and res["feasible"] and not res["fell"]
+
+
+def test_beta_policy_omega_c_scales_with_the_trigger_height_and_shrinks_the_lipm_zmp_step():
+    from humfall_ros.dynamics.pendulum import GRAVITY
+
+    pl = EstopPlanner(M, EstopConfig.defaults(beta_policy="omega_c", major_beta_ratio=2.0))
+    for z in (0.65, 0.74):
+        wc = (GRAVITY / z) ** 0.5
+        assert pl.choose_beta(wc) == pytest.approx(-2.0 * wc)
+        assert pl.choose_beta(wc, requested=-1000.0) == pytest.approx(-pl.cfg.omega_f)   # the fallback's beta
+    # beyond omega_f it is clamped like "clamp"
+    assert EstopPlanner(M, EstopConfig.defaults(beta_policy="omega_c", major_beta_ratio=50.0)).choose_beta(3.6) \
+        == pytest.approx(-EstopConfig.defaults().omega_f)

@@ -5,7 +5,7 @@ import dataclasses
 
 from humfall_ros import params
 
-BETA_POLICIES = ("clamp", "supremum")
+BETA_POLICIES = ("clamp", "supremum", "omega_c")
 # the scenario's single-support phase names (humfall_ros.scenario.Phase) -> elapsed fraction (issue 12's trials)
 SS_PHASES = {"ss_start": 0.1, "ss_mid": 0.5, "ss_end": 0.95}
 FALLBACKS = ("min_n3_crouch", "none")
@@ -57,6 +57,7 @@ class EstopConfig:
     lqr_cog_height: float = 0.74
     major_beta: float = -100.0
     beta_policy: str = "clamp"
+    major_beta_ratio: float = 2.0
     beta_margin: float = 0.05
     zmp_margin: float = 0.015
     samples: int = 96

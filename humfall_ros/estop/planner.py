@@ -341,11 +341,16 @@ class EstopPlanner:
                                   f"= {(1 + c.beta_margin) * omega_c:.2f} 1/s: no admissible beta")
 
     def choose_beta(self, omega_c: float, requested: float | None = None) -> float:
-        """beta by ``beta_policy``: clamp to [-omega_f, -(1+margin) omega_c], or keep (supremum) below -omega_c."""
+        """beta by ``beta_policy``: clamp to [-omega_f, -(1+margin) omega_c], or keep (supremum) below -omega_c,
+        or ``omega_c``: -major_beta_ratio * omega_c clamped like ``clamp`` (a requested beta, e.g. the
+        fallback's -omega_f, is clamped). With alpha = -omega_c the generated CoG's LIPM ZMP starts at
+        p(0) = -beta n3 / omega_f: a slower beta makes that step at the take-over smaller (a larger n3)."""
         c = self.cfg
         beta = c.major_beta if requested is None else float(requested)
         slowest = -(1.0 + c.beta_margin) * omega_c
-        if c.beta_policy == "clamp":
+        if c.beta_policy == "omega_c" and requested is None:
+            beta = -c.major_beta_ratio * omega_c
+        if c.beta_policy in ("clamp", "omega_c"):
             return float(min(max(beta, -c.omega_f), slowest))
         return float(min(beta, slowest))
 
