@@ -65,6 +65,10 @@ def main(argv: list[str]) -> int:
     except (CampaignSpecError, ResumeError) as e:
         print(f"humfall campaign: {e}", file=sys.stderr)
         return 2
+    except ConnectionError as e:  # ray.init(address=...) found no cluster or was refused
+        print(f"humfall campaign: cannot join the Ray cluster: {e} (with Ray's token authentication the "
+              "cluster's token must be here too: RAY_AUTH_TOKEN or ~/.ray/auth_token)", file=sys.stderr)
+        return 2
     print(json.dumps({"results": s.results, "trials": s.total, "ran": s.ran, "resumed": s.resumed,
                       "status": s.status_counts, "wall_s": round(s.wall_s, 2),
                       "trials_per_minute": round(s.trials_per_minute, 2), "interrupted": s.interrupted}))
