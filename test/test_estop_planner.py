@@ -202,6 +202,9 @@ def test_beta_policy_omega_c_scales_with_the_trigger_height_and_shrinks_the_lipm
         wc = (GRAVITY / z) ** 0.5
         assert pl.choose_beta(wc) == pytest.approx(-2.0 * wc)
         assert pl.choose_beta(wc, requested=-1000.0) == pytest.approx(-pl.cfg.omega_f)   # the fallback's beta
+    plan = pl.plan(walking_state(0.2, 0.3))
+    assert plan.beta == pytest.approx(-2.0 * plan.omega_c)                    # what plan() uses
     # beyond omega_f it is clamped like "clamp"
     assert EstopPlanner(M, EstopConfig.defaults(beta_policy="omega_c", major_beta_ratio=50.0)).choose_beta(3.6) \
         == pytest.approx(-EstopConfig.defaults().omega_f)
+

@@ -382,7 +382,7 @@ class EstopPlanner:
         # Major axis: alpha = -omega_c (eq. 17), beta by policy, gains eq. 19-20, eq. 16
         alpha = -omega_c
         beta_requested = c.major_beta if beta is None else float(beta)
-        b = self.choose_beta(omega_c, beta_requested)
+        b = self.choose_beta(omega_c, None if beta is None else float(beta))
         try:
             sol = solve_major(MajorAxisModel(omega_c, c.omega_f), alpha, b, float(com_l[1]), float(vel_l[1]))
         except StateSpaceError as e:

@@ -187,7 +187,7 @@ def settle_posture(planner, plan, q_seed: np.ndarray):
                 hi_z = mid
         z1 = max(lo_z - c.crouch_clearance, c.crouch_min_cog_height)
         crouch = Crouch(z0, z1, c.crouch_duration)
-        p = planner.plan(state, beta=p.major.beta_requested, crouch=crouch)
+        p = planner.plan(state, beta=p.beta, crouch=crouch)          # the same beta, crouched
         check = solver.solve(best.q, state.feet, p.final_com.copy(), ground)
         if not check.reachable:
             return p, check, f"crouched posture at {z1:.3f} m not reachable ({', '.join(check.binding_joints)})"
