@@ -4,7 +4,8 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = "humfall_ros"
-NODES = ["sim_bridge", "state_estimator", "locomotion", "recorder", "multicontact_planner", "estop_planner"]
+NODES = ["sim_bridge", "state_estimator", "locomotion", "recorder", "multicontact_planner", "estop_planner",
+         "ftb_monitor", "safe_fall_controller"]
 
 setup(
     name=PACKAGE,

@@ -14,7 +14,8 @@ import math
 import os
 import sys
 
-NODES = ("sim_bridge", "state_estimator", "locomotion", "recorder", "multicontact_planner", "estop_planner")
+NODES = ("sim_bridge", "state_estimator", "locomotion", "recorder", "multicontact_planner", "estop_planner",
+         "ftb_monitor", "safe_fall_controller")
 
 
 def _cmd_up(a) -> int:

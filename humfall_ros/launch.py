@@ -147,6 +147,12 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[NodeSpec]:
         own = dict(CONTROLLER_PARAMS.get(controller, {}).get(n, {}))
         if "scenario" in params_mod.declarations(n):  # it reads its part of the scenario (e.g. the walk)
             own["scenario"] = str(run_dir / "scenario.yaml")
+        if n == "ftb_monitor" and sc["push"] and "push_end_time_s" in params_mod.declarations(n):
+            # the paper's fixed trigger (mode fixed) starts 0.05 s after the first push ends
+            from humfall_ros.sim.ground_truth import push_time
+
+            first = min(sc["push"], key=lambda p: push_time(sc, p))
+            own["push_end_time_s"] = float(push_time(sc, first) + first["duration"])
         nodes.append(NodeSpec(n, f"humfall_ros.nodes.{n}", own, src, builtin.get(src) if src else None))
     est = sc["estop"]
     trigger = est["time"] >= 0 or est.get("at") is not None
@@ -348,6 +354,10 @@ def collect_result(sc: dict, run_dir: pathlib.Path, wall: float, record: bool, p
         "fall_direction_deg": metrics.get("fall_direction_deg"),
         "avoidance_angle_deg": metrics.get("avoidance_angle_deg"),
         "min_target_distance_m": metrics.get("min_target_distance_m"),
+        **{k: metrics.get(k) for k in ("avoidance_angle_p2_deg", "predicted_avoidance_deg", "captured",
+                                       "predicted_captured", "fall_event_time_s", "lead_time_s", "prediction")
+           if k in metrics},
+        **({"estop": metrics["estop"]} if "estop" in metrics else {}),
         "sim_duration_s": metrics.get("sim_duration_s"),
         "wall_time_s": round(wall, 3),
         "bag": str(bag) if bag else None,

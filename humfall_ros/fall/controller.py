@@ -35,7 +35,7 @@ import numpy as np
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.dynamics.toppling import FallOutcome, time_to_lean
 from humfall_ros.fall import step_search as ss
-from humfall_ros.fall.ftb import features_of
+from humfall_ros.fall.ftb import FtbState, features_of
 from humfall_ros.fall.inertia_shaping import ShapingConfig, shaping_velocities
 from humfall_ros.fall.step_control import (
     StepControlConfig,
@@ -394,6 +394,14 @@ class SafeFallController:
     # ------------------------------------------------------------------ ticks
     def _tick(self, obs: Observation) -> JointTargets:
         c = self.config
+        st = obs.inputs.get("ftb/status")
+        if self.phase in ("landed", "shaping") and getattr(st, "state", None) is FtbState.FALLEN:
+            # the trunk is down (FTB: fallen): shaping ends with the fall (paper 1 §IV shapes until the
+            # impact); kept on, its integrated joint velocities flipped the lying robot over and walked
+            # it back into the target 1.3 s after it landed
+            self.phase = "hold"
+            self.hold = self.last_command.copy()
+            self.reasons.append(f"fallen at {obs.time:.3f} s: inertia shaping ends, holding the posture")
         if self.phase == "swing":
             p = self.stepper.plan
             tau = (obs.time - p.start_time) / p.duration

@@ -25,7 +25,7 @@ import rclpy
 import rclpy.executors
 from builtin_interfaces.msg import Time as TimeMsg
 from geometry_msgs.msg import TransformStamped, WrenchStamped
-from humfall_interfaces.msg import MuxState, Obstacle, ObstacleArray
+from humfall_interfaces.msg import FallEvent, MuxState, Obstacle, ObstacleArray, SafeFallDecision
 from humfall_interfaces.srv import Push, SetObstacles
 from nav_msgs.msg import Odometry
 from rclpy.event_handler import SubscriptionEventCallbacks
@@ -169,6 +169,9 @@ class SimBridge(Node):
             JointState, f"joint_command/{s}", lambda msg, s=s: self._on_command(s, msg), QOS_RELIABLE,
             event_callbacks=no_events) for s in self.sources}
         self._can_take = True
+        # the fall controller's event and decision, for the run metrics (alpha2, lead time, prediction)
+        self.create_subscription(FallEvent, "fall_event", self._on_fall_event, QOS_LATCHED)
+        self.create_subscription(SafeFallDecision, "safe_fall/decision", self._on_decision, QOS_LATCHED)
         self.create_service(Push, "sim/push", self._on_push)
         self.create_service(Trigger, "sim/reset", self._on_reset)
         self.create_service(SetObstacles, "sim/set_obstacles", self._on_set_obstacles)
@@ -215,6 +218,18 @@ class SimBridge(Node):
             return
         if stamp_key(msg.header.stamp) == self.tick_key:
             self.answered.add(source)
+
+    def _on_fall_event(self, msg) -> None:
+        self.truth.metrics.note_fall_event(seconds(msg.header.stamp))
+
+    def _on_decision(self, msg) -> None:
+        try:
+            self.truth.metrics.note_decision({
+                "stamp_ns": stamp_key(msg.header.stamp), "case": msg.step_case, "swing_side": msg.swing_side,
+                "landing": list(msg.landing), "alpha2": msg.alpha2, "captured": msg.captured,
+                "touchdown_time": msg.touchdown_time})
+        except Exception as e:  # noqa: BLE001 - a bad message never stops the bridge
+            self.get_logger().warning(f"safe_fall/decision not usable for the metrics: {e}")
 
     def take_commands(self) -> None:
         """Take queued commands without a wait (cheap when they are already here).

@@ -184,7 +184,20 @@ class ClosedLoop:
         self.active = decision.source or "none"
         w.step_control()
         self.ground_truth.track()
+        self._note_events()
         return obs
+
+    def _note_events(self) -> None:
+        """What the bridge learns from ``fall_event`` and ``safe_fall/decision``, for the run metrics."""
+        m = self.ground_truth.metrics
+        for mon in self.monitors:
+            event = getattr(mon, "event", None)
+            if event is not None:
+                m.note_fall_event(getattr(event, "time", None))
+        for c in self.controllers:
+            decision = getattr(c, "decision", None)
+            if decision is not None:
+                m.note_decision(decision)
 
     def run(self, duration: float | None = None) -> LoopResult:
         ticks = int(round((duration or self.sc["duration"]) * self.sc["sim"]["control_rate"]))

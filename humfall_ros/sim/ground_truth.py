@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from humfall_ros.sim.metrics import FallMetrics
+from humfall_ros.sim.metrics import FallMetrics, foot_state
 from humfall_ros.sim.world import Box, SimWorld
 
 
@@ -54,3 +54,4 @@ class GroundTruth:
         dist = w.distance_to(self.target.name) if self.target is not None else None
         self.metrics.update(w.time, w.model.com(q), w.trunk_tilt(), w.base_state()[0][2], dist,
                             w.non_foot_contact())
+        self.metrics.update_feet(w.time, *foot_state(w))  # touchdowns and the CoP after them (alpha2)
