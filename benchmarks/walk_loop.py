@@ -35,6 +35,8 @@ class WalkResult:
     zmp_rms_ss: float            # m, ground-truth CoP vs reference ZMP in single support
     zmp_max_ss: float
     zmp_rms_ss_est: float        # m, the estimator's CoP vs reference (what the stabiliser sees)
+    zmp_rms_ss_foot: float       # m, ground-truth CoP vs reference, each relative to its stance sole (the true one
+    zmp_max_ss_foot: float       # and the pattern's): the reference is a point on the footprint, not in the world
     cop_margin_ok_fraction: float  # walking ticks with the true CoP >= 1 cm inside the stance polygon
     distance: float              # m, walked (ground-truth feet centre, start to end)
     planned_distance: float
@@ -81,14 +83,14 @@ def run_walk(speed_kmh: float = 1.0, steps: int = 20, overrides: list[str] | Non
     world = loop.world
     try:
         total = walk_duration(sc, ctl)
-        zmp_err_ss, zmp_err_est, margin_ok, margin_n = [], [], 0, 0
+        zmp_err_ss, zmp_err_est, zmp_err_foot, margin_ok, margin_n = [], [], [], 0, 0
         tick_times = []
         peak = np.zeros(model.njoints)
         fell = False
         stance_anchor: dict = {}
         max_slip = 0.0
         tr = {k: [] for k in ("t", "cop", "cop_est", "zmp", "mbzmp", "com", "com_ref", "support",
-                                                    "feet")} if trace else {}
+                              "feet", "phase", "err_foot")} if trace else {}
         start_feet = None
         prev_support = "double"
         planned_td, actual_td = [], []
@@ -131,6 +133,8 @@ def run_walk(speed_kmh: float = 1.0, steps: int = 20, overrides: list[str] | Non
                 if st.support != "double":
                     side = "l" if st.support == "single_left" else "r"
                     zmp_err_ss.append(np.linalg.norm(cop[:2] - st.zmp_ref[:2]))
+                    err_foot = _foot_relative_error(model, side, cop, st)
+                    zmp_err_foot.append(np.linalg.norm(err_foot))
                     zmp_err_est.append(np.linalg.norm(obs.state.cop[:2] - obs.state.feet_center[:2]
                                                       - (st.zmp_ref[:2] - _ref_feet_center(st))))
                     poly = support_polygon(model.sole_corners(side)[:, :2])
@@ -152,6 +156,9 @@ def run_walk(speed_kmh: float = 1.0, steps: int = 20, overrides: list[str] | Non
                 tr["com"].append(model.com(q_true))
                 tr["com_ref"].append(st.com_ref.copy())
                 tr["support"].append(st.support if st.walking else "stand")
+                tr["phase"].append(st.phase_fraction)
+                tr["err_foot"].append(err_foot if st.walking and cop is not None and st.support != "double"
+                                      else np.full(2, np.nan))
                 tr["feet"].append([model.frame_placement(model.sole_frame[s]).translation.copy() for s in SIDES])
         q_true = world.pinocchio_configuration()
         model.forward(q_true)
@@ -169,11 +176,13 @@ def run_walk(speed_kmh: float = 1.0, steps: int = 20, overrides: list[str] | Non
         ts = np.array(tick_times) * 1e3
         zr = np.array(zmp_err_ss) if zmp_err_ss else np.array([np.nan])
         ze = np.array(zmp_err_est) if zmp_err_est else np.array([np.nan])
+        zf = np.array(zmp_err_foot) if zmp_err_foot else np.array([np.nan])
         td = _touchdown_errors(planned_td, actual_td)
         est_com = loop.errors.get("com_error_feet_relative", float("nan"))  # max over the run (ClosedLoop)
         est_cp = loop.errors.get("capture_point_error_feet_relative", float("nan"))
         res = WalkResult(fell, sc["walk"]["speed_kmh"], sc["walk"]["steps"], float(np.sqrt(np.mean(zr ** 2))),
-                         float(np.max(zr)), float(np.sqrt(np.mean(ze ** 2))), margin_ok / max(margin_n, 1),
+                         float(np.max(zr)), float(np.sqrt(np.mean(ze ** 2))),
+                         float(np.sqrt(np.mean(zf ** 2))), float(np.max(zf)), margin_ok / max(margin_n, 1),
                          float(np.hypot(d[0], d[1]) if turning else d[0]), planned,
                          float("nan") if turning else float(abs(d[1])), math.degrees(yaw1) - planned_yaw,
                          max_slip, td, float(ratio[j]), model.joint_names[j], est_com, est_cp,
@@ -181,6 +190,20 @@ def run_walk(speed_kmh: float = 1.0, steps: int = 20, overrides: list[str] | Non
         return res, tr
     finally:
         loop.close()
+
+
+def _foot_relative_error(model, side: str, cop, st) -> np.ndarray:
+    """(true CoP in the true stance sole's frame) - (reference ZMP in the pattern's stance sole frame), xy [m]."""
+    M = model.frame_placement(model.sole_frame[side])
+    yaw = yaw_of(M.rotation)
+    c, s = math.cos(yaw), math.sin(yaw)
+    d = cop[:2] - M.translation[:2]
+    true_local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+    f = st.left_foot if side == "l" else st.right_foot
+    c, s = math.cos(f[3]), math.sin(f[3])
+    d = st.zmp_ref[:2] - np.array(f[:2])
+    ref_local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+    return true_local - ref_local
 
 
 def _ref_feet_center(st) -> np.ndarray:
