@@ -220,3 +220,6 @@ def test_topic_events_trigger_and_release_once_each():
     still.inputs["estop"] = TopicEvent(2)
     still.stamp_ns += stamp_ns_of(DT)
     assert ctl.step(still) is not None and ctl.state == EstopState.STOPPING   # a second `humfall estop`
+    ctl.reset()                                                                # sim time went back
+    still.inputs["estop"] = TopicEvent(2)
+    assert ctl.step(still) is None and ctl.state == EstopState.IDLE           # the latched message: not again

@@ -296,6 +296,10 @@ class EstopController:
         self._home = model.joint_vector(home) if isinstance(home, dict) else None
         self._phase: TriggerPhase = self.cfg.phase
         self.messages: list[str] = []
+        # the last estop / estop/release TopicEvent acted on: kept across reset() (sim time going back), so a
+        # message still latched in the node from before is not acted on again
+        self._trigger_count = 0
+        self._release_count = 0
         self.reset()
 
     # ------------------------------------------------------------------ contract
@@ -308,8 +312,6 @@ class EstopController:
         self.q_ik: np.ndarray | None = None
         self.last_targets: JointTargets | None = None
         self._trigger_seen = False      # edge detection of the latched trigger input (a level)
-        self._trigger_count = 0         # the last estop TopicEvent acted on
-        self._release_count = 0         # the last estop/release TopicEvent acted on
         self._scheduled_done = False
         self._t_start = math.nan
         self._t_stopped = math.nan
