@@ -45,6 +45,10 @@ class LocomotionConfig:
     cop_damping_gain: float = 0.0         # rad/(m s)
     cop_damping_time_constant: float = 0.2  # s
     walk_ankle_max_offset: float = 0.05   # rad
+    heading_lateral_gain: float = 0.5     # rad/m, path heading correction per metre of lateral drift
+    steer_max_per_step: float = 0.0175    # rad, largest heading correction added to one planned step
+    steer_filter_time: float = 0.4        # s, low-pass of the measured heading drift
+    steer_enabled: bool = True            # IMU heading / lateral drift steering of the footsteps
     velocity_fraction: float = 0.9
     knee_margin: float = 0.1              # rad
     hip_extension_margin: float = 0.02    # rad

@@ -28,7 +28,7 @@ import pinocchio as pin
 
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.control.standing import StandingController
-from humfall_ros.model.humanoid import SIDES, HumanoidModel
+from humfall_ros.model.humanoid import SIDES, HumanoidModel, quat_matrix
 from humfall_ros.model.ik import (
     ComTask,
     FrameTask,
@@ -146,6 +146,8 @@ class LocomotionController:
         self._schedule_i = 0
         self.stabilizer.reset()
         self.last_stabilizer = None
+        self.drift_yaw = 0.0        # low-passed IMU yaw - the IK's IMU yaw [rad] (the feet's yaw drift)
+        self.walk_origin = None     # (feet centre xy [m], heading [rad]) at the walk start, straight walks
 
     def set_walk_command(self, speed: float, yaw_rate: float = 0.0, n_steps: int | None = None) -> str | None:
         """Ask for a walk [m/s, rad/s]; ``n_steps`` walks that many steps then stops. Returns the reason
@@ -279,6 +281,8 @@ class LocomotionController:
                                                   WholeBodyIK(self.m, velocity_fraction=1.0))
         self.momentum_zmp.reset()
         self.stabilizer.reset()
+        self.drift_yaw = 0.0
+        self.walk_origin = (np.asarray(observation.state.feet_center, float)[:2].copy(), self.heading)
         self._log(f"walk started: {cmd.speed * 3.6:.2f} km/h, {math.degrees(cmd.yaw_rate):.1f} deg/s"
                   + (f", {self.n_steps} steps" if self.n_steps else ""))
 
@@ -296,7 +300,34 @@ class LocomotionController:
         tasks.append(PostureTask(self.standing_posture, weight=self.posture_weight))
         return tasks
 
+    def _steer(self, observation: Observation) -> None:
+        """Footstep steering from the IMU: the heading drift ``psi_d`` = measured IMU yaw - the IK's IMU
+        yaw (the joints track the IK, so the difference is how far the whole robot has yawed off the
+        pattern, e.g. by the stance foot's yaw slip) and, while every command has been straight, the
+        lateral drift ``e`` of the measured feet centre off the start line. The steps not yet planned
+        get a total path heading correction ``-psi_d - k e`` (``WalkingPattern.steer_target``, rate
+        limited per step). Without an IMU input, nothing."""
+        imu = observation.inputs.get("imu")
+        c = self.cfg
+        if imu is None or not c.steer_enabled or self.q_ik is None:
+            return
+        R = quat_matrix(np.asarray(imu[0], float))
+        self.m.forward(self.q_ik)
+        R_ik = self.m.frame_placement(self.m.imu_frame).rotation
+        d = math.remainder(yaw_of(R) - yaw_of(R_ik), math.tau)
+        self.drift_yaw += min(1.0, self.dt / c.steer_filter_time) * (d - self.drift_yaw)
+        target = -self.drift_yaw
+        if self.walk_origin is not None and abs(self.command.yaw_rate) < 1e-9:
+            o, h = self.walk_origin
+            e = np.asarray(observation.state.feet_center, float)[:2] - o
+            lateral = -math.sin(h) * e[0] + math.cos(h) * e[1]
+            target -= c.heading_lateral_gain * lateral
+        else:
+            self.walk_origin = None   # a turn: no straight line to hold any more
+        self.pattern.steer_target = target
+
     def _walk_tick(self, observation: Observation) -> JointTargets:
+        self._steer(observation)
         if self.correction is not None:
             cs = self.correction.step()
             sample = cs.sample

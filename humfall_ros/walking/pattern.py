@@ -140,6 +140,10 @@ class WalkingPattern:
         self.path_pose = (float(mid[0]), float(mid[1]), heading)
         self.next_swing = first_swing_side(command)
         self.step_count = 0
+        # steering (set by the controller from the measured drift): the path of the steps not yet planned
+        # turns by up to `steer_max_per_step` per step until its total correction reaches `steer_target`
+        self.steer_target = 0.0            # [rad]
+        self.steer_total = 0.0             # [rad] applied so far
         self.crouch_ticks = self._ticks(config.crouch_duration) if abs(self.z0 - self.zc) > 0.002 else 0
         center = 0.5 * (sole_zmp(feet["l"], zmp_offset_x) + sole_zmp(feet["r"], zmp_offset_x))
         com_xy = com[:2].copy()
@@ -195,7 +199,9 @@ class WalkingPattern:
             target = footstep_at(self.path_pose, side, self.width, self.step_count, stop=True)
         else:
             T = cfg.step_period
-            self.path_pose = path_advance(self.path_pose, self.command.speed * T, self.command.yaw_rate * T)
+            d = float(np.clip(self.steer_target - self.steer_total, -cfg.steer_max_per_step, cfg.steer_max_per_step))
+            self.steer_total += d
+            self.path_pose = path_advance(self.path_pose, self.command.speed * T, self.command.yaw_rate * T + d)
             target = footstep_at(self.path_pose, side, self.width, self.step_count)
             if self.steps_left is not None:
                 self.steps_left -= 1
