@@ -20,6 +20,7 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # this checkout, not an installed copy
 
 from humfall_ros import scenario as scenario_mod
+from humfall_ros.dynamics.pendulum import GRAVITY
 from humfall_ros.model.humanoid import SIDES, load_model, point_in_polygon_margin, support_polygon
 from humfall_ros.sim.closed_loop import ClosedLoop
 from humfall_ros.sim.sensors import SensorNoise
@@ -262,6 +263,60 @@ def momentum_check(speed_kmh: float = 1.0, steps: int = 3) -> dict:
                                                           "z": round(float(r[:, 5].mean()), 1)}}
 
 
+def substep_check(speed_kmh: float = 1.0, steps: int = 2) -> dict:
+    """The contact chatter behind the old CoP bias (docs/walking.md, phase 3): per physics substep, the
+    reported contact force vs that substep's linear momentum rate (PyBullet's link masses and COM
+    velocities, pushes none), and the last substep vs the tick's mean, over the middle of the walk [N]."""
+    import pybullet as pb
+
+    from humfall_ros.sim.world import SimWorld
+
+    rows, orig, state = [], SimWorld.step_control, {}
+
+    def momentum(w):
+        c = w.client
+        if "m" not in state:
+            state["m"] = [pb.getDynamicsInfo(w.robot, k, physicsClientId=c)[0]
+                          for k in range(-1, pb.getNumJoints(w.robot, physicsClientId=c))]
+        m = state["m"]
+        p = m[0] * np.array(pb.getBaseVelocity(w.robot, physicsClientId=c)[0])
+        for mk, s in zip(m[1:], pb.getLinkStates(w.robot, list(range(len(m) - 1)), computeLinkVelocity=1,
+                                                 physicsClientId=c)):
+            p += mk * np.array(s[6])
+        return p
+
+    def fsum(cps):
+        return sum((cp[9] * np.array(cp[7]) + cp[10] * np.array(cp[11]) + cp[12] * np.array(cp[13]) for cp in cps),
+                   np.zeros(3))
+
+    def step_control(self):
+        n, p0 = self.substeps, state.get("p") if state.get("p") is not None else momentum(self)
+        self.substeps, row = 1, []
+        try:
+            for _ in range(n):
+                orig(self)
+                p1 = momentum(self)
+                f = fsum(pb.getContactPoints(self.robot, self.ground, physicsClientId=self.client))
+                row.append((f, (p1 - p0) / self.dt + np.array([0, 0, GRAVITY * sum(state["m"])])))
+                p0 = p1
+        finally:
+            self.substeps = n
+        state["p"] = p0
+        rows.append(row)
+
+    SimWorld.step_control = step_control
+    try:
+        run_walk(speed_kmh, steps)
+    finally:
+        SimWorld.step_control = orig
+    r = np.array(rows[int(0.3 * len(rows)):int(0.8 * len(rows))])      # ticks x substeps x (f, dP) x 3
+    f, dp = r[:, :, 0], r[:, :, 1]
+    return {"substep_force_minus_momentum_rate_abs_mean_N": np.abs(f - dp).mean((0, 1)).round(2).tolist(),
+            "tick_mean_force_minus_momentum_rate_abs_mean_N": np.abs(f.mean(1) - dp.mean(1)).mean(0).round(2).tolist(),
+            "last_substep_minus_tick_momentum_rate_mean_N": (f[:, -1] - dp.mean(1)).mean(0).round(1).tolist(),
+            "substep_to_substep_force_jump_median_N": np.median(np.abs(f[:, -1] - f[:, 0]), 0).round(1).tolist()}
+
+
 if __name__ == "__main__":
     import json
 
@@ -269,7 +324,9 @@ if __name__ == "__main__":
     sets = [a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--set=")]
     kmh = float(args[0]) if args else 1.0
     n = int(args[1]) if len(args) > 1 else 20
-    if "--momentum" in sys.argv:
+    if "--substeps" in sys.argv:
+        print(json.dumps(substep_check(kmh, n)))
+    elif "--momentum" in sys.argv:
         print(json.dumps(momentum_check(kmh, n)))
     else:
         res, _ = run_walk(kmh, n, sets)
