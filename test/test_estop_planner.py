@@ -116,7 +116,7 @@ def test_too_fast_or_outside_the_polygon_is_infeasible(planner):
 
 
 def test_beta_policies():
-    clamp = EstopPlanner(M, EstopConfig.defaults(major_beta=-100.0, omega_f=30.0))
+    clamp = EstopPlanner(M, EstopConfig.defaults(major_beta=-100.0, omega_f=30.0, beta_policy="clamp"))
     sup = EstopPlanner(M, EstopConfig.defaults(major_beta=-100.0, omega_f=30.0, beta_policy="supremum"))
     st = walking_state(0.3, 0.4)
     a, b = clamp.plan(st), sup.plan(st)

@@ -56,7 +56,7 @@ class EstopConfig:
     minor_lqr_input_weight: float = 0.1
     lqr_cog_height: float = 0.74
     major_beta: float = -100.0
-    beta_policy: str = "clamp"
+    beta_policy: str = "omega_c"
     major_beta_ratio: float = 2.0
     beta_margin: float = 0.05
     zmp_margin: float = 0.015
