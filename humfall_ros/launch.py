@@ -154,16 +154,15 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[NodeSpec]:
             first = min(sc["push"], key=lambda p: push_time(sc, p))
             own["push_end_time_s"] = float(push_time(sc, first) + first["duration"])
         nodes.append(NodeSpec(n, f"humfall_ros.nodes.{n}", own, src, builtin.get(src) if src else None))
-    est = sc["estop"]
-    trigger = est["time"] >= 0 or est.get("at") is not None
+    from humfall_ros.estop.config import trigger_params
+
+    trigger = trigger_params(sc["estop"])
     walks = sc["walk"].get("steps", 0) > 0 and sc["walk"].get("speed_kmh", 0.0) > 0
     if trigger or walks:
         # the e-stop listens on `estop` whenever the robot walks (humfall estop), and a scenario
-        # trigger acts on exactly its tick
-        p = {"trigger_time": float(est["time"]) if est["time"] >= 0 else -1.0}
-        if est.get("at") is not None:
-            p.update(trigger_step=int(est["at"]["step"]), trigger_phase=str(est["at"]["phase"]))
-        nodes.append(NodeSpec("estop_planner", "humfall_ros.nodes.estop_planner", p, "estop", builtin.get("estop")))
+        # trigger acts on exactly its tick (the same rule as closed_loop.runs_estop)
+        nodes.append(NodeSpec("estop_planner", "humfall_ros.nodes.estop_planner", dict(trigger), "estop",
+                              builtin.get("estop")))
     for c in sc.get("controllers") or []:
         node = c["node"]
         mod = node if (node.endswith(".py") or "." in node) else f"humfall_ros.nodes.{node}"
@@ -240,8 +239,8 @@ def check_node_params(node: str, params: dict, owned: set[str]) -> dict:
         raise RunError(str(e)) from None
 
 
-def child_env(run_dir: pathlib.Path) -> dict:
-    env = dict(os.environ)
+def child_env(run_dir: pathlib.Path, extra: dict | None = None) -> dict:
+    env = {**os.environ, **(extra or {})}
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     env["RMW_IMPLEMENTATION"] = "rmw_fastrtps_cpp"
     env["ROS_LOG_DIR"] = str(run_dir / "logs" / "ros")
@@ -256,11 +255,12 @@ def child_env(run_dir: pathlib.Path) -> dict:
 
 def up(scenario: str, controller: str | None = None, overrides: list[str] | None = None,
        runs_dir: str = "runs", record: bool = True, plots: bool = True, quiet: bool = False,
-       timeout: float | None = None, compose: bool = False) -> tuple[int, dict]:
+       timeout: float | None = None, compose: bool = False, env: dict | None = None) -> tuple[int, dict]:
     """Run a scenario end to end; returns (exit status, result dict).
 
     ``compose``: the estimator and every controller node in one process and executor
-    (humfall_ros.nodes.composed), each still its own node on its own topics.
+    (humfall_ros.nodes.composed), each still its own node on its own topics. ``env``: variables
+    for the nodes' environment (e.g. a ROS_DOMAIN_ID per trial), over this process's.
     """
     def say(*a):
         if not quiet:
@@ -277,7 +277,7 @@ def up(scenario: str, controller: str | None = None, overrides: list[str] | None
     nodes = plan_nodes(sc, run_dir, record)
     if compose:
         nodes = compose_nodes(nodes, run_dir)
-    env = child_env(run_dir)
+    env = child_env(run_dir, env)
     say(f"run folder {run_dir}  (ROS_DOMAIN_ID={env.get('ROS_DOMAIN_ID', '0')})")
     procs: list[Proc] = []
     status, failure = 0, None
@@ -367,6 +367,13 @@ def collect_result(sc: dict, run_dir: pathlib.Path, wall: float, record: bool, p
     stats = run_dir / "recording_stats.json"
     if stats.is_file():
         result["recording"] = json.loads(stats.read_text())
+    if bag is not None and "estop" not in result and sc["estop"] and _ran_estop(sc):
+        try:  # the e-stop section (paper 3 figures) from the bag's estop/status and centroidal_state
+            from humfall_ros.estop.metrics import estop_result_from_bag
+
+            result["estop"] = estop_result_from_bag(str(bag), bool(metrics.get("fell")))
+        except Exception as e:  # noqa: BLE001 - a figure failure must not lose the result
+            result["estop_error"] = str(e)
     if plots and bag is not None:
         try:
             from humfall_ros.recording import plot_run
@@ -375,6 +382,12 @@ def collect_result(sc: dict, run_dir: pathlib.Path, wall: float, record: bool, p
         except Exception as e:  # noqa: BLE001 - a plot failure must not lose the result
             result["plot_error"] = str(e)
     return result
+
+
+def _ran_estop(sc: dict) -> bool:
+    from humfall_ros.estop.config import trigger_params
+
+    return bool(trigger_params(sc["estop"])) or (sc["walk"].get("steps", 0) > 0 and sc["walk"].get("speed_kmh", 0) > 0)
 
 
 def summary(r: dict) -> str:

@@ -75,6 +75,64 @@ def locomotion_controller(sc: dict, model):
     return from_scenario(sc, model, node_params(sc, "locomotion"))
 
 
+class SameTickInputs:
+    """A controller whose observation also gets inputs computed this tick by controllers before it.
+
+    ``SameTickInputs(estop, {"walking/state": lambda: walking.state})`` gives the e-stop the walking
+    state of the same tick (walking comes first in the loop's list), as the e-stop node's tick gate
+    waits for ``walking/state`` of the tick's stamp.
+    """
+
+    def __init__(self, controller: Controller, providers: dict[str, Callable[[], Any]]):
+        self.inner = controller
+        self.source = controller.source
+        self.providers = dict(providers)
+
+    def __getattr__(self, name):  # status, decision, ... of the wrapped controller
+        return getattr(self.inner, name)
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def step(self, observation: Observation):
+        extra = {k: f() for k, f in self.providers.items()}
+        return self.inner.step(dataclasses.replace(observation, inputs={**observation.inputs, **extra}))
+
+
+def runs_estop(sc: dict) -> bool:
+    """``humfall up`` starts the e-stop when the scenario walks or schedules a trigger."""
+    from humfall_ros.estop.config import trigger_params
+
+    walks = sc["walk"].get("steps", 0) > 0 and sc["walk"].get("speed_kmh", 0.0) > 0
+    return walks or bool(trigger_params(sc["estop"]))
+
+
+def suite(sc: dict, model) -> tuple[list[Controller], list[Monitor]]:
+    """The controllers and monitors ``humfall up`` starts for ``sc``, as in-process objects.
+
+    locomotion (``locomotion_controller``); with ``controller`` stepping / stepping_inertia the FTB
+    monitor and the safe-fall controller (humfall_ros.fall.runs); the e-stop when the scenario walks
+    or schedules a trigger (fed the walking state of the same tick).
+    """
+    loco = locomotion_controller(sc, model)
+    controllers: list = [loco]
+    monitors: list = []
+    if sc["controller"] != "none":
+        from humfall_ros.fall.runs import controllers_for
+
+        fall_controllers, monitors = controllers_for(sc, sc["controller"], model)
+        controllers += [c for c in fall_controllers if c.source != "locomotion"]
+    if runs_estop(sc):
+        from humfall_ros.estop.config import EstopConfig, trigger_params
+        from humfall_ros.estop.controller import EstopController
+
+        p = node_params(sc, "estop_planner")
+        p.update(trigger_params(sc["estop"]))
+        estop = EstopController(model, EstopConfig.from_params(p), 1.0 / sc["sim"]["control_rate"])
+        controllers.append(SameTickInputs(estop, {"walking/state": lambda: loco.state}))
+    return controllers, monitors
+
+
 def standing_controller(sc: dict, model) -> StandingController:
     """The standing balance alone as the "locomotion" source (the walking controller stands with it too)."""
     p = node_params(sc, "locomotion")
@@ -96,7 +154,7 @@ class ClosedLoop:
 
     Args:
         sc: a validated scenario (humfall_ros.scenario).
-        controllers: contract controllers (default: the locomotion node's, ``locomotion_controller``).
+        controllers: contract controllers (default: what ``humfall up`` starts for the scenario, ``suite``).
         monitors: per-tick stages whose values feed the controllers' inputs.
         priorities: mux priorities of the controllers' sources (higher wins; defaults for the built-ins).
         noise: sensor noise (default: the scenario's ``params.sim_bridge.noise_*``).
@@ -122,7 +180,10 @@ class ClosedLoop:
         self.sensors = Sensors(self.world, sensor_noise(sc) if noise is None else noise)
         est = node_params(sc, "state_estimator")
         self.estimator = CentroidalEstimator(self.model, contact_force=est["contact_force"])
-        self.controllers = list(controllers) if controllers is not None else [locomotion_controller(sc, self.model)]
+        if controllers is None:
+            controllers, default_monitors = suite(sc, self.model)
+            monitors = default_monitors if monitors is None else monitors
+        self.controllers = list(controllers)
         self.monitors = list(monitors or [])
         order = mux_order([c.source for c in self.controllers], priorities)
         self.mux = CommandMux(order, self.model.joint_names, bridge["command_timeout"])
@@ -199,10 +260,13 @@ class ClosedLoop:
             if decision is not None:
                 m.note_decision(decision)
 
-    def run(self, duration: float | None = None) -> LoopResult:
+    def run(self, duration: float | None = None, stop: Callable[["ClosedLoop"], bool] | None = None) -> LoopResult:
+        """Run to the scenario's end (or ``duration`` [s]), or until ``stop(loop)`` is true after a tick."""
         ticks = int(round((duration or self.sc["duration"]) * self.sc["sim"]["control_rate"]))
         for _ in range(ticks):
             self.step()
+            if stop is not None and stop(self):
+                break
         r = self.ground_truth.metrics.result()
         return LoopResult(r, np.array(self.joint_positions), dict(self.errors), r["max_trunk_tilt_deg"],
                           list(self.active_sources), self.outputs)
