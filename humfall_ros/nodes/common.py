@@ -135,12 +135,17 @@ def run_node(factory: Callable[[], Node], args=None, use_sim_time: bool = True,
             raise
     finally:
         if node is not None:
-            close = getattr(node, "close", None)
-            if callable(close):
-                close()
-            node.destroy_node()
+            close_node(node)
         rclpy.try_shutdown()
     return _exit_past_worker_threads(0)
+
+
+def close_node(node: Node) -> None:
+    """The node's own ``close()`` (files, worlds), then destroy it."""
+    close = getattr(node, "close", None)
+    if callable(close):
+        close()
+    node.destroy_node()
 
 
 def _exit_past_worker_threads(code: int) -> int:

@@ -22,7 +22,7 @@ import rclpy
 import rclpy.executors
 from rclpy.parameter import Parameter
 
-from humfall_ros.nodes.common import Composition, _exit_past_worker_threads, shutting_down
+from humfall_ros.nodes.common import Composition, _exit_past_worker_threads, close_node, shutting_down
 
 
 def load_module(module: str):
@@ -85,10 +85,7 @@ def main(args=None) -> int:
             raise
     finally:
         for node in nodes:
-            close = getattr(node, "close", None)
-            if callable(close):
-                close()
-            node.destroy_node()
+            close_node(node)
         Composition.current = None
         rclpy.try_shutdown()
     return _exit_past_worker_threads(0)

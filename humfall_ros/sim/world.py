@@ -14,6 +14,7 @@ import math
 import numpy as np
 import pybullet as pb
 
+from humfall_ros.control.contract import Obstacle
 from humfall_ros.dynamics.pendulum import GRAVITY
 from humfall_ros.model.humanoid import SIDES, HumanoidModel, load_model, quat_matrix
 from humfall_ros.model.humanoid import STANDING_POSTURE as _STANDING_POSTURE
@@ -32,13 +33,8 @@ def tick_contacts(substep_contacts: list) -> tuple:
                  for pts in substep_contacts for cp in pts)
 
 
-@dataclasses.dataclass
-class Box:
-    name: str
-    position: tuple[float, float, float]
-    size: tuple[float, float, float]
-    yaw: float = 0.0
-    is_target: bool = False
+# an obstacle box of the world: the controllers' contract.Obstacle (one definition)
+Box = Obstacle
 
 
 @dataclasses.dataclass
