@@ -96,3 +96,32 @@ def test_kinematic_walk_finishes_and_reports_state(model):
     assert supports == {"double", "single_left", "single_right"}
     assert max(steps) == 4
     assert np.all(peak <= c.cfg.velocity_fraction * model.limits.velocity + 1e-9)
+
+
+def test_imu_heading_drift_steers_the_steps_not_yet_planned(model):
+    """The IMU shows the robot yawed 3 deg right of the IK (e.g. a slipping stance foot): the pattern's steering
+    target turns the coming steps left by the filtered drift; without an IMU input nothing is steered."""
+    from scipy.spatial.transform import Rotation
+
+    c = LocomotionController(model)
+    q = c.reference_configuration(c.standing_posture, 0.0, (0.0, 0.0))
+    assert c.set_walk_command(1.0 / 3.6, 0.0, n_steps=6) is None
+    c.step(observe(model, q, 0.0))
+    assert c.pattern is not None and c.pattern.steer_target == 0.0
+    drift = math.radians(-3.0)
+    t = 0.002
+    for _ in range(int(2.0 / c.dt)):   # 5 filter time constants
+        model.forward(c.q_ik)
+        R_ik = model.frame_placement(model.imu_frame).rotation
+        quat = (Rotation.from_euler("z", drift) * Rotation.from_matrix(R_ik)).as_quat()   # xyzw
+        c.step(observe(model, c.q_ik, t, {"imu": (quat, np.zeros(3))}))
+        t += c.dt
+    assert c.pattern.steer_target == pytest.approx(-drift, abs=math.radians(0.1))
+    planned = c.pattern.steer_total
+    assert 0.0 < planned <= -drift + 1e-9
+    c2 = LocomotionController(model)
+    assert c2.set_walk_command(1.0 / 3.6, 0.0, n_steps=6) is None
+    c2.step(observe(model, q, 0.0))
+    for k in range(50):
+        c2.step(observe(model, c2.q_ik, 0.002 * (k + 1)))
+    assert c2.pattern.steer_target == 0.0
