@@ -19,7 +19,8 @@ from humfall_ros.sim.world import SimWorld
 from humfall_ros.walking.controller import from_scenario
 
 FORCE_TOL = 2.0      # [N] per tick, each axis (measured: < 0.01 N standing pushed)
-MOMENT_TOL = 1.0     # [N m] per tick, each axis, about the world origin (measured: < 0.1 N m)
+MOMENT_TOL = 2.0     # [N m] per tick, each axis, about the world origin (measured max: 0.1 pushed stance, 1.05 walk;
+#                      the old last-substep CoP bias was ~25 N m: 4.5 cm x 570 N)
 
 
 class MomentumRate:
