@@ -42,7 +42,7 @@ class LocomotionConfig:
     com_feedback_max: float = 0.03        # m
     zmp_integral_gain: float = 0.0        # 1/s
     zmp_integral_max: float = 0.06        # m
-    cop_damping_gain: float = 1.0         # rad/(m s)
+    cop_damping_gain: float = 0.0         # rad/(m s)
     cop_damping_time_constant: float = 0.2  # s
     walk_ankle_max_offset: float = 0.05   # rad
     heading_lateral_gain: float = 0.5     # rad/m, path heading correction per metre of lateral drift
