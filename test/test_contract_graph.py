@@ -133,3 +133,21 @@ def test_composed_mode_runs_the_same_graph_in_one_process(in_ros_domain, tmp_pat
     assert np.array_equal(ros, mine.joint_positions)
     active = [a for _, a in bag_topic(r["bag"], "/mux/state", "active")]
     assert "test" in active and active[-1] == "locomotion"
+
+
+def test_a_walk_is_identical_in_process_and_over_ros(run_up):
+    # walking (locomotion with its walk schedule, IMU steering) and the e-stop node listening, as humfall up runs them
+    ov = ["duration=4.0", "walk.steps=2"]
+    status, r = run_up("walking", *ov)
+    assert status == 0, r
+    assert r["metrics"]["fell"] is False
+    assert set(r["node_exit_codes"]) >= {"locomotion", "estop_planner"}
+    mine = ClosedLoop(scenario.load("walking", ov))
+    try:
+        res = mine.run()
+    finally:
+        mine.close()
+    ros = _rows(r, len(res.joint_positions))
+    assert np.array_equal(ros, res.joint_positions)
+    steps = {m for _, m in bag_topic(r["bag"], "/walking/state", "step_index")}
+    assert max(steps) >= 2  # it did walk

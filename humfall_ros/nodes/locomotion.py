@@ -16,7 +16,7 @@ Inputs besides the tick's:
   a planned stop. A non-finite command is refused and logged; clamps and refusals of the
   controller (speed, turn rate, kinematics, while released) are logged too;
 * ``fall_event`` (``humfall_interfaces/FallEvent``, latched): release;
-* ``estop/status`` (``humfall_interfaces/EstopStatus``, latest): release while ``active``.
+* the e-stop is not an input: walking gives way when ``mux/state`` shows another source drives;
 
 Output besides the command: ``walking/state`` (``humfall_interfaces/WalkingState``) every tick,
 stamped like the tick.
@@ -27,14 +27,14 @@ import math
 
 import numpy as np
 from geometry_msgs.msg import Point, Pose, Twist, Vector3
-from humfall_interfaces.msg import EstopStatus, FallEvent
+from humfall_interfaces.msg import FallEvent
 from humfall_interfaces.msg import Footstep as FootstepMsg
 from humfall_interfaces.msg import WalkingState as WalkingStateMsg
 
 from humfall_ros import params as params_mod
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, run_node
-from humfall_ros.nodes.controller_node import ControllerNode, Input
+from humfall_ros.nodes.controller_node import IMU, ControllerNode, Input
 from humfall_ros.walking.controller import LocomotionController, WalkingState, from_scenario
 from humfall_ros.walking.footsteps import WalkCommand
 from humfall_ros.walking.scenario import walking_config
@@ -100,9 +100,10 @@ def walking_state_to_msg(s: WalkingState) -> WalkingStateMsg:
 
 
 def node_inputs() -> list[Input]:
+    # the IMU per tick, as every in-process observation has it (heading steering); no estop/status: its
+    # arrival is not tied to the tick, and walking gives way to the e-stop through mux/state already
     return [Input("cmd_walk", Twist, "cmd_walk", walk_command_from_twist, qos=QOS_RELIABLE),
-            Input("fall_event", FallEvent, "fall_event", lambda _msg: True),
-            Input("estop", EstopStatus, "estop/status", lambda msg: msg, qos=QOS_RELIABLE)]
+            Input("fall_event", FallEvent, "fall_event", lambda _msg: True), IMU]
 
 
 class Locomotion(ControllerNode):
