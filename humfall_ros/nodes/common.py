@@ -127,7 +127,10 @@ def run_node(factory: Callable[[], Node], args=None, use_sim_time: bool = True,
         if isinstance(hot, HotLoop):
             hot.spin(executor)
         else:
-            executor.spin()
+            # not executor.spin(): a multi-threaded executor blocked in its wait was never woken by the
+            # shutdown a signal makes (measured: the planner ignored SIGTERM and SIGINT once idle)
+            while rclpy.ok():
+                executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
         pass
     except Exception:  # noqa: BLE001
