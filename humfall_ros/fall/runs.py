@@ -54,13 +54,13 @@ def controllers_for(sc: dict, kind: str, model=None):
     """(controllers, monitors) of the run, as the launcher would start them for ``kind``."""
     from humfall_ros.launch import CONTROLLER_PARAMS
     from humfall_ros.model.humanoid import load_model
-    from humfall_ros.sim.closed_loop import node_params, standing_controller
+    from humfall_ros.sim.closed_loop import locomotion_controller, node_params
 
     if kind not in CONTROLLERS:
         raise ValueError(f"controller must be one of {CONTROLLERS}, got {kind!r}")
     model = model or load_model()
     ftb = FtbMonitor(FtbConfig.from_params(node_params(sc, "ftb_monitor")))
-    ctrls = [standing_controller(sc, model)]
+    ctrls = [locomotion_controller(sc, model)]  # the locomotion node's own controller
     if kind != "none":
         p = node_params(sc, "safe_fall_controller")
         p.update(CONTROLLER_PARAMS.get(kind, {}).get("safe_fall_controller", {}))
