@@ -1,6 +1,7 @@
 """Safe-fall timings (issue 11): FTB per message, control duration, the whole decision; prints one JSON object.
 
-    .venv/bin/python benchmarks/bench_fall.py
+    .venv/bin/python benchmarks/bench_fall.py          # the timings
+    .venv/bin/python benchmarks/bench_fall.py record   # re-record test/data/fall_decisions.json (see record())
 
 The decision is timed on the real take-over state of ``standing_push`` (the loop runs until the
 FTB fires, ~1 s): pendulum + stepping zones + search (``SafeFallDecision.search_time``), and apart
@@ -51,6 +52,134 @@ def capture_takeover(name: str = "standing_push", overrides: list[str] | None = 
     finally:
         loop.close()
     raise RuntimeError("the FTB did not fire")
+
+
+def _capture_until_trigger(sc):
+    from humfall_ros.fall import runs
+    from humfall_ros.sim.closed_loop import ClosedLoop
+
+    ctrls, monitors = runs.controllers_for(sc, "none")
+    loop = ClosedLoop(sc, ctrls, monitors)
+    seen = []
+    try:
+        for _ in range(int(1.5 * sc["sim"]["control_rate"])):
+            obs = loop.step()
+            seen.append(obs)
+            if obs.inputs["ftb/status"].event is not None:
+                return seen, obs, obs.inputs["ftb/status"].event
+    finally:
+        loop.close()
+    raise RuntimeError("the FTB did not fire")
+
+
+def record(path: pathlib.Path) -> dict:
+    """The regression cases of ``test/test_fall_decisions.py``: take-over states and the decisions made.
+
+    Recorded with the code before the speed work (commit of this function): ``standing_push`` 1.0x
+    and 1.3x and the sweep's 30-120 deg pushes (1.2x threshold), each up to the FTB trigger; the
+    take-over state with the CoM velocity scaled (0.8-1.6) and turned (+-25 deg) and the target turned
+    about the CoP, inputs rounded to 1e-9 and read back from JSON before deciding; FTB features of
+    every 8th tick and the last 24 before the trigger.
+    """
+    import fall_closed_loop as fcl
+    from humfall_ros.control.contract import CentroidalObservation, Observation
+    from humfall_ros.fall import sweep
+    from humfall_ros.fall.ftb import features_of
+
+    cases = {"push1.0": _capture_until_trigger(scenario.load("standing_push")),
+             "push1.3": _capture_until_trigger(scenario.load("standing_push", fcl._push_overrides(1.3)))}
+    th = sweep.load_thresholds()
+    for a in (30, 60, 90, 120):
+        t = th[a]
+        cases[f"dir{a}"] = _capture_until_trigger(sweep.push_scenario(1.2 * t["threshold_n"], a, t["fall_heading_deg"],
+                                                                      t["initial_cop"]))
+
+    def L(x):
+        return np.round(np.asarray(x, float), 9).tolist()
+
+    def fnum(x):
+        return None if x is None or not math.isfinite(x) else float(x)
+
+    def state_dict(s):
+        return {"com": L(s.com), "com_velocity": L(s.com_velocity), "cop": L(s.cop),
+                "capture_point": L(s.capture_point), "angular_momentum": L(s.angular_momentum),
+                "support_polygon": L(np.asarray(s.support_polygon).reshape(-1, 2)), "feet_center": L(s.feet_center),
+                "lean_angle": round(s.lean_angle, 9), "lean_direction": round(s.lean_direction, 9),
+                "normal_force": round(s.normal_force, 6), "left_contact": bool(s.left_contact),
+                "right_contact": bool(s.right_contact), "cop_on_edge": bool(s.cop_on_edge)}
+
+    def state_of(d):
+        return CentroidalObservation(np.array(d["com"]), np.array(d["com_velocity"]), np.array(d["cop"]),
+                                     np.array(d["capture_point"]), np.array(d["angular_momentum"]),
+                                     np.array(d["support_polygon"]).reshape(-1, 2), np.array(d["feet_center"]),
+                                     d["lean_angle"], d["lean_direction"], d["normal_force"], d["left_contact"],
+                                     d["right_contact"], d["cop_on_edge"])
+
+    def obs_of(r):
+        n = len(r["joint_position"])
+        return Observation(r["stamp_ns"], np.array(r["joint_position"]), np.zeros(n), state_of(r["state"]),
+                           inputs={"obstacles": r["obstacles"], "imu": (np.array(r["imu"][0]), np.array(r["imu"][1])),
+                                   "fall_event": r["fall_event"]})
+
+    def feat_dict(f):
+        return {k: (L(v) if isinstance(v, np.ndarray) else (bool(v) if isinstance(v, (bool, np.bool_)) else fnum(v)))
+                for k, v in f.__dict__.items()}
+
+    out = {"description": "take-over states of standing_push (1.0x, 1.3x) and sweep directions 30-120 deg, "
+           "with velocity / target variants, and the decision the pre-speed-work code made (bench_fall.py record)",
+           "ftb": [], "decisions": []}
+    cfg = SafeFallConfig.from_params(params.defaults("safe_fall_controller"))
+    ctrl = SafeFallController(config=cfg)
+    for name, (seen, obs, ev) in cases.items():
+        idx = sorted(set(range(0, len(seen), 8)) | set(range(max(0, len(seen) - 24), len(seen))))
+        for i in idx:
+            s = seen[i].state
+            sd = json.loads(json.dumps(state_dict(s)))
+            out["ftb"].append({"case": name, "tick": i, "state": sd, "features": feat_dict(features_of(state_of(sd)))})
+        tgt = [o for o in obs.inputs["obstacles"] if o.is_target][0]
+        cop = np.asarray(obs.state.cop)[:2]
+        for vs in (1.0, 0.8, 1.25, 1.6):
+            for rot in (0.0, 25.0, -25.0):
+                for trot in (0.0, 70.0, -70.0, 180.0):
+                    if (vs != 1.0 or rot != 0.0) and trot not in (0.0, 180.0):
+                        continue
+                    s0 = obs.state
+                    v = np.asarray(s0.com_velocity, float).copy()
+                    c, sn = math.cos(math.radians(rot)), math.sin(math.radians(rot))
+                    v[:2] = vs * np.array([c * v[0] - sn * v[1], sn * v[0] + c * v[1]])
+                    com = np.asarray(s0.com, float)
+                    w = math.sqrt(com[2] / 9.81)
+                    cp = np.array([com[0] + w * v[0], com[1] + w * v[1], 0.0])
+                    s = CentroidalObservation(com.copy(), v, np.asarray(s0.cop).copy(), cp,
+                                              np.asarray(s0.angular_momentum).copy(),
+                                              np.asarray(s0.support_polygon).copy(), np.asarray(s0.feet_center).copy(),
+                                              s0.lean_angle, s0.lean_direction, s0.normal_force, s0.left_contact,
+                                              s0.right_contact, s0.cop_on_edge)
+                    tp = np.asarray(tgt.position, float)
+                    d = tp[:2] - cop
+                    a = math.radians(trot)
+                    d = np.array([math.cos(a) * d[0] - math.sin(a) * d[1], math.sin(a) * d[0] + math.cos(a) * d[1]])
+                    obst = [{"name": "target", "position": [float(cop[0] + d[0]), float(cop[1] + d[1]), float(tp[2])],
+                             "size": list(tgt.size), "yaw": float(tgt.yaw + a), "is_target": True}]
+                    imu = [L(obs.inputs["imu"][0]), L(obs.inputs["imu"][1])]
+                    ev_d = {"stamp_ns": int(ev.stamp_ns), "com": L(com)}
+                    rec = {"stamp_ns": int(obs.stamp_ns), "joint_position": L(obs.joint_position), "imu": imu,
+                           "obstacles": obst, "fall_event": ev_d, "state": state_dict(s)}
+                    o = obs_of(json.loads(json.dumps(rec)))
+                    ctrl.reset()
+                    ctrl.step(o)
+                    dd = ctrl.decision
+                    exp = {"case": dd.case, "swing_side": dd.swing_side, "landing": [fnum(x) for x in dd.landing],
+                           "alpha1": fnum(dd.alpha1), "alpha2": fnum(dd.alpha2), "captured": bool(dd.captured),
+                           "p2": L(dd.p2), "q2": L(dd.q2), "cell_count": int(dd.cell_count),
+                           "control_duration": fnum(dd.control_duration), "touchdown_time": dd.touchdown_time,
+                           "zone_size": [fnum(x) for x in dd.zone_size], "gamma": [fnum(x) for x in dd.gamma],
+                           "case_alpha2": {k: fnum(x) for k, x in dd.case_alpha2.items()},
+                           "ik_reachable": dd.ik_reachable, "reason": dd.reason}
+                    out["decisions"].append({"case": name, "velocity_scale": vs, "velocity_rotation_deg": rot,
+                                             "target_rotation_deg": trot, **rec, "expected": exp})
+    path.write_text(json.dumps(out))
+    return out
 
 
 def main() -> None:
@@ -116,4 +245,9 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    if sys.argv[1:] == ["record"]:
+        sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+        got = record(pathlib.Path(__file__).resolve().parents[1] / "test" / "data" / "fall_decisions.json")
+        print(json.dumps({"decisions": len(got["decisions"]), "ftb_ticks": len(got["ftb"])}))
+    else:
+        main()
