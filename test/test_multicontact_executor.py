@@ -7,7 +7,8 @@ import pytest
 from humfall_ros.control.contract import CentroidalObservation, Controller, Observation, stamp_ns_of
 from humfall_ros.model.humanoid import load_model as load_humanoid
 from humfall_ros.multicontact.collocation import Segment
-from humfall_ros.multicontact.executor import MulticontactExecutor
+from humfall_ros.multicontact.executor import (ExecutorConfig, MulticontactExecutor, StoredPlan, planned_contacts,
+                                               project_to_mode)
 from humfall_ros.multicontact.model import load_model
 
 
@@ -47,7 +48,7 @@ def test_executor_tracks_the_plan_holds_the_rest_and_switches_on_touchdown(model
     q2[3:] += 0.2
     landing = _segment(pm, q0, q1, 0.4, "add", "LF", ("RF",), ("LF", "RF"))
     settle = _segment(pm, q1, q2, 0.6, mode=("LF", "RF"), target=("LF", "RF"))
-    ex = MulticontactExecutor([landing, settle], pm.joint_names, hm.joint_names)
+    ex = MulticontactExecutor([landing, settle], pm.joint_names, hm.joint_names, ExecutorConfig(hold="measured"))
     assert isinstance(ex, Controller) and ex.source == "multicontact"
     idx = [hm.joint_names.index(j) for j in pm.joint_names]
     others = [i for i in range(len(hm.joint_names)) if i not in idx]
@@ -120,3 +121,113 @@ def test_planar_state_of_a_sagittal_3d_state_puts_the_points_where_the_3d_model_
         np.testing.assert_allclose(pm.point(point, q), hm.frame_position(frame)[[0, 2]], atol=1e-9)
         vel = pin.getFrameVelocity(hm.model, hm.data, hm.frame_ids[frame], pin.LOCAL_WORLD_ALIGNED).linear
         np.testing.assert_allclose(pm.point_jacobian(point, q) @ v, vel[[0, 2]], atol=1e-9)
+
+
+def test_executor_releases_before_its_start_then_plans_once_from_the_take_over_tick(models):
+    """A plan source is asked once, at the first tick at or after start_time, with that tick's observation;
+    the plan's time 0 is that tick; out-of-plane joints go to the planar model's locked value (0)."""
+    pm, hm = models
+    q0 = np.zeros(pm.n)
+    q1 = q0.copy()
+    q1[3:] = 0.4
+    seg = _segment(pm, q0, q1, 0.5, mode=("LF", "RF"), target=("LF", "RF"))
+    calls = []
+
+    def source(obs):
+        calls.append(obs.time)
+        return [seg]
+
+    ex = MulticontactExecutor([], pm.joint_names, hm.joint_names, ExecutorConfig(start_time=0.6), plan_source=source)
+    assert ex.step(_obs(hm, 0.598)) is None and not calls
+    first = ex.step(_obs(hm, 0.6))
+    assert calls == [pytest.approx(0.6)] and ex.take_over_time == pytest.approx(0.6)
+    idx = [hm.joint_names.index(j) for j in pm.joint_names]
+    others = [i for i in range(len(hm.joint_names)) if i not in idx]
+    np.testing.assert_allclose(first.positions[others], 0.0)
+    later = ex.step(_obs(hm, 0.85))
+    np.testing.assert_allclose(later.positions[idx], MulticontactExecutor.sample(seg, 0.25)[0])
+    assert len(calls) == 1
+    ex.reset()                                     # a plan from a source is forgotten on reset
+    assert ex.segments == [] and ex.take_over_time is None
+
+
+def test_executor_without_a_plan_releases_for_good_and_says_why(models):
+    pm, hm = models
+
+    def broken(obs):
+        raise RuntimeError("solver died")
+
+    ex = MulticontactExecutor([], pm.joint_names, hm.joint_names, plan_source=broken)
+    assert ex.step(_obs(hm, 0.0)) is None
+    assert ex.failed and "solver died" in ex.reason
+    assert ex.step(_obs(hm, 0.1)) is None
+    ex2 = MulticontactExecutor([], pm.joint_names, hm.joint_names, plan_source=lambda obs: None)
+    assert ex2.step(_obs(hm, 0.0)) is None and ex2.reason == "no plan"
+    with pytest.raises(ValueError, match="empty plan"):
+        MulticontactExecutor([], pm.joint_names, hm.joint_names)
+    with pytest.raises(ValueError, match="hold"):
+        ExecutorConfig(hold="sideways")
+    with pytest.raises(ValueError, match="unknown keys"):
+        ExecutorConfig.from_params({"landing_wait": 0.1, "typo": 1})
+
+
+def test_executor_config_matches_the_node_declaration():
+    from humfall_ros import params
+    d = params.defaults("multicontact_executor")
+    cfg = ExecutorConfig()
+    for k in ("landing_wait", "early_switch", "hold"):
+        assert d[k] == getattr(cfg, k), k
+
+
+def test_project_to_mode_puts_the_feet_flat_and_still_and_only_removes_energy(models):
+    """A measured two-foot state with a sole tilted and sliding: after the projection both feet are
+    on the ground (toe and heel, eq. 3), their rows have zero velocity (eq. 4), the energy does not rise
+    (eq. 10 is a D-metric projection) and the planner's own checks accept the state."""
+    from humfall_ros.multicontact import contacts as C
+    from humfall_ros.multicontact.initial_state import nominal_configuration, velocity_for_energy
+    from humfall_ros.multicontact.modes import Environment, parse_mode
+    from humfall_ros.multicontact.planner import PlannerConfig, validate
+    pm, _ = models
+    mode = parse_mode("LF/RF")
+    q = nominal_configuration(pm)
+    v = velocity_for_energy(pm, q, mode, 30.0, 1.0)
+    rng = np.random.default_rng(4)
+    qm = q.copy()
+    qm[pm.q_index["l_ankle_pitch"]] += 0.1           # one end of the left sole comes up
+    qm[3:] += rng.normal(0, 0.01, pm.m)
+    vm = v + rng.normal(0, 0.1, pm.n)
+    env = Environment()
+    rows = C.contact_rows(mode, env)
+    assert np.abs(C.rows_jacobian(pm, rows, qm) @ vm).max() > 0.05
+    p = project_to_mode(pm, qm, vm, mode)
+    assert p.gap_before > 0.005
+    for r in rows:
+        if r.axis == "n":
+            assert abs(C.signed_distance(pm, r.point, r.surface, env, p.q)) < 1e-8
+    np.testing.assert_allclose(C.rows_jacobian(pm, rows, p.q) @ p.v, 0.0, atol=1e-9)
+    assert p.ke_after <= p.ke_before + 1e-9 and p.ke_after > 0.5 * p.ke_before
+    assert p.q_shift < 0.1
+    validate(pm, {"q": p.q.tolist(), "v": p.v.tolist(), "initial_mode": "LF/RF"}, PlannerConfig())
+
+
+def test_planned_contacts_and_stored_plans(models, tmp_path):
+    pm, _ = models
+    from humfall_ros.multicontact.initial_state import nominal_configuration
+    q0 = nominal_configuration(pm)
+    q1 = q0.copy()
+    q1[2] += 0.5                                   # pitched forward: the hand lower
+    landing = _segment(pm, q0, q1, 0.4, "add", "LH", ("LF", "RF"), ("LF", "RF", "LH"))
+    settle = _segment(pm, q1, q1, 0.6, mode=("LF", "RF", "LH"), target=("LF", "RF", "LH"))
+    ev = planned_contacts(pm, [landing, settle])
+    assert len(ev) == 1 and ev[0].extremity == "LH" and ev[0].change == "add"
+    assert ev[0].time == pytest.approx(0.4)
+    np.testing.assert_allclose(ev[0].position, pm.point("LH", q1))
+    plan = StoredPlan([landing, settle], 0.6, {"target_ke": 20})
+    plan.save(tmp_path / "p.json")
+    back = StoredPlan.load(tmp_path / "p.json")
+    assert back.take_over_time == 0.6 and back.meta == {"target_ke": 20}
+    np.testing.assert_allclose(back.segments[1].q, settle.q)
+    assert back.segments[0].extremity == "LH"
+    (tmp_path / "bad.json").write_text('{"segments": []}')
+    with pytest.raises(ValueError, match="format"):
+        StoredPlan.load(tmp_path / "bad.json")

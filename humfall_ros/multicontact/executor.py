@@ -17,6 +17,7 @@ switch at their planned times. After the last segment the final posture is held.
 from __future__ import annotations
 
 import dataclasses
+from typing import Callable
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -26,47 +27,91 @@ from humfall_ros.multicontact.collocation import Segment, hermite_eval
 from humfall_ros.multicontact.model import FEET
 
 
+HOLD_MODES = ("planar", "measured")
+
+
 @dataclasses.dataclass(frozen=True)
 class ExecutorConfig:
     """Attributes:
         landing_wait: longest hold of a foot landing's last knot waiting for touchdown [s].
         early_switch: a foot touchdown this close to the planned end (or later) may end the segment [s].
+        start_time: sim time from which the executor takes over [s]; before it, it releases.
+        hold: the joints the planar model does not have: ``"planar"`` holds them at the value the
+            planar model locks them at (0 rad: the plan's mass distribution), ``"measured"`` where
+            the servos tracked them at the take-over tick.
     """
 
     landing_wait: float = 0.2
     early_switch: float = 0.15
+    start_time: float = 0.0
+    hold: str = "planar"
+
+    def __post_init__(self):
+        if self.hold not in HOLD_MODES:
+            raise ValueError(f"hold must be one of {HOLD_MODES}, got {self.hold!r}")
+
+    @staticmethod
+    def from_params(d: dict) -> ExecutorConfig:
+        """From ExecutorConfig field names (e.g. the node's declared values); unknown keys are refused."""
+        names = {f.name for f in dataclasses.fields(ExecutorConfig)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"ExecutorConfig: unknown keys {sorted(unknown)}")
+        return ExecutorConfig(**d)
+
+
+PlanSource = Callable[[Observation], "list[Segment] | None"]
 
 
 class MulticontactExecutor:
     """Tracks a multi-contact plan (``segments``: transitions then the terminal self-motion).
 
     Args:
-        segments: the plan (``FallPlanner.plan(...)["segments"]`` or ``Segment.from_dict``).
+        segments: the plan (``FallPlanner.plan(...)["segments"]`` or ``Segment.from_dict``); may be
+            empty when ``plan_source`` gives it at the take-over tick.
         planar_joint_names: joint names of the plan's actuated coordinates (``PlanarModel.joint_names``).
         joint_names: the 3-D model's joints in command order (``HumanoidModel.joint_names``).
+        cfg: timing and holding options.
+        plan_source: called once, at the first tick at or after ``cfg.start_time`` when there are no
+            ``segments``, with that tick's observation; returns the plan whose time 0 is that tick, or
+            None (no plan: the executor then releases for good, ``reason`` says why). The in-process
+            runner plans there with the simulator paused (``humfall_ros.sim.multicontact_run``).
     """
 
     source = "multicontact"
 
     def __init__(self, segments: list[Segment], planar_joint_names: list[str], joint_names: list[str],
-                 cfg: ExecutorConfig | None = None):
-        if not segments:
+                 cfg: ExecutorConfig | None = None, plan_source: PlanSource | None = None):
+        if not segments and plan_source is None:
             raise ValueError("an empty plan")
         missing = [j for j in planar_joint_names if j not in joint_names]
         if missing:
             raise ValueError(f"plan joints not in the robot: {missing}")
-        self.segments = list(segments)
+        self._given = list(segments)
         self.cfg = cfg or ExecutorConfig()
+        self.plan_source = plan_source
         self.index = np.array([joint_names.index(j) for j in planar_joint_names])
         self.n_joints = len(joint_names)
         self.reset()
 
     def reset(self) -> None:
+        self.segments: list[Segment] = list(self._given)
         self._t0: float | None = None
         self._hold: np.ndarray | None = None
         self._seg = 0
         self._seg_start = 0.0
+        self.failed = False
+        self.reason = ""
         self.switches: list[tuple[int, float, str]] = []   # (segment entered, plan time, why)
+
+    @property
+    def take_over_time(self) -> float | None:
+        """Sim time of the plan's time 0 [s] (None before the take-over)."""
+        return self._t0
+
+    @property
+    def segment_index(self) -> int:
+        return self._seg
 
     # ------------------------------------------------------------------ plan
     @staticmethod
@@ -80,13 +125,33 @@ class MulticontactExecutor:
     def _foot_loaded(self, obs: Observation, foot: str) -> bool:
         return bool(obs.state.left_contact if foot == "LF" else obs.state.right_contact)
 
-    # ------------------------------------------------------------------ step
-    def step(self, observation: Observation) -> JointTargets:
-        t = observation.time
-        if self._t0 is None:
-            self._t0 = t
-            base = observation.joint_targets if observation.joint_targets is not None else observation.joint_position
+    def _take_over(self, observation: Observation) -> bool:
+        if not self.segments:
+            try:
+                segs = self.plan_source(observation)
+            except Exception as e:  # noqa: BLE001 - a failed plan releases, it never kills the loop
+                segs, self.reason = None, f"plan source failed: {e!r}"
+            if not segs:
+                self.failed = True
+                self.reason = self.reason or "no plan"
+                return False
+            self.segments = list(segs)
+        self._t0 = observation.time
+        if self.cfg.hold == "planar":
+            self._hold = np.zeros(self.n_joints)         # the planar model's locked joints are at 0
+        else:
+            base = observation.joint_targets if observation.joint_targets is not None \
+                else observation.joint_position
             self._hold = np.asarray(base, float).copy()
+        return True
+
+    # ------------------------------------------------------------------ step
+    def step(self, observation: Observation) -> JointTargets | None:
+        t = observation.time
+        if self.failed or t < self.cfg.start_time - 1e-9:
+            return None
+        if self._t0 is None and not self._take_over(observation):
+            return None
         tp = t - self._t0
         while self._seg < len(self.segments) - 1:
             seg = self.segments[self._seg]
@@ -140,4 +205,140 @@ def planar_state(planar_model, joint_names: list[str], q3, v3) -> tuple[np.ndarr
     return q, v
 
 
-__all__ = ["ExecutorConfig", "MulticontactExecutor", "planar_state"]
+@dataclasses.dataclass(frozen=True)
+class ModeProjection:
+    """A measured planar state made consistent with a contact mode (:func:`project_to_mode`).
+
+    Attributes:
+        q, v: the projected state (the planner's request).
+        q_shift: largest change of a coordinate [m or rad].
+        gap_before: largest |signed distance| of a contact point of the mode before [m].
+        slip_before: largest |J v| of the mode's rows before [m/s].
+        ke_before, ke_after: planar kinetic energy before and after [J].
+    """
+
+    q: np.ndarray
+    v: np.ndarray
+    q_shift: float
+    gap_before: float
+    slip_before: float
+    ke_before: float
+    ke_after: float
+
+
+def project_to_mode(planar_model, q, v, mode, env=None, iterations: int = 20, tol: float = 1e-9) -> ModeProjection:
+    """The nearest state of ``mode``: contact points on their surfaces, contact velocities zero.
+
+    A pushed 3-D robot is never exactly in a planar contact mode (a heel a few mm up, the soles
+    sliding a little); the planner refuses a state whose contacts are off by more than its
+    tolerances. Positions: Gauss-Newton on the normal rows' signed distances (eq. 3), each step
+    the minimum-norm correction ``-J_n^+ phi``. Velocities: the impact map of eq. 10 with the
+    mode's rows (the D-metric projection onto the null space of the contact Jacobian, i.e.
+    what a perfectly plastic contact would do; it can only remove energy).
+    """
+    from humfall_ros.multicontact import contacts as C
+    from humfall_ros.multicontact.modes import Environment
+
+    env = env or Environment()
+    q0 = np.asarray(q, float)
+    v0 = np.asarray(v, float)
+    rows = C.contact_rows(mode, env)
+    normal = [r for r in rows if r.axis == "n"]
+
+    def gaps(qq):
+        return np.array([C.signed_distance(planar_model, r.point, r.surface, env, qq) for r in normal])
+
+    qp = q0.copy()
+    gap0 = float(np.abs(gaps(q0)).max()) if normal else 0.0
+    for _ in range(iterations):
+        phi = gaps(qp)
+        if not len(phi) or np.abs(phi).max() < tol:
+            break
+        J = C.rows_jacobian(planar_model, normal, qp)
+        qp = qp - np.linalg.pinv(J) @ phi
+    slip0 = float(np.abs(C.rows_jacobian(planar_model, rows, qp) @ v0).max()) if rows else 0.0
+    vp = C.impact_map(planar_model, qp, v0, rows)[0] if rows else v0.copy()
+    return ModeProjection(q=qp, v=vp, q_shift=float(np.abs(qp - q0).max()), gap_before=gap0, slip_before=slip0,
+                          ke_before=float(planar_model.kinetic_energy(q0, v0)),
+                          ke_after=float(planar_model.kinetic_energy(qp, vp)))
+
+
+@dataclasses.dataclass(frozen=True)
+class PlannedContact:
+    """A contact event of a plan: ``extremity`` lands (``change`` "add") or lifts ("remove").
+
+    Attributes:
+        time: plan time of the event [s] (the end of its transition segment).
+        position: the extremity's planar point (x, z) at the event [m] (a foot: mean of toe and heel).
+    """
+
+    extremity: str
+    change: str
+    time: float
+    position: tuple[float, float]
+
+
+def planned_contacts(planar_model, segments: list[Segment]) -> list[PlannedContact]:
+    """The contact events of a plan at their planned times (transitions end at the event)."""
+    out = []
+    t = 0.0
+    for seg in segments:
+        t += float(seg.time[-1])
+        if seg.kind != "transition" or not seg.extremity:
+            continue
+        qe = seg.q[-1]
+        if seg.extremity in FEET:
+            p = 0.5 * (np.asarray(planar_model.point(f"{seg.extremity}_toe", qe))
+                       + np.asarray(planar_model.point(f"{seg.extremity}_heel", qe)))
+        else:
+            p = np.asarray(planar_model.point(seg.extremity, qe))
+        out.append(PlannedContact(seg.extremity, seg.change, t, (float(p[0]), float(p[1]))))
+    return out
+
+
+PLAN_FILE_FORMAT = "humfall_multicontact_plan/1"
+
+
+@dataclasses.dataclass
+class StoredPlan:
+    """A plan to execute later (the executor node's ``plan_file``).
+
+    Attributes:
+        segments: the plan.
+        take_over_time: sim time the plan's time 0 belongs to [s] (the tick it was planned at).
+        meta: what it was planned from (scenario, push, planner options, measured state, ...).
+    """
+
+    segments: list[Segment]
+    take_over_time: float
+    meta: dict = dataclasses.field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"format": PLAN_FILE_FORMAT, "take_over_time": self.take_over_time, "meta": self.meta,
+                "segments": [s.to_dict() for s in self.segments]}
+
+    @staticmethod
+    def from_dict(d: dict) -> StoredPlan:
+        if d.get("format") != PLAN_FILE_FORMAT:
+            raise ValueError(f"not a plan file of format {PLAN_FILE_FORMAT!r} (format {d.get('format')!r})")
+        segs = [Segment.from_dict(x) for x in d["segments"]]
+        if not segs:
+            raise ValueError("the plan file has no segments")
+        return StoredPlan(segs, float(d["take_over_time"]), dict(d.get("meta") or {}))
+
+    def save(self, path) -> None:
+        import json
+        import pathlib
+
+        pathlib.Path(path).write_text(json.dumps(self.to_dict()))
+
+    @staticmethod
+    def load(path) -> StoredPlan:
+        import json
+        import pathlib
+
+        return StoredPlan.from_dict(json.loads(pathlib.Path(path).read_text()))
+
+
+__all__ = ["ExecutorConfig", "StoredPlan", "ModeProjection", "MulticontactExecutor", "PlannedContact", "planar_state",
+           "planned_contacts", "project_to_mode"]

@@ -1,0 +1,158 @@
+"""Multi-contact plans executed on the 3-D robot in PyBullet (issue 14). Prints one JSON object.
+
+    python benchmarks/bench_multicontact_exec.py [--kes 20,40,60] [--objective departure|paper]
+                                                 [--budget 120] [--save-plans DIR] [--plots DIR]
+                                                 [--calibrate 300,400,500] [--set name=value,...]
+
+Per case: the push of ``config/scenarios/multicontact_push.yaml`` with the force that gives the
+requested sagittal kinetic energy at the push's end (found by a few secant steps on KE ~ F^2, each a
+0.6 s run to the push's end; the table is in the output), then ``humfall_ros.sim.multicontact_run.execute``:
+plan at the push's end from the measured state (simulator paused while planning), execute, measure:
+final 3-D KE, final contact mode vs the plan's, links touching the ground besides the planned
+extremities, planned vs executed contact times and positions, peak contact force per limb.
+
+``--objective departure`` (default) plans with the post-impact objective and frontier key, landings
+unlimited (``bench_multicontact.DEPARTURE``): with the paper's objective only 10 J has a plan today
+(docs/multicontact.md). ``--objective paper`` uses the declaration as it is. ``--save-plans DIR``
+writes each executed plan as ``multicontact_push_<KE>J.json`` (``StoredPlan``; the executor node's
+``plan_file``). ``--calibrate F,...`` only prints the push -> KE table for those forces.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import pathlib
+import sys
+import time
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+from humfall_ros import scenario as scenario_mod  # noqa: E402
+from humfall_ros.multicontact.executor import StoredPlan  # noqa: E402
+from humfall_ros.multicontact.planner import FallPlanner  # noqa: E402
+from humfall_ros.sim import multicontact_run as mr  # noqa: E402
+
+DEPARTURE = {"transition_objective": "post_impact", "frontier_order": "post_impact", "landing_policy": "ignore"}
+SCENARIO = "multicontact_push"
+
+
+def ke_of_force(sc: dict, force: float) -> dict:
+    s = mr.with_push(sc, force)
+    row = mr.state_at(s, mr.push_end_time(s))
+    row["force"] = force
+    return row
+
+
+def force_for_energy(sc: dict, ke: float, f0: float = 500.0, tol: float = 0.02, steps: int = 5) -> tuple[float, list]:
+    """The forward push force [N] whose sagittal (planar) KE at the push's end is ``ke`` within ``tol``."""
+    table = []
+    f = f0
+    for _ in range(steps):
+        row = ke_of_force(sc, f)
+        table.append(row)
+        if abs(row["ke_planar"] - ke) <= tol * ke:
+            break
+        f = f * math.sqrt(ke / max(row["ke_planar"], 1e-6))   # KE ~ F^2 for a short push
+    best = min(table, key=lambda r: abs(r["ke_planar"] - ke))
+    return best["force"], table
+
+
+def plots(case: dict, path: pathlib.Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s = case["series"]
+    fig, (a, b) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    a.plot(s["t"], s["ke"], label="executed (3-D, PyBullet)")
+    curve = case["plan"].get("ke_curve") or []
+    if curve:
+        a.plot([c[0] for c in curve], [c[1] for c in curve], "o--", label="plan (planar)")
+    a.set_ylabel("kinetic energy (J)")
+    a.legend()
+    a.set_title(f"{case['target_ke']:g} J: {' -> '.join(case['plan'].get('contact_sequence') or [])}")
+    for e, f in s["limb_force"].items():
+        b.plot(s["t"], f, label=e)
+    for n, f in s["other_force"].items():
+        b.plot(s["t"], f, ":", label=n)
+    for ev in case.get("contact_events", []):
+        b.axvline(ev["planned_time"], color="k", lw=0.5, ls="--")
+    b.set_xlabel("time from take-over (s)")
+    b.set_ylabel("contact force (N)")
+    b.legend(fontsize=7, ncol=3)
+    a.set_xlim(min(-0.1, s["t"][0]), s["t"][-1])
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--kes", default="20,40,60")
+    ap.add_argument("--objective", choices=("departure", "paper"), default="departure")
+    ap.add_argument("--budget", type=float, default=120.0)
+    ap.add_argument("--save-plans", default="")
+    ap.add_argument("--plots", default="")
+    ap.add_argument("--calibrate", default="")
+    ap.add_argument("--hold", choices=("planar", "measured"), default="planar")
+    ap.add_argument("--set", default="", help="planner parameters name=value,... (yaml names)")
+    ap.add_argument("--series", action="store_true", help="keep the per-tick series in the JSON")
+    a = ap.parse_args()
+    sc = scenario_mod.load(SCENARIO)
+    sc["controllers"] = []          # in process the executor is built here
+    out: dict = {"scenario": SCENARIO, "load_average_start": os.getloadavg()}
+    if a.calibrate:
+        out["push_table"] = [ke_of_force(sc, float(f)) for f in a.calibrate.split(",")]
+        out["load_average_end"] = os.getloadavg()
+        print(json.dumps(out, indent=1))
+        return 0
+    overrides = dict(DEPARTURE) if a.objective == "departure" else {}
+    for kv in filter(None, a.set.split(",")):
+        k, v = kv.split("=", 1)
+        overrides[k] = json.loads(v) if v[:1] in "[{0123456789-tf" and v not in ("true", "false") else v
+        if v in ("true", "false"):
+            overrides[k] = v == "true"
+    out["objective"] = a.objective
+    out["planner_overrides"] = overrides
+    planner = FallPlanner.from_params(**overrides)
+    cases = []
+    for ke in [float(x) for x in a.kes.split(",")]:
+        t0 = time.perf_counter()
+        force, table = force_for_energy(sc, ke)
+        s = mr.with_push(sc, force)
+        r = mr.execute(s, planner=planner, cfg=mr.RunConfig(time_budget=a.budget, hold=a.hold))
+        r["target_ke"] = ke
+        r["push_force_n"] = force
+        r["push_table"] = table
+        r["wall_s"] = time.perf_counter() - t0
+        r["load_average"] = os.getloadavg()
+        if a.plots and "series" in r:
+            pathlib.Path(a.plots).mkdir(parents=True, exist_ok=True)
+            plots(r, pathlib.Path(a.plots) / f"multicontact_exec_{ke:g}J.png")
+        if a.save_plans and r.get("take_over_time") is not None and r["plan"].get("success"):
+            pathlib.Path(a.save_plans).mkdir(parents=True, exist_ok=True)
+            segs = r.pop("_segments")
+            StoredPlan(segs, r["take_over_time"], {
+                "scenario": SCENARIO, "push_force": [force, 0.0, 0.0], "target_ke": ke,
+                "objective": a.objective, "planner_overrides": overrides,
+                "state_at_take_over": r["state_at_take_over"],
+                "contact_sequence": r["plan"]["contact_sequence"]}).save(
+                pathlib.Path(a.save_plans) / f"multicontact_push_{ke:g}J.json")
+        r.pop("_segments", None)
+        if not a.series:
+            r.pop("series", None)
+        cases.append(r)
+        print(f"# {ke:g} J: F {force:.0f} N, plan {r['plan'].get('success')} "
+              f"{r['plan'].get('contact_sequence')}, final KE {r.get('final_ke')}, mode {r.get('final_mode')} "
+              f"(plan {r.get('planned_final_mode')}), others {sorted(r.get('other_links_touching') or {})}, "
+              f"{r['wall_s']:.0f} s", file=sys.stderr)
+    out["cases"] = cases
+    out["load_average_end"] = os.getloadavg()
+    print(json.dumps(out, indent=1, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

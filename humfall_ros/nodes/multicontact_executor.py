@@ -1,0 +1,101 @@
+"""multicontact_executor: a stored multi-contact fall plan (paper 2) executed as a lockstep command source.
+
+A ``ControllerNode`` (humfall_ros/nodes/controller_node.py) running
+``humfall_ros.multicontact.executor.MulticontactExecutor`` as source ``multicontact`` (parameter
+``source``; the scenario's ``controllers`` entry names the same source and its mux priority, above
+the built-ins). It releases until ``start_time`` (default: the plan file's ``take_over_time``), then
+tracks the plan's sagittal joints and holds the rest; it never releases after that.
+
+**Where the plan comes from:** a plan file (``plan_file``, ``StoredPlan`` JSON), written by
+``benchmarks/bench_multicontact_exec.py --save-plans DIR`` from the in-process run of the same scenario:
+the push's end state measured in PyBullet, mapped to the planar state and planned there. The
+simulation is deterministic and the lockstep graph gives the in-process joint states (tested), so the
+state at ``start_time`` over ROS is the one the plan was made from. Planning inside the node's tick
+would also work in lockstep (the bridge waits for the tick's answer; raise ``params.sim_bridge.stall_timeout``
+above the plan time), but needs the planar base state from the estimator's topics: not built.
+
+Parameters: ``config/multicontact_executor.yaml``. Relative plan files are looked up from the working
+directory, then in ``config/multicontact_plans/``.
+"""
+from __future__ import annotations
+
+import pathlib
+import sys
+
+from humfall_ros import paths
+from humfall_ros.multicontact.executor import ExecutorConfig, MulticontactExecutor, StoredPlan
+from humfall_ros.nodes.common import run_node
+from humfall_ros.nodes.controller_node import ControllerNode
+
+CONFIG = "multicontact_executor"
+
+
+def plan_path(name: str) -> pathlib.Path:
+    """The plan file ``name``: as given if it exists, else ``config/multicontact_plans/<name>[.json]``."""
+    p = pathlib.Path(name)
+    if p.is_file():
+        return p
+    shared = paths.config_path("multicontact_plans") / name
+    for c in (shared, shared.with_suffix(".json")):
+        if c.is_file():
+            return c
+    raise FileNotFoundError(f"no plan file {name!r} (nor in {shared.parent})")
+
+
+class _NeverTakesOver:
+    """A source that always releases (no plan file given)."""
+
+    def __init__(self, source: str):
+        self.source = source
+
+    def reset(self) -> None:
+        pass
+
+    def step(self, observation):
+        return None
+
+
+def make_controller(p: dict, model):
+    """The executor of ``p["plan_file"]`` (the node's declared parameters)."""
+    if not p["plan_file"]:
+        return _NeverTakesOver(p["source"])
+    from humfall_ros.multicontact.model import load_model as load_planar
+
+    plan = StoredPlan.load(plan_path(p["plan_file"]))
+    start = plan.take_over_time if p["start_time"] < 0 else p["start_time"]
+    cfg = ExecutorConfig.from_params({"landing_wait": p["landing_wait"], "early_switch": p["early_switch"],
+                                      "start_time": start, "hold": p["hold"]})
+    ex = MulticontactExecutor(plan.segments, load_planar().joint_names, model.joint_names, cfg)
+    ex.source = p["source"]
+    return ex
+
+
+def source_from_argv(argv: list[str]) -> str:
+    """The ``source:=`` of the command line (the node's name follows it), default from the declaration."""
+    from humfall_ros import params
+
+    return next((a.split(":=", 1)[1] for a in argv if a.startswith("source:=")),
+                params.defaults(CONFIG)["source"])
+
+
+def make_node(source: str = "multicontact"):
+    # named like the launcher's process for a scenario controllers entry (<module stem>_<source>), so a
+    # composed run's params file section reaches it
+    node = ControllerNode(f"{CONFIG}_{source}", make_controller, config_name=CONFIG)
+    ex = node.controller
+    if isinstance(ex, MulticontactExecutor):
+        node.get_logger().info(f"plan: {len(ex.segments)} segments "
+                               f"({' -> '.join(s.target_mode and '/'.join(s.target_mode) for s in ex.segments)}), "
+                               f"take-over at {ex.cfg.start_time:.3f} s")
+    else:
+        node.get_logger().warning("no plan_file: this source never takes over")
+    return node
+
+
+def main(args=None) -> int:
+    argv = sys.argv if args is None else args
+    return run_node(lambda: make_node(source_from_argv(argv)), args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

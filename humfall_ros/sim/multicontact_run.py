@@ -1,0 +1,344 @@
+"""A multi-contact plan executed on the 3-D robot in PyBullet (issue 14; paper 2 Sec. III plans, we execute).
+
+One run: the scenario's push (``config/scenarios/multicontact_push.yaml``) with the standing balance
+as the ``locomotion`` source; at the first tick at or after the push's end the ``multicontact``
+executor (``humfall_ros.multicontact.executor``, mux priority above every built-in source) takes the
+measured state (ground truth, ``SimWorld.pinocchio_state``), maps it to the planar planner's state
+(``planar_state``), makes it consistent with the two-foot mode (``project_to_mode``: feet flat on the
+ground, eq. 3; contact velocities removed with the impact map, eq. 10), plans, and tracks the plan.
+
+**Planning pauses the simulator.** The plan is computed inside the take-over tick, as a lockstep
+source's answer: the physics does not advance while the planner runs, so the plan starts from the
+state it was computed from. The tree search takes seconds (5-10 s unloaded with the departure
+objective, docs/multicontact.md) and even a warm library re-plan (~1 s) is as long as the whole fall,
+so planning in advance from a predicted state would still need a planner faster than the fall; the
+execution figures here measure the executor and the plan on the 3-D robot, with planning latency
+removed (stated in every report as ``plan.compute_s``).
+
+Measured per control tick: the 3-D kinetic energy ½ vᵀ M(q) v (pinocchio ``crba`` on the free-flyer
+model) and every robot-ground contact point (``SimWorld.ground_contacts``: the tick means of the
+physics substeps' forces), grouped by limb (LF, RF: the feet; LH, RH: the forearms, whose end caps
+are the hands: the hand links have no collision shape) and by link for everything else.
+No rclpy here.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+import pybullet as pb
+
+from humfall_ros import scenario as scenario_mod
+from humfall_ros.dynamics.pendulum import GRAVITY
+from humfall_ros.multicontact.collocation import Segment
+from humfall_ros.multicontact.executor import (ExecutorConfig, MulticontactExecutor, planar_state, planned_contacts,
+                                               project_to_mode)
+from humfall_ros.multicontact.modes import mode_label, parse_mode
+from humfall_ros.sim.closed_loop import ClosedLoop, locomotion_controller
+from humfall_ros.sim.ground_truth import push_time
+
+EXECUTOR_PRIORITY = 40          # above locomotion 10, estop 20, safe_fall 30 (scenario.BUILTIN_PRIORITIES)
+INITIAL_MODE = "LF/RF"
+LIMBS = ("LF", "RF", "LH", "RH")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Attributes:
+        settle: time simulated after the plan's end [s].
+        contact_force_min: a limb or link touches when its tick-mean contact force exceeds this [N].
+        final_window: the final mode and KE are judged over this last stretch of the run [s].
+        time_budget: the planner's wall-clock budget [s].
+        hold: ``ExecutorConfig.hold``.
+    """
+
+    settle: float = 1.5
+    contact_force_min: float = 5.0
+    final_window: float = 0.1
+    time_budget: float = 120.0
+    hold: str = "planar"
+
+
+def push_end_time(sc: dict) -> float:
+    """End of the scenario's last push [s] (the executor's take-over)."""
+    if not sc["push"]:
+        raise ValueError("the scenario has no push")
+    return max(push_time(sc, p) + p["duration"] for p in sc["push"])
+
+
+def with_push(sc: dict, force_x: float, duration: float | None = None) -> dict:
+    """``sc`` with its first push set to ``force_x`` [N] forward (and ``duration`` [s]), revalidated."""
+    sc = scenario_mod.apply_override(sc, f"push.0.force=[{float(force_x)}, 0.0, 0.0]")
+    if duration is not None:
+        sc = scenario_mod.apply_override(sc, f"push.0.duration={float(duration)}")
+    return sc
+
+
+class _Probe:
+    """Per-tick measurements of a world: 3-D KE, contact forces per limb and per link."""
+
+    def __init__(self, world):
+        self.world = world
+        hm = world.model
+        self.hm = hm
+        self.data = hm.model.createData()
+        names = {i: n for n, i in world.link_ids.items()}
+        self.link_name = names
+        feet = {"LF": world.foot_links["l"], "RF": world.foot_links["r"]}
+        hands = {}
+        for ext, side in (("LH", "l"), ("RH", "r")):
+            # the hand frame's link has no collision shape: its parent link (the forearm) touches
+            hand = world.link_ids[hm.hand_frame[side]]
+            hands[ext] = pb.getJointInfo(world.robot, hand, physicsClientId=world.client)[16]
+        self.limb_of_link = {v: k for k, v in {**feet, **hands}.items()}
+        self.limb_link = {**feet, **hands}
+        self.t: list[float] = []
+        self.ke: list[float] = []
+        self.limb_force: dict[str, list[float]] = {e: [] for e in LIMBS}
+        self.limb_point: dict[str, list] = {e: [] for e in LIMBS}
+        self.link_force: dict[str, dict[int, float]] = {}    # link name -> {tick: normal force}
+        self.tilt: list[float] = []
+
+    def kinetic_energy(self) -> float:
+        q, v = self.world.pinocchio_state()
+        M = pin.crba(self.hm.model, self.data, q)
+        return float(0.5 * v @ M @ v)
+
+    def record(self) -> None:
+        w = self.world
+        k = len(self.t)
+        self.t.append(w.time)
+        self.ke.append(self.kinetic_energy())
+        self.tilt.append(w.trunk_tilt())
+        force = {e: np.zeros(3) for e in LIMBS}
+        moment = {e: np.zeros(3) for e in LIMBS}
+        normal = {e: 0.0 for e in LIMBS}
+        per_link: dict[int, float] = {}
+        for cp in w.ground_contacts():
+            f = cp[9] * np.asarray(cp[7]) + cp[10] * np.asarray(cp[11]) + cp[12] * np.asarray(cp[13])
+            per_link[cp[3]] = per_link.get(cp[3], 0.0) + cp[9]
+            limb = self.limb_of_link.get(cp[3])
+            if limb is not None:
+                force[limb] += f
+                normal[limb] += cp[9]
+                moment[limb] += cp[9] * np.asarray(cp[6])
+        for e in LIMBS:
+            self.limb_force[e].append(float(np.linalg.norm(force[e])))
+            self.limb_point[e].append(moment[e] / normal[e] if normal[e] > 1e-9 else None)
+        for lid, fn in per_link.items():
+            if lid not in self.limb_of_link:
+                self.link_force.setdefault(self.link_name.get(lid, str(lid)), {})[k] = fn
+
+
+def _first(mask: np.ndarray, start: int) -> int | None:
+    idx = np.flatnonzero(mask[start:])
+    return int(start + idx[0]) if len(idx) else None
+
+
+def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start_time: float | None = None,
+            cfg: RunConfig | None = None, duration: float | None = None) -> dict:
+    """Push, plan at the push's end (or take ``segments``), execute, measure; a JSON-able report.
+
+    Args:
+        sc: a validated scenario with a push (``multicontact_push``).
+        planner: a ``FallPlanner`` (plans from the measured state at ``start_time``).
+        segments: a stored plan instead (``Segment.from_dict``); it must have been planned from the
+            state of this scenario at ``start_time`` (the report gives the mismatch).
+        start_time: take-over time [s] (default: the push's end).
+        duration: simulated time [s] (default: take-over + plan duration + ``cfg.settle``).
+    """
+    cfg = cfg or RunConfig()
+    if (planner is None) == (segments is None):
+        raise ValueError("give a planner or a stored plan (segments), not both")
+    from humfall_ros.multicontact.model import load_model as load_planar
+
+    pm = planner.model if planner is not None else load_planar()
+    t_start = push_end_time(sc) if start_time is None else float(start_time)
+    mode0 = parse_mode(INITIAL_MODE)
+    info: dict[str, Any] = {}
+    loop: ClosedLoop | None = None
+
+    def measured_state():
+        q3, v3 = loop.world.pinocchio_state()
+        qp, vp = planar_state(pm, loop.model.joint_names, q3, v3)
+        proj = project_to_mode(pm, qp, vp, mode0)
+        info["state"] = {"time": loop.world.time, "ke_3d": probe.kinetic_energy(),
+                         "ke_planar": proj.ke_before, "ke_planar_projected": proj.ke_after,
+                         "projection_q_shift": proj.q_shift, "projection_contact_gap_m": proj.gap_before,
+                         "projection_contact_slip_mps": proj.slip_before,
+                         "lateral_velocity_mps": float(loop.world.base_state()[2][1]),
+                         "q": proj.q.tolist(), "v": proj.v.tolist()}
+        return proj
+
+    def plan_source(obs):
+        proj = measured_state()
+        t0 = time.perf_counter()
+        r = planner.plan({"q": proj.q.tolist(), "v": proj.v.tolist(), "initial_mode": INITIAL_MODE,
+                          "time_budget": cfg.time_budget})
+        info["plan"] = {"success": bool(r["success"]), "reason": r["reason"], "compute_s": time.perf_counter() - t0,
+                        "contact_sequence": r["contact_sequence"], "node_ke": r["node_ke"],
+                        "final_ke": r["final_ke"], "initial_ke": r["initial_ke"], "nlp_count": r["nlp_count"],
+                        "landings": [x.to_dict() for x in r["landings"]]}
+        return r["segments"] if r["success"] else None
+
+    def stored_source(obs):
+        proj = measured_state()
+        s0 = segments[0]
+        info["plan"] = {"success": True, "reason": "stored plan", "compute_s": 0.0,
+                        "stored_state_error_q": float(np.abs(proj.q - s0.q[0]).max()),
+                        "stored_state_error_v": float(np.abs(proj.v - s0.v[0]).max())}
+        return list(segments)
+
+    ex_cfg = ExecutorConfig(start_time=t_start, hold=cfg.hold)
+    executor = MulticontactExecutor([], pm.joint_names, _joint_names(), ex_cfg,
+                                    plan_source=plan_source if segments is None else stored_source)
+    hm = _model()
+    loop = ClosedLoop(sc, controllers=[locomotion_controller(sc, hm), executor],
+                      priorities={executor.source: EXECUTOR_PRIORITY})
+    probe = _Probe(loop.world)
+    rate = sc["sim"]["control_rate"]
+    try:
+        t_end = None if duration is None else float(duration)
+        while True:
+            loop.step()
+            probe.record()
+            if t_end is None and (executor.take_over_time is not None or executor.failed):
+                plan_T = sum(float(s.time[-1]) for s in executor.segments) if executor.segments else 0.0
+                t_end = (executor.take_over_time or loop.world.time) + plan_T + cfg.settle
+            if t_end is not None and loop.world.time >= t_end - 0.5 / rate:
+                break
+            if loop.world.time > t_start + 60.0:
+                break
+    finally:
+        loop.close()
+    return _report(sc, pm, executor, probe, info, cfg, loop.active_sources)
+
+
+_MODEL_CACHE: dict = {}
+
+
+def _model():
+    if "hm" not in _MODEL_CACHE:
+        from humfall_ros.model.humanoid import load_model
+
+        _MODEL_CACHE["hm"] = load_model()
+    return _MODEL_CACHE["hm"]
+
+
+def _joint_names() -> list[str]:
+    return list(_model().joint_names)
+
+
+def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active: list[str]) -> dict:
+    t = np.array(probe.t)
+    ke = np.array(probe.ke)
+    fmin = cfg.contact_force_min
+    push = sc["push"][0]
+    out: dict[str, Any] = {
+        "scenario": sc["name"], "push": {"force": push["force"], "duration": push["duration"],
+                                         "start": push_time(sc, push), "end": push_end_time(sc)},
+        "plan": info.get("plan", {"success": False, "reason": executor.reason}),
+        "state_at_take_over": {k: v for k, v in info.get("state", {}).items() if k not in ("q", "v")},
+        "take_over_time": executor.take_over_time, "executor_failed": executor.failed,
+        "executor_reason": executor.reason, "ke_max": float(ke.max()) if len(ke) else float("nan"),
+    }
+    if executor.take_over_time is None:
+        out["success"] = False
+        return out
+    t0 = executor.take_over_time
+    k0 = int(np.searchsorted(t, t0 - 1e-9))
+    segs = executor.segments
+    out["_segments"] = list(segs)       # the executed plan (Segment objects; not JSON)
+    out["plan"]["segments"] = [{"kind": s.kind, "mode": mode_label(s.mode), "target_mode": mode_label(s.target_mode),
+                                "change": s.change, "extremity": s.extremity, "duration": float(s.time[-1]),
+                                "ke_start": float(s.ke[0]), "ke_end": float(s.ke[-1])} for s in segs]
+    out["plan"]["duration"] = float(sum(s.time[-1] for s in segs))
+    off, curve = 0.0, []
+    for s in segs:
+        curve += [[off + float(tt), float(e)] for tt, e in zip(s.time, s.ke)]
+        off += float(s.time[-1])
+    out["plan"]["ke_curve"] = curve
+    out["switches"] = [{"segment": i, "plan_time": float(tp), "why": why} for i, tp, why in executor.switches]
+    out["sources_after_take_over"] = sorted(set(active[k0 + 1:]))
+    planned_final = segs[-1].mode
+    out["planned_final_mode"] = mode_label(planned_final)
+    # contact events: planned vs executed
+    touching = {e: np.array(probe.limb_force[e]) > fmin for e in LIMBS}
+    events = []
+    for ev in planned_contacts(pm, segs):
+        row = {"extremity": ev.extremity, "change": ev.change, "planned_time": ev.time,
+               "planned_x": ev.position[0], "planned_z": ev.position[1]}
+        want = ev.change == "add"
+        k = _first(touching[ev.extremity] == want, k0)
+        row["executed_time"] = None if k is None else float(t[k] - t0)
+        if k is not None and want and probe.limb_point[ev.extremity][k] is not None:
+            p = probe.limb_point[ev.extremity][k]
+            row["executed_x"], row["executed_y"], row["executed_z"] = (float(p[0]), float(p[1]), float(p[2]))
+        events.append(row)
+    out["contact_events"] = events
+    # every limb's first change of contact after the take-over, planned or not
+    out["limb_touchdowns"] = {}
+    for e in LIMBS:
+        k = _first(touching[e] != touching[e][k0], k0)
+        out["limb_touchdowns"][e] = {"in_contact_at_take_over": bool(touching[e][k0]),
+                                     "first_change_time": None if k is None else float(t[k] - t0)}
+    out["peak_force_n"] = {e: float(np.max(probe.limb_force[e][k0:])) for e in LIMBS}
+    out["peak_force_n_time"] = {e: float(t[k0 + int(np.argmax(probe.limb_force[e][k0:]))] - t0) for e in LIMBS}
+    mg = pin.computeTotalMass(_model().model) * GRAVITY
+    out["peak_force_mg"] = {e: v / mg for e, v in out["peak_force_n"].items()}
+    # the end: kinetic energy, mode, other links
+    kw = int(np.searchsorted(t, t[-1] - cfg.final_window))
+    out["final_time"] = float(t[-1])
+    out["final_ke"] = float(ke[-1])
+    out["final_ke_window_max"] = float(ke[kw:].max())
+    final_limbs = [e for e in LIMBS if touching[e][kw:].all()]
+    out["final_mode"] = "/".join(final_limbs) if final_limbs else "(none)"
+    out["final_mode_matches_plan"] = set(final_limbs) == set(planned_final)
+    others = {}
+    for name, by_tick in probe.link_force.items():
+        ks = sorted(k for k, f in by_tick.items() if k >= k0 and f > fmin)
+        if ks:
+            others[name] = {"first_time": float(t[ks[0]] - t0), "peak_normal_n": float(max(by_tick[k] for k in ks)),
+                            "at_end": any(k >= kw for k in ks)}
+    out["other_links_touching"] = others
+    planned_ext = set().union(*[set(s.mode) | set(s.target_mode) for s in segs])
+    unplanned_limbs = [e for e in LIMBS if e not in planned_ext and touching[e][k0:].any()]
+    out["unplanned_limbs_touching"] = unplanned_limbs
+    out["final_trunk_tilt_deg"] = math.degrees(probe.tilt[-1])
+    out["ke_at_plan_end"] = float(ke[min(len(ke) - 1, int(np.searchsorted(t, t0 + out["plan"]["duration"])))])
+    out["series"] = {"t": (t - t0).tolist(), "ke": ke.tolist(),
+                     "limb_force": {e: list(map(float, probe.limb_force[e])) for e in LIMBS},
+                     "other_force": {n: [float(by.get(k, 0.0)) for k in range(len(t))]
+                                     for n, by in probe.link_force.items()}}
+    out["success"] = bool(out["final_ke"] < 0.5 and out["final_mode_matches_plan"] and not others
+                          and not unplanned_limbs)
+    return out
+
+
+def state_at(sc: dict, t: float) -> dict:
+    """The standing robot pushed by ``sc`` until sim time ``t`` (no executor): KE, planar state (for push tables)."""
+    from humfall_ros.multicontact.model import load_model as load_planar
+
+    pm = load_planar()
+    hm = _model()
+    loop = ClosedLoop(sc, controllers=[locomotion_controller(sc, hm)])
+    probe = _Probe(loop.world)
+    try:
+        while loop.world.time < t - 1e-9:
+            loop.step()
+        q3, v3 = loop.world.pinocchio_state()
+        qp, vp = planar_state(pm, hm.joint_names, q3, v3)
+        proj = project_to_mode(pm, qp, vp, parse_mode(INITIAL_MODE))
+        return {"time": loop.world.time, "ke_3d": probe.kinetic_energy(), "ke_planar": proj.ke_before,
+                "ke_planar_projected": proj.ke_after, "projection_contact_gap_m": proj.gap_before,
+                "projection_contact_slip_mps": proj.slip_before, "projection_q_shift": proj.q_shift,
+                "pitch_rate": float(vp[2]), "lateral_velocity_mps": float(loop.world.base_state()[2][1])}
+    finally:
+        loop.close()
+
+
+__all__ = ["EXECUTOR_PRIORITY", "RunConfig", "execute", "push_end_time", "state_at", "with_push"]
