@@ -5,7 +5,7 @@ from setuptools import find_packages, setup
 
 PACKAGE = "humfall_ros"
 NODES = ["sim_bridge", "state_estimator", "locomotion", "recorder", "multicontact_planner", "estop_planner",
-         "ftb_monitor", "safe_fall_controller"]
+         "ftb_monitor", "safe_fall_controller", "multicontact_executor"]
 
 setup(
     name=PACKAGE,
@@ -16,6 +16,7 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/config/scenarios", glob("config/scenarios/*.yaml")),
+        (f"share/{PACKAGE}/config/multicontact_plans", glob("config/multicontact_plans/*.json")),
         (f"share/{PACKAGE}/urdf", glob("urdf/*.urdf")),
     ],
     install_requires=["setuptools"],

@@ -163,12 +163,19 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[NodeSpec]:
         # trigger acts on exactly its tick (the same rule as closed_loop.runs_estop)
         nodes.append(NodeSpec("estop_planner", "humfall_ros.nodes.estop_planner", dict(trigger), "estop",
                               builtin.get("estop")))
-    for c in sc.get("controllers") or []:
+    for ci, c in enumerate(sc.get("controllers") or []):
         node = c["node"]
         mod = node if (node.endswith(".py") or "." in node) else f"humfall_ros.nodes.{node}"
         stem = pathlib.Path(node).stem if node.endswith(".py") else node.rsplit(".", 1)[-1]
         name = f"{stem}_{c['source']}"  # one node module may serve several sources
-        nodes.append(NodeSpec(name, mod, dict(c.get("params") or {}), c["source"], int(c["priority"])))
+        own = dict(c.get("params") or {})
+        if mod.startswith("humfall_ros.nodes.") and params_mod.declarations(stem):
+            # a package node declares its parameters: a typo would be ignored by rclpy, refuse it here
+            try:
+                own = params_mod.check_overrides(stem, own, prefix=f"controllers.{ci}.params.")
+            except params_mod.ParamError as e:
+                raise RunError(str(e)) from None
+        nodes.append(NodeSpec(name, mod, own, c["source"], int(c["priority"])))
     sources = [n for n in nodes if n.source]
     try:
         order = mux_order([n.source for n in sources], {n.source: n.priority for n in sources})
