@@ -97,6 +97,7 @@ def main() -> int:
     ap.add_argument("--plots", default="")
     ap.add_argument("--calibrate", default="")
     ap.add_argument("--hold", choices=("planar", "measured"), default="planar")
+    ap.add_argument("--both-hands", action="store_true", help="ExecutorConfig.both_hands")
     ap.add_argument("--set", default="", help="planner parameters name=value,... (yaml names)")
     ap.add_argument("--series", action="store_true", help="keep the per-tick series in the JSON")
     a = ap.parse_args()
@@ -122,7 +123,7 @@ def main() -> int:
         t0 = time.perf_counter()
         force, table = force_for_energy(sc, ke)
         s = mr.with_push(sc, force)
-        r = mr.execute(s, planner=planner, cfg=mr.RunConfig(time_budget=a.budget, hold=a.hold))
+        r = mr.execute(s, planner=planner, cfg=mr.RunConfig(time_budget=a.budget, hold=a.hold, both_hands=a.both_hands))
         r["target_ke"] = ke
         r["push_force_n"] = force
         r["push_table"] = table
@@ -136,7 +137,7 @@ def main() -> int:
             segs = r.pop("_segments")
             StoredPlan(segs, r["take_over_time"], {
                 "scenario": SCENARIO, "push_force": [force, 0.0, 0.0], "target_ke": ke,
-                "objective": a.objective, "planner_overrides": overrides,
+                "objective": a.objective, "planner_overrides": overrides, "both_hands": a.both_hands,
                 "state_at_take_over": r["state_at_take_over"],
                 "contact_sequence": r["plan"]["contact_sequence"]}).save(
                 pathlib.Path(a.save_plans) / f"multicontact_push_{ke:g}J.json")

@@ -39,12 +39,16 @@ class ExecutorConfig:
         hold: the joints the planar model does not have: ``"planar"`` holds them at the value the
             planar model locks them at (0 rad: the plan's mass distribution), ``"measured"`` where
             the servos tracked them at the take-over tick.
+        both_hands: when the plan lands one hand only, the other arm tracks the landing arm's joints
+            (the planar model has both hands in one plane; on the 3-D robot one hand beside two feet
+            leaves the centre of mass outside the support triangle, so it rolls over that edge).
     """
 
     landing_wait: float = 0.2
     early_switch: float = 0.15
     start_time: float = 0.0
     hold: str = "planar"
+    both_hands: bool = False
 
     def __post_init__(self):
         if self.hold not in HOLD_MODES:
@@ -92,7 +96,22 @@ class MulticontactExecutor:
         self.plan_source = plan_source
         self.index = np.array([joint_names.index(j) for j in planar_joint_names])
         self.n_joints = len(joint_names)
+        self.planar_joint_names = list(planar_joint_names)
         self.reset()
+
+    def _arm_copy(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(to, from) planar joint indices when ``both_hands`` applies to this plan, else None."""
+        if not self.cfg.both_hands:
+            return None
+        hands = {e for s in self.segments for e in s.target_mode if e in ("LH", "RH")}
+        if len(hands) != 1:
+            return None
+        src = "l_" if hands == {"LH"} else "r_"
+        dst = "r_" if src == "l_" else "l_"
+        pairs = [(self.planar_joint_names.index(dst + j[2:]), i) for i, j in enumerate(self.planar_joint_names)
+                 if j.startswith(src) and ("shoulder" in j or "elbow" in j)
+                 and dst + j[2:] in self.planar_joint_names]
+        return (np.array([a for a, _ in pairs]), np.array([b for _, b in pairs])) if pairs else None
 
     def reset(self) -> None:
         self.segments: list[Segment] = list(self._given)
@@ -102,6 +121,7 @@ class MulticontactExecutor:
         self._seg_start = 0.0
         self.failed = False
         self.reason = ""
+        self._copy = None
         self.switches: list[tuple[int, float, str]] = []   # (segment entered, plan time, why)
 
     @property
@@ -136,6 +156,7 @@ class MulticontactExecutor:
                 self.reason = self.reason or "no plan"
                 return False
             self.segments = list(segs)
+        self._copy = self._arm_copy()
         self._t0 = observation.time
         if self.cfg.hold == "planar":
             self._hold = np.zeros(self.n_joints)         # the planar model's locked joints are at 0
@@ -173,6 +194,9 @@ class MulticontactExecutor:
         q, dq = self.sample(seg, tp - self._seg_start)
         if tp - self._seg_start > float(seg.time[-1]):
             dq = np.zeros_like(dq)      # holding the last knot (plan over, or waiting for a touchdown)
+        if self._copy is not None:
+            q, dq = q.copy(), dq.copy()
+            q[self._copy[0]], dq[self._copy[0]] = q[self._copy[1]], dq[self._copy[1]]
         pos = self._hold.copy()
         vel = np.zeros(self.n_joints)
         pos[self.index] = q

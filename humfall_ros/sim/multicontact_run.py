@@ -53,7 +53,7 @@ class RunConfig:
         contact_force_min: a limb or link touches when its tick-mean contact force exceeds this [N].
         final_window: the final mode and KE are judged over this last stretch of the run [s].
         time_budget: the planner's wall-clock budget [s].
-        hold: ``ExecutorConfig.hold``.
+        hold, both_hands: ``ExecutorConfig.hold``, ``ExecutorConfig.both_hands``.
     """
 
     settle: float = 1.5
@@ -61,6 +61,7 @@ class RunConfig:
     final_window: float = 0.1
     time_budget: float = 120.0
     hold: str = "planar"
+    both_hands: bool = False
 
 
 def push_end_time(sc: dict) -> float:
@@ -193,7 +194,7 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
                         "stored_state_error_v": float(np.abs(proj.v - s0.v[0]).max())}
         return list(segments)
 
-    ex_cfg = ExecutorConfig(start_time=t_start, hold=cfg.hold)
+    ex_cfg = ExecutorConfig(start_time=t_start, hold=cfg.hold, both_hands=cfg.both_hands)
     executor = MulticontactExecutor([], pm.joint_names, _joint_names(), ex_cfg,
                                     plan_source=plan_source if segments is None else stored_source)
     hm = _model()
