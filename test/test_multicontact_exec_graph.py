@@ -1,0 +1,66 @@
+"""The multicontact executor node over ROS (``humfall up multicontact_push``): it takes over at the
+plan file's take-over time and gives the joint states of the in-process loop, bit for bit.
+
+Its own ROS_DOMAIN_ID on localhost (conftest.in_ros_domain). The plan is a small synthetic one
+(a two-foot self-motion raising the arms), so the test does not depend on the planner.
+"""
+import numpy as np
+
+from humfall_ros import launch, params, scenario
+from humfall_ros.model.humanoid import load_model as load_humanoid
+from humfall_ros.multicontact.collocation import Segment
+from humfall_ros.multicontact.executor import StoredPlan
+from humfall_ros.multicontact.model import load_model as load_planar
+from humfall_ros.nodes.multicontact_executor import make_controller
+from humfall_ros.sim.closed_loop import ClosedLoop, locomotion_controller
+
+from test_contract_graph import _rows, bag_topic
+
+TAKE_OVER = 0.6
+
+
+def synthetic_plan(path):
+    pm, hm = load_planar(), load_humanoid()
+    q0 = np.zeros(pm.n)
+    for i, j in enumerate(pm.joint_names):
+        q0[3 + i] = hm.standing_posture.get(j, 0.0)
+    q1 = q0.copy()
+    for j in ("l_shoulder_pitch", "r_shoulder_pitch"):
+        q1[3 + pm.joint_names.index(j)] -= 0.6
+    N, T = 5, 0.4
+    t = np.linspace(0, T, N)
+    s = (1 - np.cos(np.pi * t / T)) / 2
+    q = q0 + np.outer(s, q1 - q0)
+    v = np.outer(np.pi / (2 * T) * np.sin(np.pi * t / T), q1 - q0)
+    seg = Segment(kind="self_motion", mode=("LF", "RF"), target_mode=("LF", "RF"), change="", extremity="",
+                  time=t, q=q, v=v, a=np.zeros_like(q), u=np.zeros((N, pm.m)), lam=np.zeros((N, 0)), rows=[],
+                  ke=np.zeros(N), success=True, status="synthetic", iterations=0, nlp_time=0.0, seed_duration=T,
+                  attempts=1, max_violation=0.0)
+    StoredPlan([seg], TAKE_OVER, {"synthetic": True}).save(path)
+
+
+def test_the_executor_node_takes_over_at_the_plan_time_and_matches_the_in_process_loop(in_ros_domain, tmp_path):
+    plan = tmp_path / "plan.json"
+    synthetic_plan(plan)
+    ov = ["duration=1.2", "push.0.force=[100.0, 0.0, 0.0]", f"controllers.0.params.plan_file={plan}"]
+    status, r = launch.up("multicontact_push", None, ov, runs_dir=str(tmp_path / "runs"), quiet=True)
+    assert status == 0, r
+    assert "multicontact_executor_multicontact" in r["node_exit_codes"]
+    active = dict(bag_topic(r["bag"], "/mux/state", "active"))
+    assert active[int(0.598e9)] == "locomotion"
+    assert active[int(0.602e9)] == "multicontact"          # the tick after the take-over tick
+    assert active[int(1.19e9)] == "multicontact"            # never released
+    sc = scenario.load("multicontact_push", ov)
+    p = {**params.defaults("multicontact_executor"), "plan_file": str(plan)}
+    loop = ClosedLoop(sc, controllers=[locomotion_controller(sc, load_humanoid()), make_controller(p, load_humanoid())],
+                      priorities={"multicontact": 40})
+    try:
+        mine = loop.run()
+    finally:
+        loop.close()
+    ros = _rows(r, len(mine.joint_positions))
+    assert np.array_equal(ros, mine.joint_positions)
+    # and the arms did follow the plan (raised by ~0.6 rad over 0.4 s)
+    hm = load_humanoid()
+    k = hm.joint_names.index("l_shoulder_pitch")
+    assert mine.joint_positions[-1, k] - mine.joint_positions[int(TAKE_OVER * 500), k] < -0.4
