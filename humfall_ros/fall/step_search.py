@@ -321,12 +321,17 @@ def zone_cells(zone: SteppingZone, cfg: SearchConfig, obstacles: list[Footprint]
     ys = np.arange(y0 + cfg.cell_xy / 2, y1, cfg.cell_xy)
     nyaw = max(1, math.floor((hi - lo) / cfg.cell_yaw) + 1)
     yaws = np.linspace(lo, hi, nyaw) if nyaw > 1 else np.array([0.5 * (lo + hi)])
-    X, Y, B = np.meshgrid(xs, ys, yaws, indexing="ij")
-    cells = np.column_stack([X.ravel(), Y.ravel(), B.ravel()])
-    cells = cells[zone.contains(cells[:, :2], cells[:, 2])]
-    if obstacles and len(cells):
-        cells = cells[~_hits_obstacles(cells, obstacles, cfg.obstacle_clearance)]
-    return cells
+    # the zone's tests split into a position part and a yaw part: test the (x, y) grid and the yaws
+    # apart and combine (the same cells, in the same x, y, yaw order, as the (x, y, yaw) grid tested whole)
+    xy = np.column_stack([np.repeat(xs, len(ys)), np.tile(ys, len(xs))])
+    keep = zone.contains_xy(xy)
+    if obstacles and len(xy):
+        keep &= ~_hits_obstacles(xy, obstacles, cfg.obstacle_clearance)
+    xy = xy[keep]
+    yaws = yaws[zone.contains_yaw(yaws)]
+    if len(xy) == 0 or len(yaws) == 0:
+        return np.zeros((0, 3))
+    return np.column_stack([np.repeat(xy, len(yaws), axis=0), np.tile(yaws, len(xy))])
 
 
 def sole_corners_at(poses: np.ndarray, local: np.ndarray) -> np.ndarray:

@@ -79,22 +79,32 @@ class SteppingZone:
 
     def contains(self, xy, yaw) -> np.ndarray:
         """Mask of landing sole poses (xy (n, 2) [m], yaw (n,) [rad]) inside the zone."""
+        return self.contains_xy(xy) & self.contains_yaw(yaw)
+
+    def contains_xy(self, xy) -> np.ndarray:
+        """The position part of :meth:`contains` (box, separatrix, reach, stance side), (n,) of xy (n, 2) [m]."""
         xy = np.asarray(xy, float).reshape(-1, 2)
-        yaw = np.asarray(yaw, float).reshape(-1)
-        d = xy - self.center[:2]
-        ok = (np.abs(d[:, 0]) <= self.half_extent_eq8[0]) & (np.abs(d[:, 1]) <= self.half_extent_eq8[1])
-        ok &= np.abs(_wrap(yaw - self.center[2])) <= self.half_extent_eq8[2]
-        ok &= d @ self.fall_direction >= 0.0                                   # separatrix
-        ok &= np.sum((xy - self.hip_xy) ** 2, axis=1) <= self.reach_radius ** 2  # reach
-        ok &= (yaw >= self.yaw_range[0]) & (yaw <= self.yaw_range[1])
+        dx, dy = xy[:, 0] - self.center[0], xy[:, 1] - self.center[1]
+        ok = (np.abs(dx) <= self.half_extent_eq8[0]) & (np.abs(dy) <= self.half_extent_eq8[1])
+        ok &= dx * self.fall_direction[0] + dy * self.fall_direction[1] >= 0.0      # separatrix
+        hx, hy = xy[:, 0] - self.hip_xy[0], xy[:, 1] - self.hip_xy[1]
+        ok &= hx * hx + hy * hy <= self.reach_radius ** 2                              # reach
         # relative to the stance sole: on the swing side, clear of the stance sole
         c, s = math.cos(self.stance_pose[2]), math.sin(self.stance_pose[2])
-        rel = xy - self.stance_pose[:2]
-        lon = rel[:, 0] * c + rel[:, 1] * s
-        lat = -rel[:, 0] * s + rel[:, 1] * c
-        side = 1.0 if self.swing == "l" else -1.0
-        ok &= side * lat >= 0.0
-        ok &= (side * lat >= self.min_lateral) | (np.abs(lon) >= self.min_longitudinal)
+        rx, ry = xy[:, 0] - self.stance_pose[0], xy[:, 1] - self.stance_pose[1]
+        lon = rx * c + ry * s
+        lat = -rx * s + ry * c
+        if self.swing != "l":
+            lat = -lat
+        ok &= lat >= 0.0
+        ok &= (lat >= self.min_lateral) | (np.abs(lon) >= self.min_longitudinal)
+        return ok
+
+    def contains_yaw(self, yaw) -> np.ndarray:
+        """The yaw part of :meth:`contains` (eq.-8 D_beta, hip-yaw range, yaw change), (n,) of yaw (n,) [rad]."""
+        yaw = np.asarray(yaw, float).reshape(-1)
+        ok = np.abs(_wrap(yaw - self.center[2])) <= self.half_extent_eq8[2]
+        ok &= (yaw >= self.yaw_range[0]) & (yaw <= self.yaw_range[1])
         return ok
 
 
