@@ -44,7 +44,7 @@ import numpy as np
 from humfall_ros.control.contract import CentroidalObservation, Observation
 from humfall_ros.dynamics.pendulum import GRAVITY
 from humfall_ros.dynamics.toppling import FallOutcome, edge_pendulum, time_to_lean
-from humfall_ros.fall.geometry import PolygonEdges
+from humfall_ros.fall.geometry import PolygonEdges, polygon_margin_xy
 
 
 class FtbState(enum.Enum):
@@ -261,29 +261,6 @@ def _width(pts: list, normals: list) -> float:
     return w
 
 
-def _margin(qx: float, qy: float, pts: list) -> float:
-    """``humanoid.point_in_polygon_margin`` on Python floats (the same arithmetic)."""
-    k = len(pts)
-    if k < 3:
-        if k == 0:
-            return -math.inf
-        ax, ay = pts[0]
-        if k == 1:
-            return -math.sqrt((qx - ax) ** 2 + (qy - ay) ** 2)
-        ex, ey = pts[1][0] - ax, pts[1][1] - ay
-        t = min(max(((qx - ax) * ex + (qy - ay) * ey) / max(ex * ex + ey * ey, 1e-12), 0.0), 1.0)
-        return -math.sqrt((qx - (ax + t * ex)) ** 2 + (qy - (ay + t * ey)) ** 2)
-    margin = math.inf
-    for i in range(k):
-        (ax, ay), (bx, by) = pts[i], pts[(i + 1) % k]
-        ex, ey = bx - ax, by - ay
-        length = math.hypot(ex, ey)
-        if length < 1e-12:
-            continue
-        margin = min(margin, ((qx - ax) * -ey + (qy - ay) * ex) / length)
-    return margin
-
-
 def _strip_edge(poly, feet_center, qxy) -> PolygonEdges:
     """A thin polygon (the feet rocking on one line of corners) as one pivot line.
 
@@ -337,7 +314,7 @@ def features_of(s: CentroidalObservation, polygon=None, g: float = GRAVITY,
             not all(math.isfinite(x) for p in pts for x in p):
         return f
     qx, qy = cp[0], cp[1]
-    f.capture_point_margin = _margin(qx, qy, pts)
+    f.capture_point_margin = polygon_margin_xy(qx, qy, pts)
     fcx, fcy = np.asarray(s.feet_center, float).tolist()[:2]
     starts, ends, normals = _edges(pts)
     if len(pts) >= 3 and _width(pts, normals) < thin_width or len(pts) == 2 and thin_width > 0.0:

@@ -93,6 +93,71 @@ def avoidance_angle(p, q, target):
     return np.where((na < 1e-9) | (nb < 1e-9), np.nan, out)
 
 
+def polygon_margin_xy(qx: float, qy: float, pts: list) -> float:
+    """``humanoid.point_in_polygon_margin`` (signed distance, > 0 inside) on Python floats, the same arithmetic.
+
+    For the per-tick callers with a handful of points (FTB, the search's single-polygon cases), where
+    numpy's per-call overhead costs more than the arithmetic. ``pts``: [(x, y), ...] CCW [m].
+    """
+    k = len(pts)
+    if k < 3:
+        if k == 0:
+            return -math.inf
+        ax, ay = pts[0]
+        if k == 1:
+            return -math.sqrt((qx - ax) ** 2 + (qy - ay) ** 2)
+        ex, ey = pts[1][0] - ax, pts[1][1] - ay
+        t = min(max(((qx - ax) * ex + (qy - ay) * ey) / max(ex * ex + ey * ey, 1e-12), 0.0), 1.0)
+        return -math.sqrt((qx - (ax + t * ex)) ** 2 + (qy - (ay + t * ey)) ** 2)
+    margin = math.inf
+    for i in range(k):
+        (ax, ay), (bx, by) = pts[i], pts[(i + 1) % k]
+        ex, ey = bx - ax, by - ay
+        length = math.hypot(ex, ey)
+        if length < 1e-12:
+            continue
+        margin = min(margin, ((qx - ax) * -ey + (qy - ay) * ex) / length)
+    return margin
+
+
+def inside_convex_xy(qx: float, qy: float, pts: list, tolerance: float = 0.0) -> bool:
+    """:func:`inside_convex` on Python floats (``pts`` [(x, y), ...] CCW [m])."""
+    k = len(pts)
+    if k < 3:
+        return False
+    for i in range(k):
+        (ax, ay), (bx, by) = pts[i], pts[(i + 1) % k]
+        ex, ey = bx - ax, by - ay
+        length = max(math.sqrt(ex * ex + ey * ey), 1e-12)
+        if (qx - ax) * (ey / length) + (qy - ay) * (-ex / length) > -tolerance:
+            return False
+    return True
+
+
+def nearest_on_boundary_xy(qx: float, qy: float, pts: list, closed: bool = True) -> tuple[float, float]:
+    """:func:`nearest_on_boundary` on Python floats: the nearest point of the polygon's edges (``closed``)
+    or of the polyline ``pts`` (a segment: two points, ``closed=False``) [m]."""
+    best, out = math.inf, pts[0]
+    segs = list(zip(pts, pts[1:] + pts[:1])) if closed else list(zip(pts[:-1], pts[1:]))
+    for (ax, ay), (bx, by) in segs:
+        ex, ey = bx - ax, by - ay
+        t = min(max(((qx - ax) * ex + (qy - ay) * ey) / max(ex * ex + ey * ey, 1e-18), 0.0), 1.0)
+        nx, ny = ax + t * ex, ay + t * ey
+        d = math.sqrt((nx - qx) ** 2 + (ny - qy) ** 2)
+        if d < best:
+            best, out = d, (nx, ny)
+    return out
+
+
+def avoidance_angle_xy(px: float, py: float, qx: float, qy: float, tx: float, ty: float) -> float:
+    """:func:`avoidance_angle` of one point triple on Python floats [rad] (NaN when P == Q or P == T)."""
+    ax, ay, bx, by = qx - px, qy - py, tx - px, ty - py
+    na, nb = math.sqrt(ax * ax + ay * ay), math.sqrt(bx * bx + by * by)
+    if na < 1e-9 or nb < 1e-9:
+        return math.nan
+    return math.acos(min(max((ax * bx + ay * by) / (na * nb), -1.0), 1.0))
+
+
 def heading(v) -> float:
     """Heading of a horizontal vector [rad] (atan2(y, x))."""
     return math.atan2(float(v[1]), float(v[0]))
@@ -104,5 +169,6 @@ def rotation_z(yaw: float) -> np.ndarray:
     return np.array([[c, -s], [s, c]])
 
 
-__all__ = ["PolygonEdges", "avoidance_angle", "heading", "inside_convex", "nearest_on_boundary",
-           "nearest_on_segments", "polygon_edges", "rotation_z"]
+__all__ = ["PolygonEdges", "avoidance_angle", "avoidance_angle_xy", "heading", "inside_convex", "inside_convex_xy",
+           "nearest_on_boundary", "nearest_on_boundary_xy", "nearest_on_segments", "polygon_edges",
+           "polygon_margin_xy", "rotation_z"]

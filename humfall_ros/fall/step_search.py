@@ -40,13 +40,14 @@ from humfall_ros.dynamics.pendulum import GRAVITY
 from humfall_ros.dynamics.toppling import spherical_rk4
 from humfall_ros.fall.geometry import (
     avoidance_angle,
-    inside_convex,
-    nearest_on_boundary,
-    nearest_on_segments,
+    avoidance_angle_xy,
+    inside_convex_xy,
+    nearest_on_boundary_xy,
+    polygon_margin_xy,
     rotation_z,
 )
 from humfall_ros.fall.stepping_zone import SteppingZone
-from humfall_ros.model.humanoid import point_in_polygon_margin, support_polygon
+from humfall_ros.model.humanoid import support_polygon
 
 
 class StepCase(enum.Enum):
@@ -236,60 +237,92 @@ def _hull_eval(cells: np.ndarray, sole_local: np.ndarray, pivot: np.ndarray, q: 
         q: Q2 [m], (2,). target: T [m], (2,).
     Returns:
         (P2 (N, 2) [m], margin (N,) [m], > 0 inside, alpha (N,) [rad]).
+
+    Layout: the segments are rows of (S, N) arrays (S = 4 K, + 1 for an edge pivot), so the
+    reductions over the pieces run along the long axis (a min over axis 1 of (N, 9) costs 10x more).
     """
+    h = _hull_core(cells, sole_local, pivot, q)
+    p2x, p2y = h.p2()
+    return np.column_stack([p2x, p2y]), h.margin, _alpha(p2x, p2y, q, target)
+
+
+@dataclasses.dataclass
+class _Hull:
+    """:func:`_hull_core`'s result: nearest point (bx, by) in each sole frame, the frames, the margin."""
+
+    cells: np.ndarray
+    cos: np.ndarray
+    sin: np.ndarray
+    bx: np.ndarray
+    by: np.ndarray
+    margin: np.ndarray
+
+    def p2(self, i: int | None = None):
+        """P2 in the world [m]: (x (N,), y (N,)), or of cell ``i`` as floats."""
+        if i is None:
+            c, s, bx, by = self.cos, self.sin, self.bx, self.by
+            return self.cells[:, 0] + c * bx - s * by, self.cells[:, 1] + s * bx + c * by
+        c, s, bx, by = float(self.cos[i]), float(self.sin[i]), float(self.bx[i]), float(self.by[i])
+        return float(self.cells[i, 0]) + c * bx - s * by, float(self.cells[i, 1]) + s * bx + c * by
+
+
+def _alpha(p2x, p2y, q, target) -> np.ndarray:
+    """alpha = angle(Q2 P2 T) (Fig. 5) per cell [rad] (NaN when P2 is on Q2 or T)."""
+    ux, uy = q[0] - p2x, q[1] - p2y
+    vx, vy = target[0] - p2x, target[1] - p2y
+    nu, nv = np.hypot(ux, uy), np.hypot(vx, vy)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        alpha = np.arccos(np.clip((ux * vx + uy * vy) / (nu * nv), -1.0, 1.0))
+    return np.where((nu < 1e-9) | (nv < 1e-9), np.nan, alpha)
+
+
+def _hull_core(cells: np.ndarray, sole_local: np.ndarray, pivot: np.ndarray, q: np.ndarray) -> _Hull:
+    """The nearest point and the margin of :func:`_hull_eval` (its docstring), without P2 in the world and alpha."""
     x0, y0 = sole_local.min(axis=0)
     x1, y1 = sole_local.max(axis=0)
-    corners = np.array([[x1, y1], [x0, y1], [x0, y0], [x1, y0]])
+    n = len(cells)
+    npiv = pivot.shape[0]
+    X, Y = cells[:, 0], cells[:, 1]
     c, s = np.cos(cells[:, 2]), np.sin(cells[:, 2])
-    dx, dy = q[0] - cells[:, 0], q[1] - cells[:, 1]
+    dx, dy = q[0] - X, q[1] - Y
     qx, qy = c * dx + s * dy, -s * dx + c * dy                     # q in each sole frame (N,)
-    pdx = pivot[None, :, 0] - cells[:, None, 0]
-    pdy = pivot[None, :, 1] - cells[:, None, 1]
-    px, py = c[:, None] * pdx + s[:, None] * pdy, -s[:, None] * pdx + c[:, None] * pdy   # (N, K)
+    pdx, pdy = pivot[:, 0:1] - X, pivot[:, 1:2] - Y
+    px, py = c * pdx + s * pdy, -s * pdx + c * pdy                   # the pivots in each sole frame (K, N)
     # the rectangle, filled
     rx, ry = np.clip(qx, x0, x1), np.clip(qy, y0, y1)
     in_rect = (rx == qx) & (ry == qy)
     inner = np.minimum(np.minimum(qx - x0, x1 - qx), np.minimum(qy - y0, y1 - qy))
     d2_rect = np.where(in_rect, inner * inner, (qx - rx) ** 2 + (qy - ry) ** 2)
-    # segments pivot -> corner (N, K, 4) and pivot -> pivot
-    ax, ay = px[:, :, None], py[:, :, None]
-    ex, ey = corners[None, None, :, 0] - ax, corners[None, None, :, 1] - ay
-    n = len(cells)
-    ax, ay = np.broadcast_to(ax, ex.shape).reshape(n, -1), np.broadcast_to(ay, ey.shape).reshape(n, -1)
-    ex, ey = ex.reshape(n, -1), ey.reshape(n, -1)
-    if pivot.shape[0] == 2:
-        ax, ay = np.concatenate([ax, px[:, :1]], axis=1), np.concatenate([ay, py[:, :1]], axis=1)
-        ex = np.concatenate([ex, px[:, 1:] - px[:, :1]], axis=1)
-        ey = np.concatenate([ey, py[:, 1:] - py[:, :1]], axis=1)
-    wx, wy = qx[:, None] - ax, qy[:, None] - ay
+    # segments (S, N): pivot k -> corner j (k-major), then pivot 0 -> pivot 1
+    cx = np.array([x1, x0, x0, x1])[:, None]
+    cy = np.array([y1, y1, y0, y0])[:, None]
+    n_seg = 4 * npiv + (1 if npiv == 2 else 0)
+    ax, ay, ex, ey = (np.empty((n_seg, n)) for _ in range(4))
+    for k in range(npiv):
+        rows = slice(4 * k, 4 * k + 4)
+        ax[rows], ay[rows] = px[k], py[k]
+        np.subtract(cx, px[k], out=ex[rows])
+        np.subtract(cy, py[k], out=ey[rows])
+    if npiv == 2:
+        ax[8], ay[8] = px[0], py[0]
+        np.subtract(px[1], px[0], out=ex[8])
+        np.subtract(py[1], py[0], out=ey[8])
+    wx, wy = qx - ax, qy - ay
     t = np.clip((wx * ex + wy * ey) / np.maximum(ex * ex + ey * ey, 1e-18), 0.0, 1.0)
     nx, ny = ax + t * ex, ay + t * ey
-    d2 = (qx[:, None] - nx) ** 2 + (qy[:, None] - ny) ** 2
-    k = np.argmin(d2, axis=1)
-    rows = np.arange(len(cells))
-    d2_seg = d2[rows, k]
+    d2 = (qx - nx) ** 2 + (qy - ny) ** 2
+    flat = np.argmin(d2, axis=0) * n + np.arange(n)
+    d2_seg = d2.ravel()[flat]
     use_rect = d2_rect <= d2_seg
     # nearest point in the sole frame (inside the rectangle: q itself; not used for captures)
-    bx = np.where(use_rect, rx, nx[rows, k])
-    by = np.where(use_rect, ry, ny[rows, k])
+    bx = np.where(use_rect, rx, nx.ravel()[flat])
+    by = np.where(use_rect, ry, ny.ravel()[flat])
     dist = np.sqrt(np.minimum(d2_rect, d2_seg))
     # separation test: some point of the set beyond the line through the nearest point, normal to q - it
     mx, my = qx - bx, qy - by
-    beyond = np.max(np.concatenate([(corners[None, :, 0] - bx[:, None]) * mx[:, None]
-                                    + (corners[None, :, 1] - by[:, None]) * my[:, None],
-                                    (px - bx[:, None]) * mx[:, None] + (py - by[:, None]) * my[:, None]], axis=1),
-                    axis=1)
+    beyond = np.maximum(((cx - bx) * mx + (cy - by) * my).max(axis=0), ((px - bx) * mx + (py - by) * my).max(axis=0))
     inside = in_rect | (beyond > 1e-9 * np.maximum(np.hypot(mx, my), 1e-12))
-    margin = np.where(inside, dist, -dist)
-    p2 = np.column_stack([cells[:, 0] + c * bx - s * by, cells[:, 1] + s * bx + c * by])
-    # alpha = angle(Q2 P2 T) (Fig. 5)
-    ux, uy = q[0] - p2[:, 0], q[1] - p2[:, 1]
-    vx, vy = target[0] - p2[:, 0], target[1] - p2[:, 1]
-    nu, nv = np.hypot(ux, uy), np.hypot(vx, vy)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        alpha = np.arccos(np.clip((ux * vx + uy * vy) / (nu * nv), -1.0, 1.0))
-    alpha = np.where((nu < 1e-9) | (nv < 1e-9), np.nan, alpha)
-    return p2, margin, alpha
+    return _Hull(cells, c, s, bx, by, np.where(inside, dist, -dist))
 
 
 def _inside_margin(pts: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -421,20 +454,20 @@ def search(sit: FallSituation, sole_local: np.ndarray, cfg: SearchConfig | None 
 
 
 def _single(case: StepCase, poly, q2, target, g_td, cfg: SearchConfig) -> CaseResult:
+    """A case without a landing (no change, lift): Q2 against one polygon (or the pivot segment / corner)."""
     poly = support_polygon(poly) if len(poly) >= 3 else np.asarray(poly, float).reshape(-1, 2)
-    if len(poly) >= 3 and inside_convex(q2, poly, cfg.capture_margin):
-        return CaseResult(case, q2.copy(), q2.copy(), math.nan, True, point_in_polygon_margin(q2, poly), None, poly,
+    pts = poly.tolist()
+    qx, qy = float(q2[0]), float(q2[1])
+    if len(pts) >= 3 and inside_convex_xy(qx, qy, pts, cfg.capture_margin):
+        return CaseResult(case, q2.copy(), q2.copy(), math.nan, True, polygon_margin_xy(qx, qy, pts), None, poly,
                           g_td)
-    if len(poly) >= 3:
-        p2 = nearest_on_boundary(q2, poly)
-    elif len(poly) == 2:
-        near, _dist = nearest_on_segments(q2, poly[:1], poly[1:])
-        p2 = near[0]
+    if len(pts) >= 2:
+        px, py = nearest_on_boundary_xy(qx, qy, pts, closed=len(pts) >= 3)
     else:
-        p2 = poly[0]
-    return CaseResult(case, p2, q2.copy(), float(avoidance_angle(p2, q2, target)), False,
-                      -float(np.linalg.norm(q2 - p2)),
-                      None, poly, g_td)
+        px, py = pts[0]
+    return CaseResult(case, np.array([px, py]), q2.copy(),
+                      avoidance_angle_xy(px, py, qx, qy, float(target[0]), float(target[1])), False,
+                      -math.sqrt((qx - px) ** 2 + (qy - py) ** 2), None, poly, g_td)
 
 
 def _cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, target, g_td, sole_local,
@@ -442,16 +475,25 @@ def _cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, target, g_t
     if len(cells) == 0:
         return None
     n = len(cells)
-    p2, margin, alpha = _hull_eval(cells, sole_local, np.asarray(pivot, float), np.asarray(q2, float)[:2],
-                                   np.asarray(target, float)[:2])
+    pivot = np.asarray(pivot, float)
+    q2 = np.asarray(q2, float)[:2]
+    target = np.asarray(target, float)[:2]
+    h = _hull_core(cells, sole_local, pivot, q2)
+    margin = h.margin
     inside = margin > 0
-    captured = margin >= cfg.capture_margin
-    # inside but shallow (by the lower bound): ranks above every fall, below the captures
-    score = np.where(captured, 1e3 + margin, np.where(inside, 5e2 + margin, np.where(np.isfinite(alpha), alpha, -1.0)))
-    i = int(np.argmax(score))
+    if np.any(inside):   # captures and shallow insides rank above every fall: no alpha needed
+        captured = margin >= cfg.capture_margin
+        # inside but shallow (by the lower bound): ranks above every fall, below the captures
+        i = int(np.argmax(np.where(captured, 1e3 + margin, np.where(inside, 5e2 + margin, -1.0))))
+        p2, alpha_i = np.array(h.p2(i)), math.nan
+    else:
+        p2x, p2y = h.p2()
+        alpha = _alpha(p2x, p2y, q2, target)
+        i = int(np.argmax(np.where(np.isfinite(alpha), alpha, -1.0)))
+        p2, alpha_i = np.array([p2x[i], p2y[i]]), float(alpha[i])
     poly = support_polygon(np.vstack([sole_corners_at(cells[i:i + 1], sole_local)[0], pivot]))
-    return CaseResult(case, p2[i].copy(), q2.copy(), math.nan if inside[i] else float(alpha[i]), bool(inside[i]),
-                      float(margin[i]), cells[i].copy(), poly, g_td, n, cfg.capture_margin)
+    return CaseResult(case, p2.copy(), q2.copy(), alpha_i, bool(inside[i]), float(margin[i]), cells[i].copy(), poly,
+                      g_td, n, cfg.capture_margin)
 
 
 __all__ = ["CaseResult", "FallSituation", "Footprint", "SearchConfig", "StepCase", "StepDecision", "predict_touchdown",
