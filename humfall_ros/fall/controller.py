@@ -36,6 +36,7 @@ from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.dynamics.toppling import FallOutcome, time_to_lean
 from humfall_ros.fall import step_search as ss
 from humfall_ros.fall.ftb import FtbState, features_of
+from humfall_ros.fall.geometry import polygon_margin_xy
 from humfall_ros.fall.inertia_shaping import ShapingConfig, shaping_velocities
 from humfall_ros.fall.step_control import (
     StepControlConfig,
@@ -44,7 +45,7 @@ from humfall_ros.fall.step_control import (
     predicted_stance_placement,
 )
 from humfall_ros.fall.stepping_zone import stepping_zone
-from humfall_ros.model.humanoid import SIDES, HumanoidModel, load_model
+from humfall_ros.model.humanoid import SIDES, HumanoidModel, load_model, support_polygon
 
 
 # joints inertia shaping may move, by name fragment: all of them (the paper), or the pitch chain
@@ -258,11 +259,9 @@ class SafeFallController:
         if t.shape != (2,) or not np.all(np.isfinite(t)):
             return None, "target position is not finite: ignored, no step"
         com = np.asarray(obs.state.com, float)[:2]
-        hull = np.vstack([soles["l"], soles["r"]])
-        from humfall_ros.model.humanoid import point_in_polygon_margin, support_polygon
-
-        if np.linalg.norm(t - com) < self.config.min_target_distance_m or \
-                point_in_polygon_margin(t, support_polygon(hull)) > 0:
+        hull = support_polygon(np.vstack([soles["l"], soles["r"]]).tolist()).tolist()
+        if math.hypot(t[0] - com[0], t[1] - com[1]) < self.config.min_target_distance_m or \
+                polygon_margin_xy(float(t[0]), float(t[1]), hull) > 0:
             return None, f"target at {t.round(3).tolist()} is inside the robot: ignored, no step"
         return t, ""
 

@@ -39,7 +39,6 @@ import numpy as np
 from humfall_ros.dynamics.pendulum import GRAVITY
 from humfall_ros.dynamics.toppling import spherical_rk4
 from humfall_ros.fall.geometry import (
-    avoidance_angle,
     avoidance_angle_xy,
     inside_convex_xy,
     nearest_on_boundary_xy,
@@ -180,20 +179,27 @@ def _pivot(soles: dict, stance: str, direction, tie: float) -> np.ndarray:
 
 
 def _pendulum_start(com, vel, pivots: list[np.ndarray]):
-    """Initial (r, v) relative to each case's pivot; a 2-point pivot is an edge: the motion along it is dropped."""
+    """Initial (r, v) relative to each case's pivot; a 2-point pivot is an edge: the motion along it is dropped.
+
+    Python floats (3 cases a decision): numpy's per-call overhead was most of its cost.
+    """
+    gx, gy, gz = (float(x) for x in com)
+    vx, vy, vz = (float(x) for x in vel)
     r0, v0 = [], []
     for pv in pivots:
-        if len(pv) >= 2:
-            a, b = pv[0], pv[-1]
-            e = (b - a) / max(float(np.linalg.norm(b - a)), 1e-12)
-            t = float(np.clip((com[:2] - a) @ e, 0.0, float(np.linalg.norm(b - a))))
-            p = a + t * e
-            e3 = np.array([e[0], e[1], 0.0])
-            v = vel - e3 * float(vel @ e3)
+        pts = np.asarray(pv, float).tolist()
+        if len(pts) >= 2:
+            (ax, ay), (bx, by) = pts[0], pts[-1]
+            length = math.sqrt((bx - ax) ** 2 + (by - ay) ** 2)
+            ex, ey = (bx - ax) / max(length, 1e-12), (by - ay) / max(length, 1e-12)
+            t = min(max((gx - ax) * ex + (gy - ay) * ey, 0.0), length)
+            px, py = ax + t * ex, ay + t * ey
+            along = vx * ex + vy * ey
+            v = (vx - ex * along, vy - ey * along, vz)
         else:
-            p = pv[0]
-            v = vel
-        r0.append(com - np.array([p[0], p[1], 0.0]))
+            px, py = pts[0]
+            v = (vx, vy, vz)
+        r0.append((gx - px, gy - py, gz))
         v0.append(v)
     return np.array(r0), np.array(v0)
 
@@ -211,8 +217,7 @@ def predict_touchdown(com, com_velocity, pivots: list[np.ndarray], duration: flo
         r, v = r0, v0
     else:
         r, v = spherical_rk4(r0, v0, duration, steps, g)
-    origin = com[None, :] - r0
-    G = origin + r
+    G = (com[None, :] - r0) + r
     z = np.maximum(G[:, 2], 1e-3)
     Q = G[:, :2] + np.sqrt(z / g)[:, None] * v[:, :2]
     return G, v, Q
@@ -257,11 +262,12 @@ class _Hull:
     by: np.ndarray
     margin: np.ndarray
 
-    def p2(self, i: int | None = None):
-        """P2 in the world [m]: (x (N,), y (N,)), or of cell ``i`` as floats."""
-        if i is None:
-            c, s, bx, by = self.cos, self.sin, self.bx, self.by
-            return self.cells[:, 0] + c * bx - s * by, self.cells[:, 1] + s * bx + c * by
+    def p2(self, i: int | slice | None = None):
+        """P2 in the world [m]: (x (N,), y (N,)) (of the cells ``i``, a slice), or of cell ``i`` (an int) as floats."""
+        if i is None or isinstance(i, slice):
+            i = slice(None) if i is None else i
+            c, s, bx, by = self.cos[i], self.sin[i], self.bx[i], self.by[i]
+            return self.cells[i, 0] + c * bx - s * by, self.cells[i, 1] + s * bx + c * by
         c, s, bx, by = float(self.cos[i]), float(self.sin[i]), float(self.bx[i]), float(self.by[i])
         return float(self.cells[i, 0]) + c * bx - s * by, float(self.cells[i, 1]) + s * bx + c * by
 
@@ -277,16 +283,25 @@ def _alpha(p2x, p2y, q, target) -> np.ndarray:
 
 
 def _hull_core(cells: np.ndarray, sole_local: np.ndarray, pivot: np.ndarray, q: np.ndarray) -> _Hull:
-    """The nearest point and the margin of :func:`_hull_eval` (its docstring), without P2 in the world and alpha."""
+    """The nearest point and the margin of :func:`_hull_eval` (its docstring), without P2 in the world and alpha.
+
+    ``pivot`` (K, 2), or per cell (K, N, 2); ``q`` (2,), or per cell (N, 2) (several cases in one call).
+    """
     x0, y0 = sole_local.min(axis=0)
     x1, y1 = sole_local.max(axis=0)
     n = len(cells)
     npiv = pivot.shape[0]
     X, Y = cells[:, 0], cells[:, 1]
     c, s = np.cos(cells[:, 2]), np.sin(cells[:, 2])
-    dx, dy = q[0] - X, q[1] - Y
+    if q.ndim == 1:
+        dx, dy = q[0] - X, q[1] - Y
+    else:
+        dx, dy = q[:, 0] - X, q[:, 1] - Y
     qx, qy = c * dx + s * dy, -s * dx + c * dy                     # q in each sole frame (N,)
-    pdx, pdy = pivot[:, 0:1] - X, pivot[:, 1:2] - Y
+    if pivot.ndim == 2:
+        pdx, pdy = pivot[:, 0:1] - X, pivot[:, 1:2] - Y
+    else:
+        pdx, pdy = pivot[:, :, 0] - X, pivot[:, :, 1] - Y
     px, py = c * pdx + s * pdy, -s * pdx + c * pdy                   # the pivots in each sole frame (K, N)
     # the rectangle, filled
     rx, ry = np.clip(qx, x0, x1), np.clip(qy, y0, y1)
@@ -413,7 +428,7 @@ def search(sit: FallSituation, sole_local: np.ndarray, cfg: SearchConfig | None 
     p1 = np.asarray(sit.cop, float)[:2]
     q1 = np.asarray(sit.capture_point, float)[:2]
     target = None if sit.target is None else np.asarray(sit.target, float)[:2]
-    alpha1 = float(avoidance_angle(p1, q1, target)) if target is not None else math.nan
+    alpha1 = avoidance_angle_xy(*p1.tolist(), *q1.tolist(), *target.tolist()) if target is not None else math.nan
     stance_sides, pivots = case_pivots(sit, cfg)
     edge = pivots[0]
     if prediction is None:
@@ -426,28 +441,33 @@ def search(sit: FallSituation, sole_local: np.ndarray, cfg: SearchConfig | None 
         return StepDecision(best, {StepCase.NO_TARGET: best}, p1, q1, alpha1, sit.touchdown_time,
                             sit.control_duration, 0, time.perf_counter() - t0, "no target to avoid: no step")
     if not sit.single_support:  # no change: rotate on about the current soles' hull
-        poly0 = support_polygon(np.vstack([sit.soles["l"], sit.soles["r"]]))
+        poly0 = support_polygon(np.vstack([sit.soles["l"], sit.soles["r"]]).tolist())
         cases[StepCase.NO_CHANGE] = _single(StepCase.NO_CHANGE, poly0, Q[0], target, G[0], cfg)
     total_cells = 0
+    order: list = []      # the cases in the order eq. 4 lists them (ties go to the first)
+    steps: list = []      # (case, cells, pivot, Q2, G) of the step cases, evaluated in one batch
     for k, stance in enumerate(stance_sides, start=1):
         swing = "l" if stance == "r" else "r"
         piv = pivots[k]
         lift_case = StepCase.LIFT_LEFT if swing == "l" else StepCase.LIFT_RIGHT
         step_case = StepCase.STEP_LEFT if swing == "l" else StepCase.STEP_RIGHT
         cases[lift_case] = _single(lift_case, piv, Q[k], target, G[k], cfg)   # single support: keep it lifted
+        order.append(lift_case)
         if sit.single_support and sit.planned_landing is not None:
             plan = np.asarray(sit.planned_landing, float).reshape(1, 3)
-            r = _cells(StepCase.CONTINUE_STEP, plan, piv, Q[k], target, G[k], sole_local, cfg)
-            if r is not None:
-                cases[StepCase.CONTINUE_STEP] = r
+            steps.append((StepCase.CONTINUE_STEP, plan, piv, Q[k], G[k]))
+            order.append(StepCase.CONTINUE_STEP)
         zone = sit.zones.get(swing)
         if zone is None:
             continue
         cells = zone_cells(zone, cfg, sit.obstacles)
         total_cells += len(cells)
-        r = _cells(step_case, cells, piv, Q[k], target, G[k], sole_local, cfg)
+        steps.append((step_case, cells, piv, Q[k], G[k]))
+        order.append(step_case)
+    for (case, *_), r in zip(steps, _cells_batch(steps, target, sole_local, cfg)):
         if r is not None:
-            cases[step_case] = r
+            cases[case] = r
+    cases = {c: cases[c] for c in [StepCase.NO_CHANGE] + order if c in cases}
     best = max(cases.values(), key=lambda c: c.score)
     return StepDecision(best, cases, p1, q1, alpha1, sit.touchdown_time, sit.control_duration, total_cells,
                         time.perf_counter() - t0)
@@ -455,7 +475,8 @@ def search(sit: FallSituation, sole_local: np.ndarray, cfg: SearchConfig | None 
 
 def _single(case: StepCase, poly, q2, target, g_td, cfg: SearchConfig) -> CaseResult:
     """A case without a landing (no change, lift): Q2 against one polygon (or the pivot segment / corner)."""
-    poly = support_polygon(poly) if len(poly) >= 3 else np.asarray(poly, float).reshape(-1, 2)
+    poly = np.asarray(poly, float).reshape(-1, 2)
+    poly = support_polygon(poly.tolist()) if len(poly) >= 3 else poly
     pts = poly.tolist()
     qx, qy = float(q2[0]), float(q2[1])
     if len(pts) >= 3 and inside_convex_xy(qx, qy, pts, cfg.capture_margin):
@@ -472,28 +493,59 @@ def _single(case: StepCase, poly, q2, target, g_td, cfg: SearchConfig) -> CaseRe
 
 def _cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, target, g_td, sole_local,
            cfg: SearchConfig) -> CaseResult | None:
-    if len(cells) == 0:
-        return None
-    n = len(cells)
-    pivot = np.asarray(pivot, float)
-    q2 = np.asarray(q2, float)[:2]
+    """The best landing cell of one case (:func:`_cells_batch` of one)."""
+    return _cells_batch([(case, cells, pivot, q2, g_td)], target, sole_local, cfg)[0]
+
+
+def _cells_batch(groups: list, target, sole_local, cfg: SearchConfig) -> list[CaseResult | None]:
+    """The best landing cell of each case ``(case, cells (n, 3), pivot (K, 2), Q2, G at touchdown)``.
+
+    All cases' cells go through one :func:`_hull_core` call (numpy's per-call overhead is paid once);
+    a one-corner pivot is padded to two equal corners (the same hull, the same pieces' distances).
+    """
     target = np.asarray(target, float)[:2]
-    h = _hull_core(cells, sole_local, pivot, q2)
-    margin = h.margin
-    inside = margin > 0
-    if np.any(inside):   # captures and shallow insides rank above every fall: no alpha needed
-        captured = margin >= cfg.capture_margin
-        # inside but shallow (by the lower bound): ranks above every fall, below the captures
-        i = int(np.argmax(np.where(captured, 1e3 + margin, np.where(inside, 5e2 + margin, -1.0))))
-        p2, alpha_i = np.array(h.p2(i)), math.nan
+    out: list[CaseResult | None] = [None] * len(groups)
+    live = [k for k, g in enumerate(groups) if len(g[1])]
+    if not live:
+        return out
+    npiv = max(np.asarray(groups[k][2]).reshape(-1, 2).shape[0] for k in live)
+    cells, piv, qs, bounds = [], [], [], []
+    start = 0
+    for k in live:
+        _case, c, pv, q2, _g = groups[k]
+        pv = np.asarray(pv, float).reshape(-1, 2)
+        pv = np.vstack([pv, np.repeat(pv[-1:], npiv - len(pv), axis=0)])
+        cells.append(c)
+        piv.append(np.broadcast_to(pv[:, None, :], (npiv, len(c), 2)))
+        qs.append(np.broadcast_to(np.asarray(q2, float)[:2], (len(c), 2)))
+        bounds.append((start, start + len(c)))
+        start += len(c)
+    if len(live) == 1:
+        g = groups[live[0]]
+        C, P, Qc = cells[0], np.asarray(g[2], float).reshape(-1, 2), np.asarray(g[3], float)[:2]
     else:
-        p2x, p2y = h.p2()
-        alpha = _alpha(p2x, p2y, q2, target)
-        i = int(np.argmax(np.where(np.isfinite(alpha), alpha, -1.0)))
-        p2, alpha_i = np.array([p2x[i], p2y[i]]), float(alpha[i])
-    poly = support_polygon(np.vstack([sole_corners_at(cells[i:i + 1], sole_local)[0], pivot]))
-    return CaseResult(case, p2.copy(), q2.copy(), alpha_i, bool(inside[i]), float(margin[i]), cells[i].copy(), poly,
-                      g_td, n, cfg.capture_margin)
+        C, P, Qc = np.vstack(cells), np.concatenate(piv, axis=1), np.vstack(qs)
+    h = _hull_core(C, sole_local, P, Qc)
+    for k, (lo, hi) in zip(live, bounds):
+        case, c, pv, q2, g_td = groups[k]
+        pivot = np.asarray(pv, float).reshape(-1, 2)
+        q2 = np.asarray(q2, float)[:2]
+        margin = h.margin[lo:hi]
+        inside = margin > 0
+        if np.any(inside):   # captures and shallow insides rank above every fall: no alpha needed
+            captured = margin >= cfg.capture_margin
+            # inside but shallow (by the lower bound): ranks above every fall, below the captures
+            i = int(np.argmax(np.where(captured, 1e3 + margin, np.where(inside, 5e2 + margin, -1.0))))
+            p2, alpha_i = np.array(h.p2(lo + i)), math.nan
+        else:
+            p2x, p2y = h.p2(slice(lo, hi))
+            alpha = _alpha(p2x, p2y, q2, target)
+            i = int(np.argmax(np.where(np.isfinite(alpha), alpha, -1.0)))
+            p2, alpha_i = np.array([p2x[i], p2y[i]]), float(alpha[i])
+        poly = support_polygon(np.vstack([sole_corners_at(c[i:i + 1], sole_local)[0], pivot]).tolist())
+        out[k] = CaseResult(case, p2.copy(), q2.copy(), alpha_i, bool(inside[i]), float(margin[i]), c[i].copy(), poly,
+                            g_td, len(c), cfg.capture_margin)
+    return out
 
 
 __all__ = ["CaseResult", "FallSituation", "Footprint", "SearchConfig", "StepCase", "StepDecision", "predict_touchdown",

@@ -114,7 +114,24 @@ def _wrap(a):
 
 def leg_joint_indices(model: HumanoidModel, side: str) -> list[int]:
     """Model-order indices of one leg's six joints."""
-    return [model.joint_index(f"{side}_{j}") for j in LEG_JOINTS]
+    return list(_leg_joint_indices(model, side))
+
+
+@functools.lru_cache(maxsize=16)
+def _leg_joint_indices(model: HumanoidModel, side: str) -> tuple[int, ...]:
+    return tuple(model.joint_index(f"{side}_{j}") for j in LEG_JOINTS)
+
+
+@functools.lru_cache(maxsize=16)
+def _leg_limits(model: HumanoidModel, swing: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(swing then stance leg velocity limits (12,), the two legs' Jacobian columns (6,) each): model constants."""
+    stance = "r" if swing == "l" else "l"
+    idx = _leg_joint_indices(model, swing) + _leg_joint_indices(model, stance)
+    vmax = model.limits.velocity[list(idx)].copy()
+    cols = np.array([6 + i for i in idx])
+    vmax.setflags(write=False)
+    cols.setflags(write=False)
+    return vmax, cols[:6], cols[6:]
 
 
 def foot_to_foot_jacobian(model: HumanoidModel, q, swing: str) -> np.ndarray:
@@ -129,8 +146,7 @@ def foot_to_foot_jacobian(model: HumanoidModel, q, swing: str) -> np.ndarray:
     rf = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
     js = pin.getFrameJacobian(m, d, model.frame_ids[model.sole_frame[swing]], rf)
     jt = pin.getFrameJacobian(m, d, model.frame_ids[model.sole_frame[stance]], rf)
-    cs = [6 + i for i in leg_joint_indices(model, swing)]
-    ct = [6 + i for i in leg_joint_indices(model, stance)]
+    _, cs, ct = _leg_limits(model, swing)
     return np.hstack([js[:, cs], -jt[:, ct]])
 
 
@@ -174,8 +190,7 @@ def stepping_zone(model: HumanoidModel, q, swing: str, duration: float, fall_dir
     """
     stance = "r" if swing == "l" else "l"
     J = foot_to_foot_jacobian(model, q, swing)   # also updates the frame placements
-    vmax = np.concatenate([model.limits.velocity[leg_joint_indices(model, swing)],
-                           model.limits.velocity[leg_joint_indices(model, stance)]]) * velocity_fraction
+    vmax = _leg_limits(model, swing)[0] * velocity_fraction
     rows = J[[0, 1, 5]]
     D = duration * np.abs(rows) @ vmax   # eq. 8: the zone's edge lengths (Fig. 6), centred on the swing sole
     gamma = D / np.maximum(duration * np.sum(np.abs(rows), axis=1), 1e-12)
