@@ -107,3 +107,59 @@ def test_ftb_features_unchanged_on_recorded_ticks():
                 assert not math.isfinite(got), (tag, k)
             else:
                 assert got == pytest.approx(want, rel=1e-12, abs=1e-12), (tag, k)
+
+
+def test_python_float_geometry_equals_the_numpy_forms():
+    from humfall_ros.fall import geometry as geo
+    from humfall_ros.model.humanoid import point_in_polygon_margin, support_polygon
+
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        poly = support_polygon(rng.uniform(-0.3, 0.3, (rng.integers(3, 9), 2)))
+        q = rng.uniform(-0.4, 0.4, 2)
+        pts = poly.tolist()
+        assert geo.polygon_margin_xy(*q, pts) == pytest.approx(point_in_polygon_margin(q, poly), abs=1e-12)
+        for tol in (0.0, 0.02):
+            assert geo.inside_convex_xy(*q, pts, tol) == geo.inside_convex(q, poly, tol)
+        assert geo.nearest_on_boundary_xy(*q, pts) == pytest.approx(geo.nearest_on_boundary(q, poly), abs=1e-12)
+        t = rng.uniform(-2, 2, 2)
+        p = geo.nearest_on_boundary(q, poly)
+        assert geo.avoidance_angle_xy(*p, *q, *t) == pytest.approx(float(geo.avoidance_angle(p, q, t)), abs=1e-12)
+    seg = rng.uniform(-0.3, 0.3, (2, 2))
+    q = np.array([0.5, 0.1])
+    near, _ = geo.nearest_on_segments(q, seg[:1], seg[1:])
+    assert geo.nearest_on_boundary_xy(*q, seg.tolist(), closed=False) == pytest.approx(near[0], abs=1e-12)
+    assert math.isnan(geo.avoidance_angle_xy(0.0, 0.0, 0.0, 0.0, 1.0, 1.0))
+
+
+def test_batched_cells_equal_one_case_at_a_time():
+    """One hull evaluation for several cases (an edge pivot and a one-corner pivot, padded) = each alone."""
+    from humfall_ros.fall import step_search as ss
+
+    rng = np.random.default_rng(3)
+    sole = np.array([[0.145, 0.04], [-0.095, 0.04], [-0.095, -0.04], [0.145, -0.04]])
+    cfg = ss.SearchConfig()
+    for trial in range(40):
+        groups = []
+        for k in range(2):
+            n = int(rng.integers(1, 400))
+            cells = np.column_stack([rng.uniform(-0.4, 0.4, n), rng.uniform(-0.4, 0.4, n), rng.uniform(-0.6, 0.6, n)])
+            piv = rng.uniform(-0.2, 0.2, (1 + (trial + k) % 2, 2))
+            groups.append((ss.StepCase.STEP_LEFT if k else ss.StepCase.STEP_RIGHT, cells, piv,
+                           rng.uniform(-0.3, 0.3, 2), np.zeros(3)))
+        target = rng.uniform(-2, 2, 2)
+        batch = ss._cells_batch(groups, target, sole, cfg)
+        for g, b in zip(groups, batch):
+            one = ss._cells(g[0], g[1], g[2], g[3], target, g[4], sole, cfg)
+            assert (b.captured, b.cells) == (one.captured, one.cells)
+            assert np.allclose(b.landing, one.landing, atol=1e-12) and np.allclose(b.p2, one.p2, atol=1e-12)
+            assert b.margin == pytest.approx(one.margin, abs=1e-12)
+            assert (math.isnan(b.alpha2) and math.isnan(one.alpha2)) or b.alpha2 == pytest.approx(one.alpha2, abs=1e-12)
+            # and the vectorised evaluation against the exact depth where it is inside (a lower bound)
+            p2, margin, _ = ss._hull_eval(g[1], sole, np.asarray(g[2]), g[3], target)
+            pts = np.concatenate([ss.sole_corners_at(g[1], sole), np.broadcast_to(g[2], (len(g[1]),) + g[2].shape)],
+                                 axis=1)
+            exact = ss._inside_margin(pts, g[3])
+            differ = (margin > 0) != (exact > 1e-9)
+            assert np.all(np.abs(exact[differ]) < 1e-6)   # inside / outside agree but on the boundary
+            assert np.all(margin[margin > 0] <= exact[margin > 0] + 1e-12)
