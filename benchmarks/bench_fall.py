@@ -54,6 +54,56 @@ def capture_takeover(name: str = "standing_push", overrides: list[str] | None = 
     raise RuntimeError("the FTB did not fire")
 
 
+def state_of(d: dict):
+    """A ``CentroidalObservation`` from its recorded dict (``test/data/fall_decisions.json``)."""
+    from humfall_ros.control.contract import CentroidalObservation
+
+    return CentroidalObservation(np.array(d["com"]), np.array(d["com_velocity"]), np.array(d["cop"]),
+                                 np.array(d["capture_point"]), np.array(d["angular_momentum"]),
+                                 np.array(d["support_polygon"]).reshape(-1, 2), np.array(d["feet_center"]),
+                                 d["lean_angle"], d["lean_direction"], d["normal_force"], d["left_contact"],
+                                 d["right_contact"], d["cop_on_edge"])
+
+
+def obs_of(r: dict):
+    """The take-over ``Observation`` of a recorded case."""
+    from humfall_ros.control.contract import Observation
+
+    n = len(r["joint_position"])
+    return Observation(r["stamp_ns"], np.array(r["joint_position"]), np.zeros(n), state_of(r["state"]),
+                       inputs={"obstacles": r["obstacles"], "imu": (np.array(r["imu"][0]), np.array(r["imu"][1])),
+                               "fall_event": r["fall_event"]})
+
+
+def recorded_cases(repeats: int = 5) -> dict:
+    """The decision's wall and CPU time over the 156 recorded take-overs (captures and falls apart).
+
+    Per case the median of ``repeats`` decisions; then median / p99 / max over the cases.
+    """
+    path = pathlib.Path(__file__).resolve().parents[1] / "test" / "data" / "fall_decisions.json"
+    data = json.loads(path.read_text())
+    ctrl = SafeFallController(config=SafeFallConfig.from_params(params.defaults("safe_fall_controller")))
+    rows = {"capture": [], "fall": []}
+    for r in data["decisions"]:
+        obs = obs_of(r)
+        wall, cpu = [], []
+        for _ in range(repeats):
+            ctrl.reset()
+            c0 = time.thread_time()
+            ctrl.step(obs)
+            cpu.append(time.thread_time() - c0)
+            wall.append(ctrl.decision.search_time)
+        if ctrl.decision.cell_count:
+            kind = "capture" if ctrl.decision.captured else "fall"
+            rows[kind].append((statistics.median(wall), ctrl.decision.cell_count))
+    out = {}
+    for k, v in rows.items():
+        w = [x for x, _ in v]
+        out[k] = {**_stats(w), "max_ms": round(max(w) * 1e3, 3),
+                  "cells_median": int(statistics.median(c for _, c in v))}
+    return out
+
+
 def _capture_until_trigger(sc):
     from humfall_ros.fall import runs
     from humfall_ros.sim.closed_loop import ClosedLoop
@@ -82,7 +132,7 @@ def record(path: pathlib.Path) -> dict:
     every 8th tick and the last 24 before the trigger.
     """
     import fall_closed_loop as fcl
-    from humfall_ros.control.contract import CentroidalObservation, Observation
+    from humfall_ros.control.contract import CentroidalObservation
     from humfall_ros.fall import sweep
     from humfall_ros.fall.ftb import features_of
 
@@ -107,19 +157,6 @@ def record(path: pathlib.Path) -> dict:
                 "lean_angle": round(s.lean_angle, 9), "lean_direction": round(s.lean_direction, 9),
                 "normal_force": round(s.normal_force, 6), "left_contact": bool(s.left_contact),
                 "right_contact": bool(s.right_contact), "cop_on_edge": bool(s.cop_on_edge)}
-
-    def state_of(d):
-        return CentroidalObservation(np.array(d["com"]), np.array(d["com_velocity"]), np.array(d["cop"]),
-                                     np.array(d["capture_point"]), np.array(d["angular_momentum"]),
-                                     np.array(d["support_polygon"]).reshape(-1, 2), np.array(d["feet_center"]),
-                                     d["lean_angle"], d["lean_direction"], d["normal_force"], d["left_contact"],
-                                     d["right_contact"], d["cop_on_edge"])
-
-    def obs_of(r):
-        n = len(r["joint_position"])
-        return Observation(r["stamp_ns"], np.array(r["joint_position"]), np.zeros(n), state_of(r["state"]),
-                           inputs={"obstacles": r["obstacles"], "imu": (np.array(r["imu"][0]), np.array(r["imu"][1])),
-                                   "fall_event": r["fall_event"]})
 
     def feat_dict(f):
         return {k: (L(v) if isinstance(v, np.ndarray) else (bool(v) if isinstance(v, (bool, np.bool_)) else fnum(v)))
@@ -208,7 +245,7 @@ def main() -> None:
     cfg = SafeFallConfig.from_params(params.defaults("safe_fall_controller"))
     ctrl = SafeFallController(config=cfg)
     dec_t, ik_t, cpu_t = [], [], []
-    for _ in range(30):
+    for _ in range(200):
         ctrl.reset()
         t0, c0 = time.perf_counter(), time.thread_time()
         ctrl.step(obs)
@@ -232,11 +269,13 @@ def main() -> None:
         "control_duration": {**_stats(cd_t), "value_s": r.time, "outcome": r.outcome.value},
         "decision": {**_stats(dec_t), "goal_ms": 2.0, "cells": d.cell_count, "case": d.case,
                      "alpha2_deg": deg(d.alpha2), "captured": d.captured, "zone_size_m": d.zone_size.tolist()},
+        "decision_min_ms": round(min(dec_t) * 1e3, 4),
+        "decision_recorded_cases": recorded_cases(),
         "ik_check_and_start": _stats(ik_t),
         # CPU time of the whole take-over tick (decision + IK check + first swing command): what the
         # decision costs without the waits of a shared, overloaded machine
         "takeover_tick_cpu": _stats(cpu_t),
-        "load_average": round(__import__("os").getloadavg()[0], 1),
+        "load_average": [round(x, 2) for x in __import__("os").getloadavg()],
         "halved_cells": {"cells": fd.cell_count, "case": fd.case, "alpha2_deg": deg(fd.alpha2), "captured": fd.captured,
                          "landing_change_m": float(np.linalg.norm(fd.landing[:2] - d.landing[:2]))
                          if np.all(np.isfinite(fd.landing)) and np.all(np.isfinite(d.landing)) else None,
