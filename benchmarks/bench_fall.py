@@ -104,6 +104,37 @@ def recorded_cases(repeats: int = 5) -> dict:
     return out
 
 
+def halved_recorded() -> dict:
+    """Halving the cell size (x, y and yaw) on the 156 recorded take-overs: how the chosen alpha2 changes.
+
+    Over the decisions that predict a fall with both grids: |delta alpha2| [deg]; and how many change
+    case or capture (a capture has no alpha2).
+    """
+    path = pathlib.Path(__file__).resolve().parents[1] / "test" / "data" / "fall_decisions.json"
+    data = json.loads(path.read_text())
+    d0 = params.defaults("safe_fall_controller")
+    a = SafeFallController(config=SafeFallConfig.from_params(d0))
+    b = SafeFallController(config=SafeFallConfig.from_params({**d0, "cell_xy": d0["cell_xy"] / 2,
+                                                              "cell_yaw": d0["cell_yaw"] / 2}))
+    diffs, case_changed, capture_changed, cells = [], 0, 0, []
+    for r in data["decisions"]:
+        a.reset()
+        a.step(obs_of(r))
+        b.reset()
+        b.step(obs_of(r))
+        da, db = a.decision, b.decision
+        case_changed += da.case != db.case
+        capture_changed += da.captured != db.captured
+        cells.append((da.cell_count, db.cell_count))
+        if math.isfinite(da.alpha2) and math.isfinite(db.alpha2):
+            diffs.append(abs(math.degrees(db.alpha2 - da.alpha2)))
+    return {"decisions": len(data["decisions"]), "falls_both": len(diffs),
+            "within_2deg": sum(d <= 2.0 for d in diffs), "max_delta_alpha2_deg": round(max(diffs), 2),
+            "median_delta_alpha2_deg": round(statistics.median(diffs), 3), "case_changed": case_changed,
+            "capture_changed": capture_changed,
+            "cells_median": [int(statistics.median(c for c, _ in cells)), int(statistics.median(c for _, c in cells))]}
+
+
 def _capture_until_trigger(sc):
     from humfall_ros.fall import runs
     from humfall_ros.sim.closed_loop import ClosedLoop
@@ -279,7 +310,8 @@ def main() -> None:
         "halved_cells": {"cells": fd.cell_count, "case": fd.case, "alpha2_deg": deg(fd.alpha2), "captured": fd.captured,
                          "landing_change_m": float(np.linalg.norm(fd.landing[:2] - d.landing[:2]))
                          if np.all(np.isfinite(fd.landing)) and np.all(np.isfinite(d.landing)) else None,
-                         "search_median_ms": round(fd.search_time * 1e3, 3)},
+                         "search_median_ms": round(fd.search_time * 1e3, 3),
+                         "recorded_cases": halved_recorded()},
     }
     print(json.dumps(out))
 
