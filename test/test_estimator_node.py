@@ -1,4 +1,5 @@
-"""state_estimator's tick bookkeeping, in-process: newest complete tick only, bounded backlog."""
+"""state_estimator's tick bookkeeping (its TickGate), in-process: newest complete tick only, bounded backlog,
+retransmitted ticks answered again, a reset when time goes back."""
 import pytest
 import rclpy
 from builtin_interfaces.msg import Time
@@ -6,7 +7,8 @@ from geometry_msgs.msg import WrenchStamped
 from sensor_msgs.msg import Imu, JointState
 
 from humfall_ros.nodes.common import stamp_key
-from humfall_ros.nodes.state_estimator import MAX_PENDING_TICKS, StateEstimator
+from humfall_ros.control.tick_gate import MAX_PENDING_TICKS
+from humfall_ros.nodes.state_estimator import StateEstimator
 from humfall_ros.sim.sensors import Sensors
 from humfall_ros.sim.world import SimWorld
 
@@ -61,7 +63,7 @@ def test_a_backlog_is_answered_with_the_newest_complete_tick_only(estimator):
     assert len(published) == 1
     assert stamp_key(published[0].header.stamp) == stamp_key(ticks[1]["js"].header.stamp)
     assert published[0].left_contact and published[0].right_contact and 0.6 < published[0].com.z < 0.9
-    assert list(node.pending) == [stamp_key(ticks[2]["js"].header.stamp)]  # the incomplete newer one waits
+    assert list(node.gate.pending) == [stamp_key(ticks[2]["js"].header.stamp)]  # the incomplete newer one waits
 
 
 def test_ticks_that_never_complete_do_not_pile_up(estimator):
@@ -71,4 +73,30 @@ def test_ticks_that_never_complete_do_not_pile_up(estimator):
         js.header.stamp = Time(sec=0, nanosec=(i + 1) * 2_000_000)
         node._add("js", js)
         node._on_batch()
-    assert not published and len(node.pending) == MAX_PENDING_TICKS
+    assert not published and len(node.gate.pending) == MAX_PENDING_TICKS
+
+
+def test_a_retransmitted_tick_is_answered_again_and_time_going_back_resets(estimator):
+    node, _ = estimator
+    stamps = []  # what went out, read at publish time (the node refills one message)
+    node.pub.publish = lambda m: stamps.append((stamp_key(m.header.stamp), m.com.x))
+    world = SimWorld(1000, 500)
+    sensors = Sensors(world)
+    ticks = []
+    for _ in range(2):
+        ticks.append(tick_messages(world, sensors, node.model.joint_names))
+        world.step_control()
+    world.close()
+    for t in ticks:
+        for kind, msg in t.items():
+            node._add(kind, msg)
+        node._on_batch()
+    k0, k1 = (stamp_key(t["js"].header.stamp) for t in ticks)
+    assert [s for s, _ in stamps] == [k0, k1]
+    node._add("js", ticks[1]["js"])   # the bridge resends tick 2: the same answer again, no new estimate
+    node._add("imu", ticks[1]["imu"])  # a repeated non-trigger input is ignored
+    assert stamps[2] == stamps[1] and len(stamps) == 3
+    for kind, msg in ticks[0].items():  # time went back (sim/reset): a new run from tick 1
+        node._add(kind, msg)
+    node._on_batch()
+    assert node.gate.resets == 1 and len(stamps) == 4 and stamps[3][0] == k0

@@ -16,12 +16,12 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
 from visualization_msgs.msg import Marker, MarkerArray
 
+from humfall_ros.control.tick_gate import Action, TickGate
 from humfall_ros.model.estimation import CentroidalEstimator
 from humfall_ros.model.humanoid import SIDES, load_model
 from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, HotLoop, Params, run_node, stamp_key
 
 SIDE_TOPIC = {"l": "left_foot/wrench", "r": "right_foot/wrench"}
-MAX_PENDING_TICKS = 100  # incomplete ticks kept while waiting for their last sensor message
 
 
 
@@ -46,13 +46,12 @@ class StateEstimator(Node):
         self.estimator = CentroidalEstimator(self.model, contact_force=contact_force)
         self.viz_period = 1.0 / viz_rate if viz_rate > 0 else float("inf")
         self.last_viz = -float("inf")
-        self.pending: dict[int, dict] = {}
-        self.last_key = -1
         self.last_msg: CentroidalState | None = None
         self.msg = CentroidalState()
         self.msg.header.frame_id = "odom"
         self.bad_messages = 0
-        self.needed = {"js", "imu", "l", "r"} | ({"odom"} if self.use_ground_truth else set())
+        # one tick = every sensor message of one stamp; a repeated joint_states stamp = a retransmitted tick
+        self.gate = TickGate({"js", "imu", "l", "r"} | ({"odom"} if self.use_ground_truth else set()), trigger="js")
         def publisher(msg_type, topic):
             return self.create_publisher(msg_type, topic, QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
 
@@ -72,19 +71,18 @@ class StateEstimator(Node):
             sensors.subscribe(Odometry, "ground_truth/odom", lambda m: self._add("odom", m))
 
     def _add(self, kind: str, msg) -> None:
-        k = stamp_key(msg.header.stamp)
-        if k == self.last_key:
+        action = self.gate.offer(kind, stamp_key(msg.header.stamp), msg)
+        if action is Action.RETRANSMIT:
             # a retransmitted tick: answer it again so lockstep can move on
-            if kind == "js" and self.last_msg is not None:
+            if self.last_msg is not None:
                 self.pub.publish(self.last_msg)
             return
-        if k < self.last_key:
+        if action is Action.RESET:
             # time went back (sim/reset): what we knew belongs to the old run
-            self.get_logger().info(f"sim time went back to {k * 1e-9:.3f} s: estimator reset")
+            self.get_logger().info(f"sim time went back to {stamp_key(msg.header.stamp) * 1e-9:.3f} s: "
+                                   "estimator reset")
             self.estimator.reset()
-            self.pending.clear()
-            self.last_key, self.last_msg = -1, None
-        self.pending.setdefault(k, {})[kind] = msg
+            self.last_msg = None
         if not self.hot_loop.batching:  # callbacks from a plain executor: answer at once
             self._on_batch()
 
@@ -93,24 +91,16 @@ class StateEstimator(Node):
 
         In lockstep that is the only one. In free-run on a busy machine several may
         have queued up: the older ones are stale, and answering each would only put
-        the controller further behind, so they are dropped (as are incomplete ones).
+        the controller further behind, so the gate drops them (as are incomplete ones).
         """
-        complete = [k for k, slot in self.pending.items() if self.needed <= slot.keys()]
-        if not complete:
-            if len(self.pending) > MAX_PENDING_TICKS:  # a sensor topic went quiet: do not grow forever
-                for old in sorted(self.pending)[:-MAX_PENDING_TICKS]:
-                    del self.pending[old]
+        tick = self.gate.poll()
+        if tick is None:
             return
-        k = max(complete)
-        slot = self.pending[k]
-        for old in [x for x in self.pending if x <= k]:
-            del self.pending[old]
         try:
-            self._estimate(k, slot)
+            self._estimate(tick.stamp_ns, tick.inputs)
         except Exception as e:  # noqa: BLE001 - a bad message must never kill the estimator
             self.bad_messages += 1
-            self.get_logger().error(f"estimate failed at stamp {k}: {e}", throttle_duration_sec=1.0)
-        self.last_key = k
+            self.get_logger().error(f"estimate failed at stamp {tick.stamp_ns}: {e}", throttle_duration_sec=1.0)
 
     def _estimate(self, k: int, slot: dict) -> None:
         js: JointState = slot["js"]
