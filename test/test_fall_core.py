@@ -288,3 +288,23 @@ def test_controller_bad_events_and_inputs():
     cmd = c.step(obs)
     assert cmd is not None and cmd.positions == pytest.approx(obs.joint_position)
     assert any("IMU" in r for r in c.reasons)
+
+
+def test_inertia_shaping_turn_direction_turns_the_fall_away():
+    """``turn`` (ours): V_G = omega_d x PG is across the fall direction PG, away from T (raises alpha)."""
+    from humfall_ros.fall.geometry import avoidance_angle
+
+    p, t = np.array([0.0, 0.0, 0.0]), np.array([1.2, 0.0, 0.0])
+    for heading in np.radians([100.0, 146.0, -120.0, 60.0]):
+        g = np.array([0.1 * math.cos(heading), 0.1 * math.sin(heading), 0.75])
+        w = desired_angular_velocity(p, t, g, "turn")
+        v = np.cross(w, g - p)
+        assert abs(v[:2] @ (g - p)[:2]) < 1e-9                      # across the fall, not along it
+        a0 = float(avoidance_angle(p[:2], g[:2], t[:2]))
+        a1 = float(avoidance_angle(p[:2], g[:2] + 1e-3 * v[:2], t[:2]))
+        assert a1 > a0                                                 # turns the fall away from T
+    # falling straight at or away from T: the paper's direction
+    g = np.array([0.1, 0.0, 0.75])
+    assert desired_angular_velocity(p, t, g, "turn") == pytest.approx(desired_angular_velocity(p, t))
+    with pytest.raises(ValueError):
+        desired_angular_velocity(p, t, g, "sideways")

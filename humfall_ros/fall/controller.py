@@ -84,6 +84,7 @@ class SafeFallConfig:
     shaping_sign: float = -1.0
     shaping_recruit: str = "pitch"
     shaping_damping: float = 1e-4
+    shaping_direction: str = "away"
 
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> SafeFallConfig:
@@ -106,7 +107,8 @@ class SafeFallConfig:
 
     @property
     def shaping(self) -> ShapingConfig:
-        return ShapingConfig(gain=self.shaping_gain, sign=self.shaping_sign, damping=self.shaping_damping)
+        return ShapingConfig(gain=self.shaping_gain, sign=self.shaping_sign, damping=self.shaping_damping,
+                             direction=self.shaping_direction)
 
 
 @dataclasses.dataclass
@@ -198,6 +200,8 @@ class SafeFallController:
         self.config = config or SafeFallConfig()
         self.stepper = StepController(self.m, self.config.step)
         self._sole_local = self.m.sole_corners_local["l"][:, :2].copy()
+        if self.config.shaping_direction not in ("away", "turn"):
+            raise ValueError(f"shaping_direction must be 'away' or 'turn', got {self.config.shaping_direction!r}")
         if self.config.shaping_recruit not in RECRUIT:
             raise ValueError(f"shaping_recruit must be one of {sorted(RECRUIT)}, got {self.config.shaping_recruit!r}")
         names = RECRUIT[self.config.shaping_recruit]
@@ -442,7 +446,7 @@ class SafeFallController:
                 q = configuration_from_sensors(self.m, obs.joint_position, quat, obs.state.com)
                 q[7:] = self.last_command  # shape from the commanded posture (position-controlled joints lag)
                 qd, _ = shaping_velocities(self.m, q, obs.state.cop, self.target, c.control_period_s,
-                                           recruit=self._recruit, cfg=c.shaping)
+                                           recruit=self._recruit, cfg=c.shaping, com=obs.state.com)
                 pos = np.clip(self.last_command + qd * c.control_period_s, self.m.limits.lower, self.m.limits.upper)
                 self.last_command = pos
                 return JointTargets(pos, qd)

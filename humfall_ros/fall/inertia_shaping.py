@@ -85,12 +85,33 @@ def crb_inertia_and_jacobian(model: HumanoidModel, q) -> tuple[np.ndarray, np.nd
     return I, J_I
 
 
-def desired_angular_velocity(cop, target) -> np.ndarray:
-    """Eq. 12: omega_d = -unit(z x PT) [-], (3,); zero when T is over P."""
+def desired_angular_velocity(cop, target, com=None, mode: str = "away") -> np.ndarray:
+    """Eq. 12: omega_d = unit(z x V_d) [-], (3,), the pendulum rotation that moves G along V_d (eq. 11).
+
+    ``mode``:
+
+    * ``away`` (the paper): V_d = -PT, so omega_d = -unit(z x PT); zero when T is over P.
+    * ``turn`` (ours): V_d = the part of -PT perpendicular to PG (ground projections): it turns the
+      fall direction PG away from T (raises the avoidance angle at first order) instead of speeding
+      the fall up along -PT; when PG is within 6 deg of PT or of -PT (that part vanishes) or ``com`` is
+      None, the paper's. The paper's V_d has the component (PT . PG) along the fall, which for a robot
+      already falling away (alpha > 90 deg) mostly shortens the time left to turn.
+    """
     pt = np.array([target[0] - cop[0], target[1] - cop[1], 0.0])
-    axis = np.cross([0.0, 0.0, 1.0], pt)
+    vd = -pt
+    if mode == "turn" and com is not None:
+        u = np.array([com[0] - cop[0], com[1] - cop[1], 0.0])
+        nu, npt = float(np.linalg.norm(u)), float(np.linalg.norm(pt))
+        if nu > 1e-6 and npt > 1e-9:
+            u /= nu
+            perp = vd - u * float(vd @ u)
+            if float(np.linalg.norm(perp)) > 0.1 * npt:
+                vd = perp
+    elif mode not in ("away", "turn"):
+        raise ValueError(f"shaping direction must be 'away' or 'turn', got {mode!r}")
+    axis = np.cross([0.0, 0.0, 1.0], vd)
     n = float(np.linalg.norm(axis))
-    return -axis / n if n > 1e-9 else np.zeros(3)
+    return axis / n if n > 1e-9 else np.zeros(3)
 
 
 def desired_inertia(inertia: np.ndarray, omega_d: np.ndarray, gain: float) -> np.ndarray:
@@ -110,6 +131,7 @@ class ShapingConfig:
         damping: damping of the pseudo-inverse [kg^2 m^4] (0: plain pseudo-inverse).
         velocity_fraction: joint speeds within this fraction of the URDF limits [-].
         position_margin: joints stay this far inside their limits [rad].
+        direction: V_d of eq. 12: "away" (-PT, the paper) or "turn" (ours, :func:`desired_angular_velocity`).
     """
 
     gain: float = 0.02
@@ -117,10 +139,11 @@ class ShapingConfig:
     damping: float = 1e-4
     velocity_fraction: float = 0.9
     position_margin: float = 0.02
+    direction: str = "away"
 
 
 def shaping_velocities(model: HumanoidModel, q, cop, target, dt: float, recruit: np.ndarray | None = None,
-                       cfg: ShapingConfig | None = None) -> tuple[np.ndarray, dict]:
+                       cfg: ShapingConfig | None = None, com=None) -> tuple[np.ndarray, dict]:
     """Eq. 14: joint velocities [rad/s] (njoints,) towards I_d, and diagnostics.
 
     Args:
@@ -128,11 +151,12 @@ def shaping_velocities(model: HumanoidModel, q, cop, target, dt: float, recruit:
         cop: P [m]; target: T [m] (ground, (2,) or (3,)).
         dt: control period [s].
         recruit: mask of the joints that may move (default all).
+        com: G [m] (3,) (the ``turn`` direction needs it).
     """
     cfg = cfg or ShapingConfig()
     n = model.njoints
     I, J = crb_inertia_and_jacobian(model, q)
-    omega_d = desired_angular_velocity(cop, target)
+    omega_d = desired_angular_velocity(cop, target, com, cfg.direction)
     Id = desired_inertia(I, omega_d, cfg.sign * cfg.gain)
     err = crb_inertia_vector(Id) - crb_inertia_vector(I)
     active = np.ones(n, bool) if recruit is None else np.asarray(recruit, bool).copy()
