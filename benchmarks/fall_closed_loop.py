@@ -5,6 +5,7 @@
     .venv/bin/python benchmarks/fall_closed_loop.py quiet [SECONDS]             # standing_quiet, exact + noise
     .venv/bin/python benchmarks/fall_closed_loop.py noise [SCALE]               # stepping_inertia, seeds 1-3
     .venv/bin/python benchmarks/fall_closed_loop.py repeat [SCALE]              # two lockstep runs identical?
+    .venv/bin/python benchmarks/fall_closed_loop.py shaping [SCALE] [KEY=VALUE ...]  # stepping_inertia, diagnostics
 
 Each prints one JSON object. ``push`` also writes Fig. 9 / Fig. 11 PNGs into OUT (default runs/fall_figures).
 The push angle of ``ftb`` is clockwise from +x; thresholds from config/fall_thresholds.yaml (``humfall sweep``).
@@ -12,6 +13,7 @@ The push angle of ``ftb`` is clockwise from +x; thresholds from config/fall_thre
 from __future__ import annotations
 
 import json
+import math
 import pathlib
 import sys
 import time
@@ -108,6 +110,61 @@ def repeat(scale: float = 1.0, kind: str = "stepping_inertia") -> dict:
             "ticks": len(a.joint_positions)}
 
 
+def shaping(scale: float = 1.0, overrides: tuple[str, ...] = (), kind: str = "stepping_inertia") -> dict:
+    """standing_push with inertia shaping and ``params.safe_fall_controller.KEY=VALUE`` overrides: what it adds, why.
+
+    Per shaping tick (wrapping the controller's ``shaping_velocities``): the velocity scale the joint
+    speed limits forced (>= 1: saturated), the joints recruited after the position limits, the inertia
+    error and residual; and the fall heading seen from the measured P2 (alpha(t) = angle(P2 -> CoM,
+    P2 -> T)) at touchdown, at the shaping start and at the trunk's landing.
+    """
+    from humfall_ros.fall import controller as fc
+    from humfall_ros.fall.geometry import avoidance_angle
+
+    log = []
+    orig = fc.shaping_velocities
+
+    def spy(model, q, cop, target, dt, recruit=None, cfg=None, com=None):
+        qd, info = orig(model, q, cop, target, dt, recruit=recruit, cfg=cfg, com=com)
+        vmax = cfg.velocity_fraction * model.limits.velocity
+        log.append({"scale": float(np.max(np.abs(qd) / vmax)), "recruited": info["recruited"],
+                    "error": info["error"], "residual": info["residual"], "q": np.asarray(q, float)[7:].copy()})
+        return qd, info
+
+    ov = _push_overrides(scale) + [f"params.safe_fall_controller.{x}" for x in overrides]
+    fc.shaping_velocities = spy
+    try:
+        t0 = time.perf_counter()
+        r = runs.run(scenario.load("standing_push", ov), kind, keep_trace=True)
+    finally:
+        fc.shaping_velocities = orig
+    s = runs.summary(r)
+    out = {"overrides": list(overrides), "wall_s": round(time.perf_counter() - t0, 1),
+           **{k: s.get(k) for k in ("avoidance_angle_p2_deg", "avoidance_angle_deg", "min_target_distance_m",
+                                    "landing_time_s", "decision_case", "measured_p2")},
+           "touchdown_s": (s.get("prediction") or {}).get("touchdown_time_s"),
+           "shaping": [x for x in r.reasons if "shaping" in x or "fallen" in x]}
+    target = np.asarray(scenario.load("standing_push", ov)["obstacles"][0]["position"], float)[:2]
+    p2 = s.get("measured_p2")
+    if p2 is not None:
+        heading = [(t, float(avoidance_angle(np.asarray(p2), np.asarray(com)[:2], target)))
+                   for t, com, *_ in r.trace]
+        out["alpha_from_p2_deg"] = {f"{t:.2f}": round(math.degrees(a), 1) for t, a in heading[::50]
+                                    if math.isfinite(a)}
+    if log:
+        from humfall_ros.model.humanoid import load_model
+
+        names = load_model().joint_names
+        dq = log[-1]["q"] - log[0]["q"]
+        out["shaping_ticks"] = len(log)
+        out["saturated_fraction"] = round(float(np.mean([x["scale"] >= 0.999 for x in log])), 3)
+        out["recruited_first_last"] = [log[0]["recruited"], log[-1]["recruited"]]
+        ratio = [x["residual"] / max(x["error"], 1e-12) for x in log]
+        out["residual_over_error_mean"] = round(float(np.mean(ratio)), 3)
+        out["joint_change_rad"] = {names[i]: round(float(dq[i]), 3) for i in np.argsort(-np.abs(dq))[:8]}
+    return out
+
+
 def main(argv: list[str]) -> None:
     what = argv[0] if argv else "push"
     if what == "push":
@@ -122,6 +179,8 @@ def main(argv: list[str]) -> None:
         out = noise_runs(float(argv[1]) if len(argv) > 1 else 1.0)
     elif what == "repeat":
         out = repeat(float(argv[1]) if len(argv) > 1 else 1.0)
+    elif what == "shaping":
+        out = shaping(float(argv[1]) if len(argv) > 1 else 1.0, tuple(argv[2:]))
     else:
         raise SystemExit(f"unknown experiment {what!r}")
     print(json.dumps(out, default=str))
