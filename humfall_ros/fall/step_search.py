@@ -251,6 +251,9 @@ def _hull_eval(cells: np.ndarray, sole_local: np.ndarray, pivot: np.ndarray, q: 
     return np.column_stack([p2x, p2y]), h.margin, _alpha(p2x, p2y, q, target)
 
 
+CHUNK_ELEMENTS = 9000   # cells x segments per block of the hull evaluation (cache-sized)
+
+
 @dataclasses.dataclass
 class _Hull:
     """:func:`_hull_core`'s result: nearest point (bx, by) in each sole frame, the frames, the margin."""
@@ -286,7 +289,16 @@ def _hull_core(cells: np.ndarray, sole_local: np.ndarray, pivot: np.ndarray, q: 
     """The nearest point and the margin of :func:`_hull_eval` (its docstring), without P2 in the world and alpha.
 
     ``pivot`` (K, 2), or per cell (K, N, 2); ``q`` (2,), or per cell (N, 2) (several cases in one call).
+    In blocks of at most ``CHUNK_ELEMENTS`` / S cells: the (S, N) buffers then stay in the core's cache
+    (measured: K = 2, 1,000 cells 0.32 ms, 2,000 cells 0.94 ms in one block).
     """
+    n_seg = 4 * pivot.shape[0] + (1 if pivot.shape[0] == 2 else 0)
+    block = max(256, CHUNK_ELEMENTS // n_seg)
+    if len(cells) > block:
+        parts = [_hull_core(cells[i:i + block], sole_local, pivot if pivot.ndim == 2 else pivot[:, i:i + block],
+                            q if q.ndim == 1 else q[i:i + block]) for i in range(0, len(cells), block)]
+        return _Hull(cells, *(np.concatenate([getattr(h, f) for h in parts])
+                              for f in ("cos", "sin", "bx", "by", "margin")))
     x0, y0 = sole_local.min(axis=0)
     x1, y1 = sole_local.max(axis=0)
     n = len(cells)
@@ -311,7 +323,6 @@ def _hull_core(cells: np.ndarray, sole_local: np.ndarray, pivot: np.ndarray, q: 
     # segments (S, N): pivot k -> corner j (k-major), then pivot 0 -> pivot 1
     cx = np.array([x1, x0, x0, x1])[:, None]
     cy = np.array([y1, y1, y0, y0])[:, None]
-    n_seg = 4 * npiv + (1 if npiv == 2 else 0)
     ax, ay, ex, ey = (np.empty((n_seg, n)) for _ in range(4))
     for k in range(npiv):
         rows = slice(4 * k, 4 * k + 4)
@@ -322,10 +333,29 @@ def _hull_core(cells: np.ndarray, sole_local: np.ndarray, pivot: np.ndarray, q: 
         ax[8], ay[8] = px[0], py[0]
         np.subtract(px[1], px[0], out=ex[8])
         np.subtract(py[1], py[0], out=ey[8])
-    wx, wy = qx - ax, qy - ay
-    t = np.clip((wx * ex + wy * ey) / np.maximum(ex * ex + ey * ey, 1e-18), 0.0, 1.0)
-    nx, ny = ax + t * ex, ay + t * ey
-    d2 = (qx - nx) ** 2 + (qy - ny) ** 2
+    # t = clip((w . e) / max(|e|^2, 1e-18), 0, 1) with w = q - a; nearest a + t e; d2 = |q - nearest|^2,
+    # in place in four (S, N) buffers (the temporaries of the plain expressions overflowed the cache)
+    t, nx, ny, d2 = (np.empty((n_seg, n)) for _ in range(4))
+    np.subtract(qx, ax, out=t)
+    t *= ex
+    np.subtract(qy, ay, out=nx)
+    nx *= ey
+    t += nx                                   # w . e
+    np.multiply(ex, ex, out=nx)
+    np.multiply(ey, ey, out=ny)
+    nx += ny
+    np.maximum(nx, 1e-18, out=nx)             # |e|^2
+    t /= nx
+    np.clip(t, 0.0, 1.0, out=t)
+    np.multiply(t, ex, out=nx)
+    nx += ax
+    np.multiply(t, ey, out=ny)
+    ny += ay
+    np.subtract(qx, nx, out=d2)
+    d2 *= d2
+    np.subtract(qy, ny, out=t)
+    t *= t
+    d2 += t
     flat = np.argmin(d2, axis=0) * n + np.arange(n)
     d2_seg = d2.ravel()[flat]
     use_rect = d2_rect <= d2_seg
