@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import pathlib
 import time
 
 import pyarrow as pa
@@ -92,6 +93,59 @@ def test_push_keys_become_force_and_point():
     (o,) = design.overrides_for({"push.0.direction_deg": 180.0}, base)
     fx, fy, _ = json.loads(o.split("=", 1)[1])
     assert math.hypot(fx, fy) == pytest.approx(math.hypot(300, 75)) and fx < 0 and abs(fy) < 1e-6
+
+
+def test_target_keys_put_the_target_box_along_the_push():
+    base = scenario_mod.load("standing_push")
+    box = next(o for o in base["obstacles"] if o["is_target"])
+
+    def target_of(settings):
+        sc = base
+        for o in design.overrides_for(settings, base):
+            sc = scenario_mod.apply_override(sc, o)
+        (t,) = [o for o in sc["obstacles"] if o["is_target"]]
+        return t
+
+    # along push 0's heading (90 deg: the robot's left), the near face 1.0 m out, facing the robot
+    t = target_of({"push.0.direction_deg": 90.0, "target.distance_m": 1.0})
+    assert t["position"][0] == pytest.approx(0.0, abs=1e-6)
+    assert t["position"][1] == pytest.approx(1.0 + box["size"][0] / 2)
+    assert t["position"][2] == box["position"][2] and t["size"] == box["size"]
+    assert t["yaw"] == pytest.approx(math.pi / 2)
+    # without a direction key: the base push's own heading (300 N forward, 75 N right)
+    t = target_of({"target.distance_m": 1.2})
+    assert math.atan2(t["position"][1], t["position"][0]) == pytest.approx(math.atan2(-75.0, 300.0))
+    # an explicit heading wins
+    t = target_of({"push.0.direction_deg": 90.0, "target.distance_m": 1.2, "target.heading_deg": 180.0})
+    assert t["position"][0] == pytest.approx(-(1.2 + box["size"][0] / 2)) and abs(t["position"][1]) < 1e-6
+    with pytest.raises(spec_mod.CampaignSpecError, match="needs target.distance_m"):
+        design.overrides_for({"target.heading_deg": 10.0}, base)
+    with pytest.raises(spec_mod.CampaignSpecError, match="no obstacle with is_target"):
+        design.overrides_for({"target.distance_m": 1.0}, scenario_mod.load("standing_push", ["obstacles=[]"]))
+
+
+@pytest.mark.parametrize("name", ["avoidance_map", "ftb_rates", "estop_success", "threshold_map",
+                                  "standing_push_1000", "smoke"])
+def test_built_in_specs_pass_their_own_check(name):
+    spec = spec_mod.load(pathlib.Path(__file__).resolve().parents[1] / "config" / "campaigns" / f"{name}.yaml")
+    base = scenario_mod.load(spec.base_scenario, list(spec.set))
+    points = design.design_points(spec)
+    assert points
+    design.check_design(spec, base, points)  # raises on a key or value the scenario refuses
+
+
+@pytest.mark.parametrize("stop_when_fallen", [False, True])
+def test_an_inprocess_trial_row_carries_the_controllers_run_metrics(stop_when_fallen):
+    """The e-stop's outcome (``estop_*``) reaches the trial's metrics by both in-process paths."""
+    from humfall_ros.campaign.server import run_inprocess
+
+    m = run_inprocess(TrialRequest("t0", "standing_quiet", ["estop.time=0.2", "duration=0.6"], "inprocess", 60.0,
+                                   None, stop_when_fallen))
+    assert m["estop_trigger_time_s"] == pytest.approx(0.2)
+    assert m["estop_phase_at_trigger"] == "standing" and m["estop_state"] in ("stopping", "stopped", "holding")
+    assert m["estop_feasible"] is True and m["fell"] is False
+    plain = run_inprocess(TrialRequest("t1", "standing_quiet", ["duration=0.2"], "inprocess", 60.0, None))
+    assert not any(k.startswith("estop_") for k in plain)  # no e-stop in the suite: no e-stop columns
 
 
 def test_random_design_is_seeded(tmp_path):

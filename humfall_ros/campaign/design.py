@@ -11,6 +11,14 @@ than a force vector:
 
 They become ``push.N.force`` / ``push.N.point``; a push key the design leaves out keeps
 the base scenario's value (its force's magnitude, heading and vertical part).
+
+Two target keys put the base scenario's target box (its first ``is_target`` obstacle, same
+size) on the floor along a heading, yawed to face the robot, so that a sweep over push
+directions keeps a target in the way of every push (paper 1's layout, for every direction):
+
+* ``target.distance_m`` — the box's near face from the origin (the initial feet centre) [m],
+* ``target.heading_deg`` — its heading, counter-clockwise from +x [deg]; default: the
+  heading of push 0 (after ``push.0.direction_deg``).
 """
 from __future__ import annotations
 
@@ -27,6 +35,7 @@ from humfall_ros import scenario as scenario_mod
 from humfall_ros.campaign.spec import CampaignSpec, CampaignSpecError, Choice, Circle, Linspace, Normal, Uniform
 
 PUSH_KEY = re.compile(r"^push\.(\d+)\.(magnitude_n|direction_deg|height_m)$")
+TARGET_KEYS = ("target.distance_m", "target.heading_deg")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,11 +65,13 @@ def _yaml_value(v) -> str:
 
 def overrides_for(settings: dict[str, Any], base: dict) -> list[str]:
     """``--set`` assignments for one design point on the validated base scenario ``base``."""
-    out, pushes = [], {}
+    out, pushes, target = [], {}, {}
     for key, value in settings.items():
         m = PUSH_KEY.match(key)
         if m:
             pushes.setdefault(int(m.group(1)), {})[m.group(2)] = value
+        elif key in TARGET_KEYS:
+            target[key.split(".")[1]] = float(value)
         else:
             out.append(f"{key}={_yaml_value(value)}")
     for i, p in sorted(pushes.items()):
@@ -75,7 +86,35 @@ def overrides_for(settings: dict[str, Any], base: dict) -> list[str]:
         if "height_m" in p:
             pt = base["push"][i]["point"]
             out.append(f"push.{i}.point={_yaml_value([pt[0], pt[1], float(p['height_m'])])}")
+    if target:
+        out.append(_target_override(target, base, pushes.get(0, {})))
     return out
+
+
+def _target_override(target: dict[str, float], base: dict, push0: dict) -> str:
+    """``obstacles=[...]``: the base's obstacles with its target box moved as the target keys say."""
+    if "distance_m" not in target:
+        raise CampaignSpecError("target.heading_deg needs target.distance_m")
+    boxes = [dict(o) for o in base["obstacles"]]
+    i = next((k for k, o in enumerate(boxes) if o.get("is_target")), None)
+    if i is None:
+        raise CampaignSpecError("target.*: the base scenario has no obstacle with is_target: true")
+    if "heading_deg" in target:
+        heading = math.radians(target["heading_deg"])
+    elif "direction_deg" in push0:
+        heading = math.radians(float(push0["direction_deg"]))
+    elif base["push"]:
+        f = base["push"][0]["force"]
+        heading = math.atan2(f[1], f[0])
+    else:
+        raise CampaignSpecError("target.distance_m without target.heading_deg needs a push 0")
+    box = boxes[i]
+    centre = target["distance_m"] + box["size"][0] / 2  # the near face at distance_m
+    box["position"] = [round(centre * math.cos(heading), 6), round(centre * math.sin(heading), 6),
+                       box["position"][2]]
+    box["yaw"] = round(heading, 6)
+    boxes[i] = box
+    return f"obstacles={_yaml_value(boxes)}"
 
 
 def build_scenario(base_scenario: str, overrides: list[str] | tuple[str, ...]) -> dict:

@@ -166,7 +166,7 @@ def _run_until_fallen(sc: dict):
                            or t >= m.fall_time + STOP_AFTER_FALL_S):
                 stopped = t
                 break
-        r = m.result()
+        r = loop.metrics()
         r["stopped_early_at_s"] = stopped
         return LoopResult(r, np.array(loop.joint_positions), {}, r["max_trunk_tilt_deg"])
     finally:

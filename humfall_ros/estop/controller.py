@@ -323,6 +323,16 @@ class EstopController:
         self._prev_ws = None
         self.now = 0.0
 
+    def run_metrics(self) -> dict:
+        """The run's e-stop outcome for the in-process loop's metrics (``estop_*`` keys; campaigns)."""
+        st = self.status
+        return {"estop_state": st.state, "estop_feasible": bool(st.feasible), "estop_crouch": bool(st.crouch),
+                "estop_fallback": st.fallback or None, "estop_phase_at_trigger": st.phase_at_trigger or None,
+                "estop_trigger_time_s": None if math.isnan(st.trigger_time) else float(st.trigger_time),
+                "estop_n3_m": None if math.isnan(st.n_major[2]) else float(st.n_major[2]),
+                "estop_min_zmp_margin_m": None if math.isnan(st.min_zmp_margin) else float(st.min_zmp_margin),
+                "estop_reason": st.reason or None}
+
     def request_trigger(self) -> None:
         """Trigger from code (what the ``estop`` topic does)."""
         self._trigger_seen = False

@@ -267,9 +267,19 @@ class ClosedLoop:
             self.step()
             if stop is not None and stop(self):
                 break
-        r = self.ground_truth.metrics.result()
+        r = self.metrics()
         return LoopResult(r, np.array(self.joint_positions), dict(self.errors), r["max_trunk_tilt_deg"],
                           list(self.active_sources), self.outputs)
+
+    def metrics(self) -> dict:
+        """The ground truth's run metrics, plus what each controller reports of its run (``run_metrics()``,
+        e.g. the e-stop's ``estop_*``), as one flat dict."""
+        r = self.ground_truth.metrics.result()
+        for c in self.controllers:
+            run_metrics = getattr(c, "run_metrics", None)
+            if callable(run_metrics):
+                r.update(run_metrics())
+        return r
 
     def close(self) -> None:
         self.world.close()
