@@ -1,8 +1,9 @@
 """The e-stop over ROS with real processes (`launch.up`): a standing stop identical to the in-process loop,
 ``estop/status`` every tick, and `humfall estop` (humfall_ros/nodes/estop_cli.py) triggering a running suite.
 
-Until the lead starts ``estop_planner`` in `humfall up` (setup.py / launch wiring), the test adds the node
-to the launcher's plan itself (``_with_estop_node``); once the launcher has it, that is a no-op.
+`humfall up` starts ``estop_planner`` when the scenario walks or schedules a trigger (``estop.time`` /
+``estop.at``), and ``ClosedLoop(sc)`` runs the same suite in process; for a standing robot with no scheduled
+trigger (``humfall estop`` from outside) the test adds the node to the launcher's plan (``_with_estop_node``).
 Each test runs in its own ROS_DOMAIN_ID on localhost (conftest.in_ros_domain).
 """
 from __future__ import annotations
@@ -15,9 +16,7 @@ import pytest
 
 from humfall_ros import launch, scenario
 from humfall_ros.control.mux import DEFAULT_PRIORITIES, mux_order
-from humfall_ros.estop.config import EstopConfig
-from humfall_ros.estop.controller import EstopController
-from humfall_ros.sim.closed_loop import ClosedLoop, standing_controller
+from humfall_ros.sim.closed_loop import ClosedLoop
 
 from test_contract_graph import bag_topic
 from test_suite_graph import joint_states_from_bag
@@ -51,31 +50,24 @@ def run_up(in_ros_domain, tmp_path):
     return run
 
 
-def in_process(sc, trigger_time: float):
-    loop = ClosedLoop(sc, controllers=[standing_controller(sc, _model()),
-                                       EstopController(_model(), EstopConfig.defaults(trigger_time=trigger_time),
-                                                       1.0 / sc["sim"]["control_rate"])])
+def in_process(sc):
+    """The suite ``humfall up`` starts for ``sc`` (locomotion + the e-stop fed walking/state), in process."""
+    loop = ClosedLoop(sc)
     try:
         r = loop.run()
-        return r, loop.controllers[1]
+        (estop,) = [c for c in loop.controllers if c.source == "estop"]
+        return r, estop
     finally:
         loop.close()
 
 
-def _model():
-    from humfall_ros.model.humanoid import load_model
-
-    return load_model()
-
-
-def test_a_standing_stop_over_ros_is_identical_to_the_in_process_loop(run_up, monkeypatch, tmp_path):
-    _with_estop_node(monkeypatch, {"trigger_time": 0.7, "walking_state_input": False})
-    ov = ["duration=2.0", PUSH]
+def test_a_standing_stop_over_ros_is_identical_to_the_in_process_loop(run_up, tmp_path):
+    ov = ["duration=2.0", PUSH, "estop.time=0.7"]  # the launcher starts estop_planner for the scheduled trigger
     status, r = run_up("standing_quiet", *ov)
     assert status == 0, r
     assert r["metrics"]["fell"] is False
     sc = scenario.load("standing_quiet", ov)
-    mine, ctl = in_process(sc, 0.7)
+    mine, ctl = in_process(sc)
     # the mux's source per tick: locomotion, then estop from the tick after the trigger's, to the end
     active = dict(bag_topic(r["bag"], "/mux/state", "active"))
     ticks = sorted(active)
