@@ -46,15 +46,21 @@ def tick_messages(world: SimWorld, sensors: Sensors, names: list[str]) -> dict:
     return out
 
 
-def test_a_backlog_is_answered_with_the_newest_complete_tick_only(estimator):
-    node, published = estimator
+def simulated_ticks(n: int, names: list[str]) -> list[dict]:
+    """The sensor messages of the first ``n`` ticks of a standing robot."""
     world = SimWorld(1000, 500)
     sensors = Sensors(world)
     ticks = []
-    for _ in range(3):
-        ticks.append(tick_messages(world, sensors, node.model.joint_names))
+    for _ in range(n):
+        ticks.append(tick_messages(world, sensors, names))
         world.step_control()
     world.close()
+    return ticks
+
+
+def test_a_backlog_is_answered_with_the_newest_complete_tick_only(estimator):
+    node, published = estimator
+    ticks = simulated_ticks(3, node.model.joint_names)
     for t in ticks[:2]:  # two complete ticks queued up, and half of a third
         for kind, msg in t.items():
             node._add(kind, msg)
@@ -80,13 +86,7 @@ def test_a_retransmitted_tick_is_answered_again_and_time_going_back_resets(estim
     node, _ = estimator
     stamps = []  # what went out, read at publish time (the node refills one message)
     node.pub.publish = lambda m: stamps.append((stamp_key(m.header.stamp), m.com.x))
-    world = SimWorld(1000, 500)
-    sensors = Sensors(world)
-    ticks = []
-    for _ in range(2):
-        ticks.append(tick_messages(world, sensors, node.model.joint_names))
-        world.step_control()
-    world.close()
+    ticks = simulated_ticks(2, node.model.joint_names)
     for t in ticks:
         for kind, msg in t.items():
             node._add(kind, msg)
