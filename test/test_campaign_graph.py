@@ -1,9 +1,9 @@
 """Campaign trials over the ROS graph (``--graph``): each trial is ``humfall up`` in a ROS domain of its own.
 
-``test_graph_trial_runs_in_its_own_domain`` runs today. The identity test (joint states
-identical in process and over ROS on 10 sampled trials of the 1,000-push design) is
-PENDING the lead's controller-contract work (the in-process loop running the same
-controllers through the bridge's mux): it runs when ``HUMFALL_GRAPH_IDENTITY=1``.
+The identity test: joint states identical in process and over ROS on trials sampled from a
+built-in campaign (the in-process loop runs the same controllers through the same mux as the
+graph): 3 of the 1,000 standing pushes and 1 safe-fall trial of the avoidance map by default,
+``HUMFALL_IDENTITY_TRIALS=10`` for the issue's 10 (each graph trial is a whole ``humfall up``).
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from humfall_ros.campaign.runner import RunOptions, prepare, run_campaign
 from humfall_ros.campaign.server import TAG_ENV, DomainLock, TrialRequest, TrialServer, tagged_pids
 from humfall_ros.campaign.store import load_results
 
-IDENTITY_READY = os.environ.get("HUMFALL_GRAPH_IDENTITY") == "1"
+IDENTITY_TRIALS = int(os.environ.get("HUMFALL_IDENTITY_TRIALS", "3"))
 
 
 def test_domain_locks_are_exclusive(tmp_path):
@@ -52,13 +52,15 @@ def _bag_joint_positions(bag: str) -> np.ndarray:
     return np.array([rows[k] for k in sorted(rows)])
 
 
-@pytest.mark.skipif(not IDENTITY_READY, reason="PENDING: in-process vs graph identity needs the lead's controller "
-                    "contract work; set HUMFALL_GRAPH_IDENTITY=1 once it holds")
-def test_inprocess_and_graph_give_identical_joint_states_on_10_sampled_trials(tmp_path):
-    spec = spec_mod.load("standing_push_1000")
-    spec = spec.model_copy(update={"set": [*spec.set, "duration=1.5"]})
+@pytest.mark.parametrize(("campaign", "n", "extra"), [
+    ("standing_push_1000", IDENTITY_TRIALS, ["duration=1.5"]),
+    ("avoidance_map", 1, ["duration=2.0"]),     # the FTB, the safe-fall controller and the target layout too
+])
+def test_inprocess_and_graph_give_identical_joint_states_on_sampled_trials(tmp_path, campaign, n, extra):
+    spec = spec_mod.load(campaign)
+    spec = spec.model_copy(update={"set": [*spec.set, *extra]})
     _, _, study, _ = prepare(spec, RunOptions())
-    picks = np.random.default_rng(13).choice(study.total, 10, replace=False)
+    picks = np.random.default_rng(13).choice(study.total, n, replace=False)
     server = TrialServer(str(tmp_path / "logs"))
     try:
         for i in picks:
