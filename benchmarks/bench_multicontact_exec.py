@@ -97,7 +97,13 @@ def main() -> int:
     ap.add_argument("--plots", default="")
     ap.add_argument("--calibrate", default="")
     ap.add_argument("--hold", choices=("planar", "measured"), default="planar")
-    ap.add_argument("--both-hands", action="store_true", help="ExecutorConfig.both_hands")
+    ap.add_argument("--replay", default="", help="execute the stored plans of DIR (multicontact_push_<KE>J.json) "
+                    "with their pushes instead of planning")
+    ap.add_argument("--no-velocity-feedforward", action="store_true", help="ExecutorConfig.velocity_feedforward off")
+    ap.add_argument("--solver-velocity-clamp", action="store_true",
+                    help="keep SimWorld's maxJointVelocity clamp (does not conserve momentum)")
+    ap.add_argument("--latency", type=float, default=0.0, help="RunConfig.plan_latency [s]")
+    ap.add_argument("--one-hand", action="store_true", help="ExecutorConfig.both_hands off")
     ap.add_argument("--set", default="", help="planner parameters name=value,... (yaml names)")
     ap.add_argument("--series", action="store_true", help="keep the per-tick series in the JSON")
     a = ap.parse_args()
@@ -117,13 +123,25 @@ def main() -> int:
             overrides[k] = v == "true"
     out["objective"] = a.objective
     out["planner_overrides"] = overrides
-    planner = FallPlanner.from_params(**overrides)
+    planner = None if a.replay else FallPlanner.from_params(**overrides)
+    run_cfg = mr.RunConfig(time_budget=a.budget, hold=a.hold, both_hands=not a.one_hand, plan_latency=a.latency,
+                           velocity_feedforward=not a.no_velocity_feedforward,
+                           solver_velocity_clamp=a.solver_velocity_clamp)
+    out["run_config"] = run_cfg.__dict__
     cases = []
     for ke in [float(x) for x in a.kes.split(",")]:
         t0 = time.perf_counter()
-        force, table = force_for_energy(sc, ke)
-        s = mr.with_push(sc, force)
-        r = mr.execute(s, planner=planner, cfg=mr.RunConfig(time_budget=a.budget, hold=a.hold, both_hands=a.both_hands))
+        if a.replay:
+            stored = StoredPlan.load(pathlib.Path(a.replay) / f"multicontact_push_{ke:g}J.json")
+            force, table = stored.meta["push_force"][0], []
+            s = mr.with_push(sc, force)
+            r = mr.execute(s, segments=stored.segments, start_time=stored.take_over_time - run_cfg.plan_latency,
+                           cfg=run_cfg)
+            r["plan"].update({k: stored.meta.get(k) for k in ("contact_sequence", "objective")})
+        else:
+            force, table = force_for_energy(sc, ke)
+            s = mr.with_push(sc, force)
+            r = mr.execute(s, planner=planner, cfg=run_cfg)
         r["target_ke"] = ke
         r["push_force_n"] = force
         r["push_table"] = table
@@ -132,13 +150,13 @@ def main() -> int:
         if a.plots and "series" in r:
             pathlib.Path(a.plots).mkdir(parents=True, exist_ok=True)
             plots(r, pathlib.Path(a.plots) / f"multicontact_exec_{ke:g}J.png")
-        if a.save_plans and r.get("take_over_time") is not None and r["plan"].get("success"):
+        if a.save_plans and not a.replay and r.get("take_over_time") is not None and r["plan"].get("success"):
             pathlib.Path(a.save_plans).mkdir(parents=True, exist_ok=True)
             segs = r.pop("_segments")
             StoredPlan(segs, r["take_over_time"], {
                 "scenario": SCENARIO, "push_force": [force, 0.0, 0.0], "target_ke": ke,
-                "objective": a.objective, "planner_overrides": overrides, "both_hands": a.both_hands,
-                "state_at_take_over": r["state_at_take_over"],
+                "objective": a.objective, "planner_overrides": overrides, "both_hands": not a.one_hand,
+                "state_at_plan": r["state_at_plan"],
                 "contact_sequence": r["plan"]["contact_sequence"]}).save(
                 pathlib.Path(a.save_plans) / f"multicontact_push_{ke:g}J.json")
         r.pop("_segments", None)
@@ -148,6 +166,7 @@ def main() -> int:
         print(f"# {ke:g} J: F {force:.0f} N, plan {r['plan'].get('success')} "
               f"{r['plan'].get('contact_sequence')}, final KE {r.get('final_ke')}, mode {r.get('final_mode')} "
               f"(plan {r.get('planned_final_mode')}), others {sorted(r.get('other_links_touching') or {})}, "
+              f"momentum err {r.get('momentum_error_ns_max')}, ke max {r.get('ke_max')}, "
               f"{r['wall_s']:.0f} s", file=sys.stderr)
     out["cases"] = cases
     out["load_average_end"] = os.getloadavg()

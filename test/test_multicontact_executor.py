@@ -175,7 +175,7 @@ def test_executor_config_matches_the_node_declaration():
     from humfall_ros import params
     d = params.defaults("multicontact_executor")
     cfg = ExecutorConfig()
-    for k in ("landing_wait", "early_switch", "hold", "both_hands"):
+    for k in ("landing_wait", "early_switch", "hold", "both_hands", "velocity_feedforward"):
         assert d[k] == getattr(cfg, k), k
 
 
@@ -244,8 +244,8 @@ def test_both_hands_copies_the_landing_arm_to_the_other(models):
     landing = _segment(pm, q0, q1, 0.4, "add", "LH", ("LF", "RF"), ("LF", "RF", "LH"))
     settle = _segment(pm, q1, q1, 0.6, mode=("LF", "RF", "LH"), target=("LF", "RF", "LH"))
     ji = {j: hm.joint_names.index(j) for j in ("l_shoulder_pitch", "r_shoulder_pitch", "l_elbow", "r_elbow")}
-    plain = MulticontactExecutor([landing, settle], pm.joint_names, hm.joint_names)
-    both = MulticontactExecutor([landing, settle], pm.joint_names, hm.joint_names, ExecutorConfig(both_hands=True))
+    plain = MulticontactExecutor([landing, settle], pm.joint_names, hm.joint_names, ExecutorConfig(both_hands=False))
+    both = MulticontactExecutor([landing, settle], pm.joint_names, hm.joint_names)
     for ex in (plain, both):
         ex.step(_obs(hm, 0.0))
     a, b = plain.step(_obs(hm, 0.3)), both.step(_obs(hm, 0.3))
@@ -254,3 +254,4 @@ def test_both_hands_copies_the_landing_arm_to_the_other(models):
     assert b.positions[ji["r_elbow"]] == pytest.approx(b.positions[ji["l_elbow"]])
     assert b.velocities[ji["r_shoulder_pitch"]] == pytest.approx(b.velocities[ji["l_shoulder_pitch"]])
     assert b.positions[ji["l_shoulder_pitch"]] == pytest.approx(a.positions[ji["l_shoulder_pitch"]])
+    assert both.mirrored_hand == "RH" and plain.mirrored_hand is None

@@ -42,13 +42,16 @@ class ExecutorConfig:
         both_hands: when the plan lands one hand only, the other arm tracks the landing arm's joints
             (the planar model has both hands in one plane; on the 3-D robot one hand beside two feet
             leaves the centre of mass outside the support triangle, so it rolls over that edge).
+        velocity_feedforward: send the plan's joint velocities as velocity targets (else 0: the servos
+            then act as a damped position loop on the plan's positions).
     """
 
     landing_wait: float = 0.2
     early_switch: float = 0.15
     start_time: float = 0.0
     hold: str = "planar"
-    both_hands: bool = False
+    both_hands: bool = True
+    velocity_feedforward: bool = True
 
     def __post_init__(self):
         if self.hold not in HOLD_MODES:
@@ -133,6 +136,14 @@ class MulticontactExecutor:
     def segment_index(self) -> int:
         return self._seg
 
+    @property
+    def mirrored_hand(self) -> str | None:
+        """The hand that copies the landing arm (``both_hands`` applied to this plan), else None."""
+        if self._copy is None:
+            return None
+        hands = {e for s in self.segments for e in s.target_mode if e in ("LH", "RH")}
+        return "RH" if hands == {"LH"} else "LH"
+
     # ------------------------------------------------------------------ plan
     @staticmethod
     def sample(seg: Segment, t: float) -> tuple[np.ndarray, np.ndarray]:
@@ -200,7 +211,8 @@ class MulticontactExecutor:
         pos = self._hold.copy()
         vel = np.zeros(self.n_joints)
         pos[self.index] = q
-        vel[self.index] = dq
+        if self.cfg.velocity_feedforward:
+            vel[self.index] = dq
         return JointTargets(positions=pos, velocities=vel)
 
 

@@ -64,7 +64,8 @@ def make_controller(p: dict, model):
     plan = StoredPlan.load(plan_path(p["plan_file"]))
     start = plan.take_over_time if p["start_time"] < 0 else p["start_time"]
     cfg = ExecutorConfig.from_params({"landing_wait": p["landing_wait"], "early_switch": p["early_switch"],
-                                      "start_time": start, "hold": p["hold"], "both_hands": p["both_hands"]})
+                                      "start_time": start, "hold": p["hold"], "both_hands": p["both_hands"],
+                                      "velocity_feedforward": p["velocity_feedforward"]})
     ex = MulticontactExecutor(plan.segments, load_planar().joint_names, model.joint_names, cfg)
     ex.source = p["source"]
     return ex

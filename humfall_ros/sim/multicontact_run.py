@@ -53,7 +53,15 @@ class RunConfig:
         contact_force_min: a limb or link touches when its tick-mean contact force exceeds this [N].
         final_window: the final mode and KE are judged over this last stretch of the run [s].
         time_budget: the planner's wall-clock budget [s].
-        hold, both_hands: ``ExecutorConfig.hold``, ``ExecutorConfig.both_hands``.
+        hold, both_hands, velocity_feedforward: as in ``ExecutorConfig``.
+        plan_latency: the plan is made from the state at the push's end but the executor takes over
+            this much later [s] (the standing balance in between): what a planner that needs that
+            long would do without pausing the simulator. 0: paused (the plan's state is the take-over's).
+        solver_velocity_clamp: keep ``SimWorld``'s ``maxJointVelocity`` (the URDF speed limits enforced by
+            clamping joint velocities in the solver). Off by default here: the clamp does not conserve
+            momentum (measured: a plan driving joints at their limits gains 12.8 N s in one airborne tick and
+            ~1000 J of kinetic energy; ``momentum_error_ns`` in the report); without it the speed limits
+            act through the clipped velocity targets only and the report gives the peak joint speeds.
     """
 
     settle: float = 1.5
@@ -61,7 +69,10 @@ class RunConfig:
     final_window: float = 0.1
     time_budget: float = 120.0
     hold: str = "planar"
-    both_hands: bool = False
+    both_hands: bool = True
+    velocity_feedforward: bool = True
+    plan_latency: float = 0.0
+    solver_velocity_clamp: bool = False
 
 
 def push_end_time(sc: dict) -> float:
@@ -103,11 +114,20 @@ class _Probe:
         self.limb_point: dict[str, list] = {e: [] for e in LIMBS}
         self.link_force: dict[str, dict[int, float]] = {}    # link name -> {tick: normal force}
         self.tilt: list[float] = []
+        self.mass = pin.computeTotalMass(hm.model)
+        self.momentum_error: list[float] = []      # |dp - (F_contact + M g) dt| per tick [N s]
+        self.joint_speed_ratio: list[float] = []   # max |qdot| / URDF limit per tick
+        self._p_prev = None
 
     def kinetic_energy(self) -> float:
         q, v = self.world.pinocchio_state()
         M = pin.crba(self.hm.model, self.data, q)
         return float(0.5 * v @ M @ v)
+
+    def momentum(self) -> np.ndarray:
+        q, v = self.world.pinocchio_state()
+        pin.centerOfMass(self.hm.model, self.data, q, v)
+        return self.mass * np.array(self.data.vcom[0])
 
     def record(self) -> None:
         w = self.world
@@ -127,6 +147,19 @@ class _Probe:
                 force[limb] += f
                 normal[limb] += cp[9]
                 moment[limb] += cp[9] * np.asarray(cp[6])
+        total = sum(force.values()) + np.zeros(3)
+        for cp in w.ground_contacts():
+            if cp[3] not in self.limb_of_link:
+                total = total + cp[9] * np.asarray(cp[7]) + cp[10] * np.asarray(cp[11]) + cp[12] * np.asarray(cp[13])
+        p = self.momentum()
+        if self._p_prev is not None:
+            dt = 1.0 / w.control_rate
+            self.momentum_error.append(float(np.linalg.norm(p - self._p_prev - (total - [0, 0, self.mass * GRAVITY])
+                                                            * dt)))
+        else:
+            self.momentum_error.append(0.0)
+        self._p_prev = p
+        self.joint_speed_ratio.append(float(np.max(np.abs(w.joint_states()[1]) / w.model.limits.velocity)))
         for e in LIMBS:
             self.limb_force[e].append(float(np.linalg.norm(force[e])))
             self.limb_point[e].append(moment[e] / normal[e] if normal[e] > 1e-9 else None)
@@ -176,7 +209,7 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
         return proj
 
     def plan_source(obs):
-        proj = measured_state()
+        proj = info.pop("_early", None) or measured_state()
         t0 = time.perf_counter()
         r = planner.plan({"q": proj.q.tolist(), "v": proj.v.tolist(), "initial_mode": INITIAL_MODE,
                           "time_budget": cfg.time_budget})
@@ -194,17 +227,27 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
                         "stored_state_error_v": float(np.abs(proj.v - s0.v[0]).max())}
         return list(segments)
 
-    ex_cfg = ExecutorConfig(start_time=t_start, hold=cfg.hold, both_hands=cfg.both_hands)
+    t_plan = t_start
+    t_start = t_start + cfg.plan_latency
+    ex_cfg = ExecutorConfig(start_time=t_start, hold=cfg.hold, both_hands=cfg.both_hands,
+                            velocity_feedforward=cfg.velocity_feedforward)
     executor = MulticontactExecutor([], pm.joint_names, _joint_names(), ex_cfg,
                                     plan_source=plan_source if segments is None else stored_source)
     hm = _model()
     loop = ClosedLoop(sc, controllers=[locomotion_controller(sc, hm), executor],
                       priorities={executor.source: EXECUTOR_PRIORITY})
+    if not cfg.solver_velocity_clamp:
+        w = loop.world
+        for name in w.model.joint_names:
+            pb.changeDynamics(w.robot, w.joint_ids[name], maxJointVelocity=1e4, physicsClientId=w.client)
     probe = _Probe(loop.world)
     rate = sc["sim"]["control_rate"]
     try:
         t_end = None if duration is None else float(duration)
         while True:
+            if cfg.plan_latency > 0 and "_early_done" not in info and loop.world.time >= t_plan - 0.5 / rate:
+                info["_early"] = measured_state()      # the state the late plan is made from
+                info["_early_done"] = True
             loop.step()
             probe.record()
             if t_end is None and (executor.take_over_time is not None or executor.failed):
@@ -243,8 +286,8 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
         "scenario": sc["name"], "push": {"force": push["force"], "duration": push["duration"],
                                          "start": push_time(sc, push), "end": push_end_time(sc)},
         "plan": info.get("plan", {"success": False, "reason": executor.reason}),
-        "state_at_take_over": {k: v for k, v in info.get("state", {}).items() if k not in ("q", "v")},
-        "take_over_time": executor.take_over_time, "executor_failed": executor.failed,
+        "state_at_plan": {k: v for k, v in info.get("state", {}).items() if k not in ("q", "v")},
+        "take_over_time": executor.take_over_time, "plan_latency": cfg.plan_latency, "executor_failed": executor.failed,
         "executor_reason": executor.reason, "ke_max": float(ke.max()) if len(ke) else float("nan"),
     }
     if executor.take_over_time is None:
@@ -265,12 +308,18 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
     out["plan"]["ke_curve"] = curve
     out["switches"] = [{"segment": i, "plan_time": float(tp), "why": why} for i, tp, why in executor.switches]
     out["sources_after_take_over"] = sorted(set(active[k0 + 1:]))
-    planned_final = segs[-1].mode
-    out["planned_final_mode"] = mode_label(planned_final)
+    mirror = executor.mirrored_hand
+    out["mirrored_hand"] = mirror
+    planned_final = tuple(segs[-1].mode) + ((mirror,) if mirror else ())
+    out["planned_final_mode"] = mode_label(segs[-1].mode) + (f" (+{mirror}: both_hands)" if mirror else "")
     # contact events: planned vs executed
     touching = {e: np.array(probe.limb_force[e]) > fmin for e in LIMBS}
     events = []
-    for ev in planned_contacts(pm, segs):
+    planned_events = planned_contacts(pm, segs)
+    if mirror:
+        planned_events += [dataclasses.replace(ev, extremity=mirror) for ev in planned_events
+                           if ev.extremity in ("LH", "RH") and ev.extremity != mirror]
+    for ev in planned_events:
         row = {"extremity": ev.extremity, "change": ev.change, "planned_time": ev.time,
                "planned_x": ev.position[0], "planned_z": ev.position[1]}
         want = ev.change == "add"
@@ -306,10 +355,12 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
             others[name] = {"first_time": float(t[ks[0]] - t0), "peak_normal_n": float(max(by_tick[k] for k in ks)),
                             "at_end": any(k >= kw for k in ks)}
     out["other_links_touching"] = others
-    planned_ext = set().union(*[set(s.mode) | set(s.target_mode) for s in segs])
+    planned_ext = set().union(*[set(s.mode) | set(s.target_mode) for s in segs]) | ({mirror} if mirror else set())
     unplanned_limbs = [e for e in LIMBS if e not in planned_ext and touching[e][k0:].any()]
     out["unplanned_limbs_touching"] = unplanned_limbs
     out["final_trunk_tilt_deg"] = math.degrees(probe.tilt[-1])
+    out["momentum_error_ns_max"] = float(max(probe.momentum_error[k0:]))
+    out["joint_speed_over_limit_max"] = float(max(probe.joint_speed_ratio[k0:]))
     out["ke_at_plan_end"] = float(ke[min(len(ke) - 1, int(np.searchsorted(t, t0 + out["plan"]["duration"])))])
     out["series"] = {"t": (t - t0).tolist(), "ke": ke.tolist(),
                      "limb_force": {e: list(map(float, probe.limb_force[e])) for e in LIMBS},
