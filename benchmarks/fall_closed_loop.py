@@ -6,6 +6,7 @@
     .venv/bin/python benchmarks/fall_closed_loop.py noise [SCALE]               # stepping_inertia, seeds 1-3
     .venv/bin/python benchmarks/fall_closed_loop.py repeat [SCALE]              # two lockstep runs identical?
     .venv/bin/python benchmarks/fall_closed_loop.py shaping [SCALE] [KEY=VALUE ...]  # stepping_inertia, diagnostics
+    .venv/bin/python benchmarks/fall_closed_loop.py shaping_sweep [FACTOR]      # sweep pushes, shaping signs
 
 Each prints one JSON object. ``push`` also writes Fig. 9 / Fig. 11 PNGs into OUT (default runs/fall_figures).
 The push angle of ``ftb`` is clockwise from +x; thresholds from config/fall_thresholds.yaml (``humfall sweep``).
@@ -110,14 +111,20 @@ def repeat(scale: float = 1.0, kind: str = "stepping_inertia") -> dict:
             "ticks": len(a.joint_positions)}
 
 
-def shaping(scale: float = 1.0, overrides: tuple[str, ...] = (), kind: str = "stepping_inertia") -> dict:
+def shaping(scale: float = 1.0, overrides: tuple[str, ...] = (), kind: str = "stepping_inertia",
+            seed: int | None = None) -> dict:
     """standing_push with inertia shaping and ``params.safe_fall_controller.KEY=VALUE`` overrides: what it adds, why.
 
     Per shaping tick (wrapping the controller's ``shaping_velocities``): the velocity scale the joint
     speed limits forced (>= 1: saturated), the joints recruited after the position limits, the inertia
     error and residual; and the fall heading seen from the measured P2 (alpha(t) = angle(P2 -> CoM,
-    P2 -> T)) at touchdown, at the shaping start and at the trunk's landing.
+    P2 -> T)) at touchdown, at the shaping start and at the trunk's landing. ``seed``: TYPICAL_NOISE with it.
+    CLI: ``shaping SCALE [kind=stepping] [seed=N] [KEY=VALUE ...]``.
     """
+    import dataclasses
+
+    from humfall_ros.sim.sensors import TYPICAL_NOISE
+
     from humfall_ros.fall import controller as fc
     from humfall_ros.fall.geometry import avoidance_angle
 
@@ -135,11 +142,12 @@ def shaping(scale: float = 1.0, overrides: tuple[str, ...] = (), kind: str = "st
     fc.shaping_velocities = spy
     try:
         t0 = time.perf_counter()
-        r = runs.run(scenario.load("standing_push", ov), kind, keep_trace=True)
+        noise = None if seed is None else dataclasses.replace(TYPICAL_NOISE, seed=seed)
+        r = runs.run(scenario.load("standing_push", ov), kind, keep_trace=True, noise=noise)
     finally:
         fc.shaping_velocities = orig
     s = runs.summary(r)
-    out = {"overrides": list(overrides), "wall_s": round(time.perf_counter() - t0, 1),
+    out = {"overrides": list(overrides), "kind": kind, "seed": seed, "wall_s": round(time.perf_counter() - t0, 1),
            **{k: s.get(k) for k in ("avoidance_angle_p2_deg", "avoidance_angle_deg", "min_target_distance_m",
                                     "landing_time_s", "decision_case", "measured_p2")},
            "touchdown_s": (s.get("prediction") or {}).get("touchdown_time_s"),
@@ -165,6 +173,28 @@ def shaping(scale: float = 1.0, overrides: tuple[str, ...] = (), kind: str = "st
     return out
 
 
+def shaping_sweep(variants: dict[str, tuple[str, list[str]]], directions=(0, 30, 60, 90, 120),
+                  factor: float = 1.2) -> dict:
+    """The sweep's pushes (``factor`` x each direction's threshold, target along its uncontrolled fall) for
+    controller variants ``{name: (kind, [KEY=VALUE of safe_fall_controller])}``: alpha2, alpha, clearance."""
+    th = sweep.load_thresholds()
+    rows = []
+    for a in directions:
+        t = th[a]
+        for name, (kind, ov) in variants.items():
+            sc = sweep.push_scenario(factor * t["threshold_n"], a, t["fall_heading_deg"], t["initial_cop"],
+                                     extra=[f"params.safe_fall_controller.{x}" for x in ov])
+            s = runs.summary(runs.run(sc, kind))
+            rows.append({"push_angle_deg": a, "variant": name, "alpha2_deg": s["avoidance_angle_p2_deg"],
+                         "alpha_deg": s["avoidance_angle_deg"], "min_target_distance_m": s["min_target_distance_m"],
+                         "case": s["decision_case"]})
+    return {"factor": factor, "rows": rows}
+
+
+SHAPING_VARIANTS = {"stepping": ("stepping", []), "shaping_sign-1": ("stepping_inertia", ["shaping_sign=-1.0"]),
+                    "shaping_sign+1": ("stepping_inertia", ["shaping_sign=1.0"])}
+
+
 def main(argv: list[str]) -> None:
     what = argv[0] if argv else "push"
     if what == "push":
@@ -179,8 +209,13 @@ def main(argv: list[str]) -> None:
         out = noise_runs(float(argv[1]) if len(argv) > 1 else 1.0)
     elif what == "repeat":
         out = repeat(float(argv[1]) if len(argv) > 1 else 1.0)
+    elif what == "shaping_sweep":
+        out = shaping_sweep(SHAPING_VARIANTS, factor=float(argv[1]) if len(argv) > 1 else 1.2)
     elif what == "shaping":
-        out = shaping(float(argv[1]) if len(argv) > 1 else 1.0, tuple(argv[2:]))
+        opts = dict(a.split("=", 1) for a in argv[2:] if a.split("=", 1)[0] in ("kind", "seed"))
+        rest = tuple(a for a in argv[2:] if a.split("=", 1)[0] not in ("kind", "seed"))
+        out = shaping(float(argv[1]) if len(argv) > 1 else 1.0, rest, opts.get("kind", "stepping_inertia"),
+                      int(opts["seed"]) if "seed" in opts else None)
     else:
         raise SystemExit(f"unknown experiment {what!r}")
     print(json.dumps(out, default=str))
