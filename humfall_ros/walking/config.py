@@ -45,6 +45,11 @@ class LocomotionConfig:
     cop_damping_gain: float = 0.0         # rad/(m s)
     cop_damping_time_constant: float = 0.2  # s
     walk_ankle_max_offset: float = 0.05   # rad
+    sole_sinkage_gain: float = 0.0        # 1, times the URDF sole contact's sinkage under the planned load
+    sole_sinkage_damping: bool = True     # the contact damper's lead in that sinkage
+    foot_height_gain: float = 0.0         # 1/s, double-support foot height difference per metre of CoP error rate
+    foot_height_time_constant: float = 0.05  # s
+    foot_height_max: float = 0.0005       # m
     heading_lateral_gain: float = 0.5     # rad/m, path heading correction per metre of lateral drift
     steer_max_per_step: float = 0.0175    # rad, largest heading correction added to one planned step
     steer_filter_time: float = 0.4        # s, low-pass of the measured heading drift

@@ -28,6 +28,7 @@ import pinocchio as pin
 
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.control.standing import StandingController
+from humfall_ros.dynamics.pendulum import GRAVITY
 from humfall_ros.model.humanoid import SIDES, HumanoidModel, quat_matrix
 from humfall_ros.model.ik import (
     ComTask,
@@ -36,6 +37,7 @@ from humfall_ros.model.ik import (
     PostureTask,
     WholeBodyIK,
 )
+from humfall_ros.walking.compliance import planned_loads, sole_contact, sole_sinkage
 from humfall_ros.walking.config import LocomotionConfig
 from humfall_ros.walking.footsteps import Footstep, WalkCommand, step_width
 from humfall_ros.walking.multibody import MomentumZmp, MultiBodyCorrection
@@ -122,7 +124,10 @@ class LocomotionController:
         self.zmp_offset_x = float(0.5 * (corners[:, 0].max() + corners[:, 0].min()))
         self.stabilizer = WalkingStabilizer(model, dt, c.dcm_gain, c.com_feedback_max, c.cop_damping_gain,
                                             c.cop_damping_time_constant, c.walk_ankle_max_offset,
-                                            c.zmp_integral_gain, c.zmp_integral_max)
+                                            c.zmp_integral_gain, c.zmp_integral_max, c.foot_height_gain,
+                                            c.foot_height_time_constant, c.foot_height_max)
+        self.sole_stiffness, self.sole_damping = sole_contact(model)
+        self.weight = model.total_mass * GRAVITY
         self.messages: list[str] = []
         self.reset()
 
@@ -277,7 +282,9 @@ class LocomotionController:
         self.correction = None
         if self.cfg.multibody_correction:
             lookahead = max(1, round(self.cfg.multibody_horizon / self.dt))
-            self.correction = MultiBodyCorrection(self.m, self.pattern, q, self.tasks, lookahead,
+            pattern = self.pattern
+            self.correction = MultiBodyCorrection(self.m, pattern, q, lambda s: self.tasks(s, pattern=pattern),
+                                                  lookahead,
                                                   WholeBodyIK(self.m, velocity_fraction=1.0))
         self.momentum_zmp.reset()
         self.stabilizer.reset()
@@ -286,13 +293,38 @@ class LocomotionController:
         self._log(f"walk started: {cmd.speed * 3.6:.2f} km/h, {math.degrees(cmd.yaw_rate):.1f} deg/s"
                   + (f", {self.n_steps} steps" if self.n_steps else ""))
 
-    def tasks(self, sample: PatternSample, com_target=None) -> list:
-        """IK tasks of a pattern sample: both soles hard, CoM, trunk yaw, posture."""
+    def _sole_centres(self, sample: PatternSample) -> dict:
+        """side -> the sample's sole centre (x, y) [m] (the ZMP reference point of a sole)."""
+        return {s: sample.feet[s].position[:2] + self.zmp_offset_x * np.array(
+            [math.cos(sample.feet[s].yaw), math.sin(sample.feet[s].yaw)]) for s in SIDES}
+
+    def sinkage(self, sample: PatternSample, pattern: WalkingPattern | None = None) -> dict:
+        """side -> how far the sole's target is pressed into the ground [m] (walking/compliance.py): the planned
+        load of the sample's reference ZMP on the URDF sole contact, times ``sole_sinkage_gain``; the damper's lead
+        needs the next tick's reference, from ``pattern`` (without it, none)."""
+        g = self.cfg.sole_sinkage_gain
+        if g <= 0 or self.sole_stiffness <= 0:
+            return {s: 0.0 for s in SIDES}
+        stance = {SupportPhase.SINGLE_LEFT: "l", SupportPhase.SINGLE_RIGHT: "r"}.get(sample.support)
+        centres = self._sole_centres(sample)
+        f = planned_loads(sample.zmp, centres, stance, self.weight)
+        f_next = f if stance is not None or pattern is None else \
+            planned_loads(pattern.zmp_reference(sample.tick + 1), centres, None, self.weight)
+        damping = self.sole_damping if self.cfg.sole_sinkage_damping else 0.0
+        return {s: g * d for s, d in sole_sinkage(f, f_next, self.dt, self.sole_stiffness, damping).items()}
+
+    def tasks(self, sample: PatternSample, com_target=None, pattern: WalkingPattern | None = None,
+              foot_z: dict | None = None) -> list:
+        """IK tasks of a pattern sample: both soles hard (pressed in by their planned sinkage), CoM, trunk yaw,
+        posture. ``pattern``: the sample's pattern (the sinkage's damper lead reads its next ZMP reference);
+        ``foot_z``: side -> the stabiliser's sole height offsets [m]."""
         tasks = []
+        sink = self.sinkage(sample, pattern)
         for s in SIDES:
             f = sample.feet[s]
             # the targets are the references at the end of this step (dead-beat): no feed-forward
-            tasks.append(FrameTask(self.m.sole_frame[s], pin.SE3(rot_z(f.yaw), f.position), hard=True))
+            p = f.position - np.array([0.0, 0.0, sink[s] - (foot_z[s] if foot_z else 0.0)])
+            tasks.append(FrameTask(self.m.sole_frame[s], pin.SE3(rot_z(f.yaw), p), hard=True))
         yaw = math.atan2(math.sin(sample.feet["l"].yaw) + math.sin(sample.feet["r"].yaw),
                          math.cos(sample.feet["l"].yaw) + math.cos(sample.feet["r"].yaw))
         tasks.append(ComTask(sample.com if com_target is None else com_target, weight=100.0))
@@ -342,10 +374,17 @@ class LocomotionController:
             stance = "r"
         ref_feet_center = 0.5 * (sample.feet["l"].position + sample.feet["r"].position)
         stance_yaw = sample.feet[stance].yaw if stance else 0.5 * (sample.feet["l"].yaw + sample.feet["r"].yaw)
+        centres = self._sole_centres(sample)
+        transfer_to = None
+        if stance is None:   # double support: the foot the ZMP reference moves onto, if it moves
+            v = self.pattern.zmp_reference(sample.tick + 1) - sample.zmp[:2]
+            if float(np.linalg.norm(v)) > 1e-7:
+                transfer_to = max(SIDES, key=lambda side: float((centres[side] - sample.zmp[:2]) @ v))
         st = self.stabilizer.update(s.capture_point, s.cop, s.feet_center, sample.capture_point, sample.zmp,
-                                    ref_feet_center, stance, stance_yaw)
+                                    ref_feet_center, stance, stance_yaw, centres, transfer_to)
         self.last_stabilizer = st
-        r = self.ik.solve(self.q_ik, self.tasks(sample, sample.com + st.com_offset), self.dt)
+        r = self.ik.solve(self.q_ik, self.tasks(sample, sample.com + st.com_offset, self.pattern, st.foot_z),
+                          self.dt)
         self.q_ik = r.q
         q_cmd = self.stabilizer.apply(r.q[7:], st)
         p_mb = self.momentum_zmp.update(r.q, r.v)
@@ -395,7 +434,7 @@ class LocomotionController:
         com = m.com(q)
         com[2] = c.com_height
         pat = WalkingPattern(c, dt, self.width, self.zmp_offset_x, feet, com, cmd, n_steps)
-        conv = self.ik.solve_to_convergence(q, self.tasks(pat.sample()), dt=0.05, tolerance=1e-3)
+        conv = self.ik.solve_to_convergence(q, self.tasks(pat.sample(), pattern=pat), dt=0.05, tolerance=1e-3)
         if not conv.converged:
             return f"the walking CoM height {c.com_height:.3f} m is out of reach (errors {np.round(conv.errors, 4)})"
         q = conv.q
@@ -405,9 +444,9 @@ class LocomotionController:
         ik = WholeBodyIK(m, velocity_fraction=c.velocity_fraction)
         while True:
             smp = pat.step()
-            r = ik.solve(q, self.tasks(smp), dt)
+            r = ik.solve(q, self.tasks(smp, pattern=pat), dt)
             q = r.q
-            err = ik.task_errors(q, self.tasks(smp)[:3])
+            err = ik.task_errors(q, self.tasks(smp, pattern=pat)[:3])
             if max(err[:2]) > 0.005 or err[2] > 0.01:
                 speed = np.abs(r.v[6:]) / m.limits.velocity
                 j = int(np.argmax(speed))

@@ -22,6 +22,13 @@ all relative to the feet (leg odometry drifts in the world, the feet drift with 
    ``p = c - dd(c) / omega^2``), so a steady CoP bias of the simulated robot (measured +4.5 cm
    forward at 1 km/h while the multi-body ZMP of the actual motion is on the reference, see
    docs/walking.md) is removed step after step.
+4. **Foot height difference control of the CoP** (double support; the "foot force difference
+   control" of Kajita et al., IROS 2010, on the CoP instead of the two foot forces, which the
+   estimator does not give): the stiff-jointed robot moves its load between the feet only by
+   pressing one sole deeper into its compliant contact than the other, so the front sole's target
+   goes down by ``u / 2`` and the rear one's up by ``u / 2`` with
+   ``du/dt = -k_fh e_a - u / T_fh``, ``e_a`` the feet-relative CoP error along the rear -> front
+   sole-centre axis of the reference (clipped to ``foot_height_max``; leaks to 0 in single support).
 """
 from __future__ import annotations
 
@@ -39,6 +46,7 @@ class StabilizerOutput:
 
     com_offset: np.ndarray
     ankle: dict
+    foot_z: dict                      # side -> sole target height offset [m] (loop 4)
     capture_point_error: np.ndarray   # [m] (2,), feet relative
     zmp_error: np.ndarray             # measured CoP - reference ZMP, feet relative [m] (2,)
 
@@ -48,8 +56,12 @@ class WalkingStabilizer:
 
     def __init__(self, model: HumanoidModel, dt: float, dcm_gain: float, com_feedback_max: float,
                  cop_gain: float, cop_time_constant: float, ankle_max_offset: float, zmp_integral_gain: float = 0.0,
-                 zmp_integral_max: float = 0.06):
+                 zmp_integral_max: float = 0.06, foot_height_gain: float = 0.0,
+                 foot_height_time_constant: float = 0.05, foot_height_max: float = 0.001):
         self.dt = float(dt)
+        self.foot_height_gain = float(foot_height_gain)
+        self.foot_height_tau = float(foot_height_time_constant)
+        self.foot_height_max = float(foot_height_max)
         self.zmp_integral_gain = float(zmp_integral_gain)
         self.zmp_integral_max = float(zmp_integral_max)
         self.dcm_gain = float(dcm_gain)
@@ -64,11 +76,16 @@ class WalkingStabilizer:
     def reset(self) -> None:
         self.ankle = {s: np.zeros(2) for s in SIDES}
         self.zmp_integral = np.zeros(2)   # CoM shift of the CoP integral, in the stance sole's axes [m]
+        self.foot_height = 0.0            # u of loop 4 [m]: front sole down u / 2, rear up u / 2
+        self.front: str | None = None     # the front foot of the last double support
 
     def update(self, measured_cp, measured_cop, measured_feet_center, ref_cp, ref_zmp, ref_feet_center,
-               stance: str | None, stance_yaw: float) -> StabilizerOutput:
+               stance: str | None, stance_yaw: float, sole_centres: dict | None = None,
+               transfer_to: str | None = None) -> StabilizerOutput:
         """One tick. Positions [m] in their own frames (measured: the estimator's world, reference:
-        the pattern's); ``stance``: the single-support foot or None (double support)."""
+        the pattern's); ``stance``: the single-support foot or None (double support);
+        ``sole_centres``: side -> reference sole centre (x, y) [m], ``transfer_to``: the foot the double
+        support's ZMP reference moves onto (loop 4; None: loop 4 leaks)."""
         mf = np.asarray(measured_feet_center, float)[:2]
         rf = np.asarray(ref_feet_center, float)[:2]
         e_cp = (np.asarray(measured_cp, float)[:2] - mf) - (np.asarray(ref_cp, float)[:2] - rf)
@@ -89,8 +106,26 @@ class WalkingStabilizer:
             if side == stance:
                 rate = rate + self.cop_gain * np.array([-e_local[0], e_local[1]])
             self.ankle[side] = np.clip(a + self.dt * rate, -self.ankle_max, self.ankle_max)
+        foot_z = self._foot_height(e_zmp, stance, sole_centres, transfer_to)
         return StabilizerOutput(np.array([off[0], off[1], 0.0]), {k: v.copy() for k, v in self.ankle.items()},
-                                e_cp, e_zmp)
+                                foot_z, e_cp, e_zmp)
+
+    def _foot_height(self, e_zmp, stance, sole_centres, transfer_to) -> dict:
+        """Loop 4 (module docstring): side -> sole target height offset [m]."""
+        u = self.foot_height
+        rate = -u / self.foot_height_tau
+        if stance is None and transfer_to is not None and sole_centres is not None and self.foot_height_gain > 0:
+            self.front = transfer_to
+            rear = SIDES[0] if transfer_to == SIDES[1] else SIDES[1]
+            ab = np.asarray(sole_centres[transfer_to], float)[:2] - np.asarray(sole_centres[rear], float)[:2]
+            n = float(np.linalg.norm(ab))
+            if n > 1e-6:
+                rate = rate - self.foot_height_gain * float(np.asarray(e_zmp, float)[:2] @ ab) / n
+        self.foot_height = float(np.clip(u + self.dt * rate, -self.foot_height_max, self.foot_height_max))
+        if self.front is None:
+            return {s: 0.0 for s in SIDES}
+        rear = SIDES[0] if self.front == SIDES[1] else SIDES[1]
+        return {self.front: -0.5 * self.foot_height, rear: 0.5 * self.foot_height}
 
     def apply(self, q_joints: np.ndarray, out: StabilizerOutput) -> np.ndarray:
         """Joint targets with the ankle offsets added (a copy)."""
