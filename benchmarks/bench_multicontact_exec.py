@@ -46,7 +46,8 @@ def ke_of_force(sc: dict, force: float) -> dict:
 
 
 def force_for_energy(sc: dict, ke: float, f0: float = 500.0, tol: float = 0.02, steps: int = 5) -> tuple[float, list]:
-    """The forward push force [N] whose sagittal (planar) KE at the push's end is ``ke`` within ``tol``."""
+    """The forward push force [N, rounded to 1 N] whose sagittal (planar) KE at the push's end is ``ke`` within
+    ``tol`` (before the rounding)."""
     table = []
     f = f0
     for _ in range(steps):
@@ -56,7 +57,10 @@ def force_for_energy(sc: dict, ke: float, f0: float = 500.0, tol: float = 0.02, 
             break
         f = f * math.sqrt(ke / max(row["ke_planar"], 1e-6))   # KE ~ F^2 for a short push
     best = min(table, key=lambda r: abs(r["ke_planar"] - ke))
-    return best["force"], table
+    f = float(round(best["force"]))           # a force one can type: --set push.0.force=[F, 0, 0]
+    if f != best["force"]:
+        table.append(ke_of_force(sc, f))
+    return f, table
 
 
 def plots(case: dict, path: pathlib.Path) -> None:

@@ -117,6 +117,7 @@ class _Probe:
         self.mass = pin.computeTotalMass(hm.model)
         self.momentum_error: list[float] = []      # |dp - (F_contact + M g) dt| per tick [N s]
         self.joint_speed_ratio: list[float] = []   # max |qdot| / URDF limit per tick
+        self.fastest_joint: list[int] = []
         self._p_prev = None
 
     def kinetic_energy(self) -> float:
@@ -159,7 +160,9 @@ class _Probe:
         else:
             self.momentum_error.append(0.0)
         self._p_prev = p
-        self.joint_speed_ratio.append(float(np.max(np.abs(w.joint_states()[1]) / w.model.limits.velocity)))
+        ratio = np.abs(w.joint_states()[1]) / w.model.limits.velocity
+        self.joint_speed_ratio.append(float(ratio.max()))
+        self.fastest_joint.append(int(ratio.argmax()))
         for e in LIMBS:
             self.limb_force[e].append(float(np.linalg.norm(force[e])))
             self.limb_point[e].append(moment[e] / normal[e] if normal[e] > 1e-9 else None)
@@ -360,7 +363,14 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
     out["unplanned_limbs_touching"] = unplanned_limbs
     out["final_trunk_tilt_deg"] = math.degrees(probe.tilt[-1])
     out["momentum_error_ns_max"] = float(max(probe.momentum_error[k0:]))
-    out["joint_speed_over_limit_max"] = float(max(probe.joint_speed_ratio[k0:]))
+    ratio = np.array(probe.joint_speed_ratio[k0:])
+    kmax = int(np.argmax(ratio))
+    out["joint_speed_over_limit_max"] = float(ratio[kmax])
+    out["joint_speed_over_limit_joint"] = probe.hm.joint_names[probe.fastest_joint[k0 + kmax]]
+    out["joint_speed_over_limit_time"] = float(t[k0 + kmax] - t0)
+    out["joint_speed_over_1_1_limit_s"] = float((ratio > 1.1).sum() / len(ratio) * (t[-1] - t0))
+    k_end = int(np.searchsorted(t, t0 + out["plan"]["duration"]))
+    out["feet_airborne_s"] = {e: float((~touching[e][k0:k_end]).sum() * (t[1] - t[0])) for e in ("LF", "RF")}
     out["ke_at_plan_end"] = float(ke[min(len(ke) - 1, int(np.searchsorted(t, t0 + out["plan"]["duration"])))])
     out["series"] = {"t": (t - t0).tolist(), "ke": ke.tolist(),
                      "limb_force": {e: list(map(float, probe.limb_force[e])) for e in LIMBS},
