@@ -308,3 +308,30 @@ def test_inertia_shaping_turn_direction_turns_the_fall_away():
     assert desired_angular_velocity(p, t, g, "turn") == pytest.approx(desired_angular_velocity(p, t))
     with pytest.raises(ValueError):
         desired_angular_velocity(p, t, g, "sideways")
+
+
+@pytest.mark.parametrize("stood,sign", [(0.005, -1.0), (0.6, 1.0)])
+def test_controller_slow_topple_after_a_captured_step_uses_the_settled_sign(stood, sign):
+    """Falling about the new support seen >= shaping_settled_s after touchdown: shaping_settled_sign."""
+    cfg = SafeFallConfig.from_params({**params.defaults("safe_fall_controller"), "shaping_sign": -1.0,
+                                      "shaping_settled_sign": 1.0, "shaping_settled_s": 0.2})
+    c = SafeFallController(config=cfg)
+    c.step(_controller_obs(0.62, {"obstacles": TARGET, "imu": IMU, "fall_event": _event(0.62)}))
+    # as after the swing of a step predicted to capture: landed, waiting for the robot to fall
+    t0 = 1.0
+    c.phase, c.touchdown_at, c.falling_since = "landed", t0, None
+    c.target = np.array([1.2, 0.0])
+    c.hold = c.last_command.copy()
+    q = standing_q()
+    poly = support_polygon(np.vstack([M.sole_corners(s)[:, :2] for s in "lr"]))
+    lean = math.radians(25.0)   # beyond shaping_lean_deg, falling back, away from the target
+    cop = np.array([-0.095, 0.0, 0.0])
+    com = cop + 0.75 * np.array([-math.sin(lean), 0.0, math.cos(lean)])
+    s = state(com, [-0.3, 0.0, -0.1], poly, cop=cop)
+    for k in range(7):
+        t = t0 + stood + 0.002 * k
+        cmd = c.step(Observation(int(round(t * 1e9)), q[7:].copy(), np.zeros(M.njoints), s, "safe_fall",
+                                 {"obstacles": TARGET, "imu": IMU}))
+        assert cmd is not None
+    assert c.phase == "shaping" and c.shaping_config.sign == sign
+    assert any(f"sign {sign:+.0f}" in r for r in c.reasons)

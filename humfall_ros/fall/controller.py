@@ -85,6 +85,8 @@ class SafeFallConfig:
     shaping_recruit: str = "pitch"
     shaping_damping: float = 1e-4
     shaping_direction: str = "away"
+    shaping_settled_sign: float = -1.0
+    shaping_settled_s: float = 0.2
 
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> SafeFallConfig:
@@ -220,6 +222,7 @@ class SafeFallController:
         self.target: np.ndarray | None = None
         self.reasons: list[str] = []
         self.ignored_events = 0
+        self.shaping_config = self.config.shaping
 
     # ------------------------------------------------------------------ contract
     def step(self, obs: Observation) -> JointTargets | None:
@@ -436,8 +439,13 @@ class SafeFallController:
                 self.falling_since = obs.time if self.falling_since is None else self.falling_since
                 if obs.time - self.falling_since >= 0.01 - 1e-9:
                     self.phase = "shaping"
-                    self.reasons.append(f"captured step, but falling about the new support at {obs.time:.3f} s: "
-                                        "inertia shaping")
+                    stood = None if self.touchdown_at is None else obs.time - self.touchdown_at
+                    if stood is not None and stood >= c.shaping_settled_s - 1e-9:
+                        # a slow topple from a settled stance (ours): its own sign
+                        self.shaping_config = dataclasses.replace(c.shaping, sign=c.shaping_settled_sign)
+                    self.reasons.append(f"captured step, but falling about the new support at {obs.time:.3f} s "
+                                        f"({stood if stood is not None else math.nan:.3f} s after touchdown): "
+                                        f"inertia shaping, sign {self.shaping_config.sign:+.0f}")
             else:
                 self.falling_since = None
         if self.phase == "shaping":
@@ -446,7 +454,7 @@ class SafeFallController:
                 q = configuration_from_sensors(self.m, obs.joint_position, quat, obs.state.com)
                 q[7:] = self.last_command  # shape from the commanded posture (position-controlled joints lag)
                 qd, _ = shaping_velocities(self.m, q, obs.state.cop, self.target, c.control_period_s,
-                                           recruit=self._recruit, cfg=c.shaping, com=obs.state.com)
+                                           recruit=self._recruit, cfg=self.shaping_config, com=obs.state.com)
                 pos = np.clip(self.last_command + qd * c.control_period_s, self.m.limits.lower, self.m.limits.upper)
                 self.last_command = pos
                 return JointTargets(pos, qd)
