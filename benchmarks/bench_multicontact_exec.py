@@ -139,8 +139,9 @@ def main() -> int:
             stored = StoredPlan.load(pathlib.Path(a.replay) / f"multicontact_push_{ke:g}J.json")
             force, table = stored.meta["push_force"][0], []
             s = mr.with_push(sc, force)
-            r = mr.execute(s, segments=stored.segments, start_time=stored.take_over_time - run_cfg.plan_latency,
-                           cfg=run_cfg)
+            # the plan was made from the state at take_over - its own latency; --latency delays it from there
+            planned_at = stored.take_over_time - float(stored.meta.get("plan_latency", 0.0))
+            r = mr.execute(s, segments=stored.segments, start_time=planned_at, cfg=run_cfg)
             r["plan"].update({k: stored.meta.get(k) for k in ("contact_sequence", "objective")})
         else:
             force, table = force_for_energy(sc, ke)
@@ -160,6 +161,7 @@ def main() -> int:
             StoredPlan(segs, r["take_over_time"], {
                 "scenario": SCENARIO, "push_force": [force, 0.0, 0.0], "target_ke": ke,
                 "objective": a.objective, "planner_overrides": overrides, "both_hands": not a.one_hand,
+                "plan_latency": a.latency,
                 "state_at_plan": r["state_at_plan"],
                 "contact_sequence": r["plan"]["contact_sequence"]}).save(
                 pathlib.Path(a.save_plans) / f"multicontact_push_{ke:g}J.json")
