@@ -175,7 +175,7 @@ def test_executor_config_matches_the_node_declaration():
     from humfall_ros import params
     d = params.defaults("multicontact_executor")
     cfg = ExecutorConfig()
-    for k in ("landing_wait", "early_switch", "hold", "both_hands", "velocity_feedforward"):
+    for k in ("landing_wait", "early_switch", "hold", "both_hands", "velocity_feedforward", "blend_time"):
         assert d[k] == getattr(cfg, k), k
 
 
@@ -255,3 +255,19 @@ def test_both_hands_copies_the_landing_arm_to_the_other(models):
     assert b.velocities[ji["r_shoulder_pitch"]] == pytest.approx(b.velocities[ji["l_shoulder_pitch"]])
     assert b.positions[ji["l_shoulder_pitch"]] == pytest.approx(a.positions[ji["l_shoulder_pitch"]])
     assert both.mirrored_hand == "RH" and plain.mirrored_hand is None
+
+
+def test_blend_time_starts_from_the_servo_targets(models):
+    pm, hm = models
+    q0 = np.zeros(pm.n)
+    q1 = q0.copy()
+    q1[3:] = 0.5
+    seg = _segment(pm, q1, q1, 0.5, mode=("LF", "RF"), target=("LF", "RF"))
+    ex = MulticontactExecutor([seg], pm.joint_names, hm.joint_names, ExecutorConfig(blend_time=0.1))
+    idx = [hm.joint_names.index(j) for j in pm.joint_names]
+    a = ex.step(_obs(hm, 1.0))                    # servo targets unknown: the measured 0.05 rad
+    np.testing.assert_allclose(a.positions[idx], 0.05)
+    b = ex.step(_obs(hm, 1.05))
+    np.testing.assert_allclose(b.positions[idx], 0.5 * 0.05 + 0.5 * 0.5)
+    c = ex.step(_obs(hm, 1.2))
+    np.testing.assert_allclose(c.positions[idx], 0.5)

@@ -44,6 +44,8 @@ class ExecutorConfig:
             leaves the centre of mass outside the support triangle, so it rolls over that edge).
         velocity_feedforward: send the plan's joint velocities as velocity targets (else 0: the servos
             then act as a damped position loop on the plan's positions).
+        blend_time: the sagittal targets go linearly from the servos' targets at the take-over to the
+            plan's over this time [s] (0: the plan from the first tick).
     """
 
     landing_wait: float = 0.2
@@ -52,6 +54,7 @@ class ExecutorConfig:
     hold: str = "planar"
     both_hands: bool = True
     velocity_feedforward: bool = True
+    blend_time: float = 0.0
 
     def __post_init__(self):
         if self.hold not in HOLD_MODES:
@@ -172,10 +175,14 @@ class MulticontactExecutor:
         if self.cfg.hold == "planar":
             self._hold = np.zeros(self.n_joints)         # the planar model's locked joints are at 0
         else:
-            base = observation.joint_targets if observation.joint_targets is not None \
-                else observation.joint_position
-            self._hold = np.asarray(base, float).copy()
+            self._hold = self._servo_targets(observation)
+        self._start = self._servo_targets(observation)[self.index]
         return True
+
+    @staticmethod
+    def _servo_targets(observation: Observation) -> np.ndarray:
+        base = observation.joint_targets if observation.joint_targets is not None else observation.joint_position
+        return np.asarray(base, float).copy()
 
     # ------------------------------------------------------------------ step
     def step(self, observation: Observation) -> JointTargets | None:
@@ -208,6 +215,9 @@ class MulticontactExecutor:
         if self._copy is not None:
             q, dq = q.copy(), dq.copy()
             q[self._copy[0]], dq[self._copy[0]] = q[self._copy[1]], dq[self._copy[1]]
+        if self.cfg.blend_time > 0 and tp < self.cfg.blend_time:
+            w = tp / self.cfg.blend_time
+            q, dq = (1 - w) * self._start + w * q, w * dq
         pos = self._hold.copy()
         vel = np.zeros(self.n_joints)
         pos[self.index] = q

@@ -65,7 +65,7 @@ def make_controller(p: dict, model):
     start = plan.take_over_time if p["start_time"] < 0 else p["start_time"]
     cfg = ExecutorConfig.from_params({"landing_wait": p["landing_wait"], "early_switch": p["early_switch"],
                                       "start_time": start, "hold": p["hold"], "both_hands": p["both_hands"],
-                                      "velocity_feedforward": p["velocity_feedforward"]})
+                                      "velocity_feedforward": p["velocity_feedforward"], "blend_time": p["blend_time"]})
     ex = MulticontactExecutor(plan.segments, load_planar().joint_names, model.joint_names, cfg)
     ex.source = p["source"]
     return ex
