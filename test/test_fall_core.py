@@ -310,11 +310,14 @@ def test_inertia_shaping_turn_direction_turns_the_fall_away():
         desired_angular_velocity(p, t, g, "sideways")
 
 
-@pytest.mark.parametrize("stood,sign", [(0.005, -1.0), (0.6, 1.0)])
-def test_controller_slow_topple_after_a_captured_step_uses_the_settled_sign(stood, sign):
-    """Falling about the new support seen >= shaping_settled_s after touchdown: shaping_settled_sign."""
+@pytest.mark.parametrize("stood,only,sign,phase", [(0.005, False, -1.0, "shaping"), (0.6, False, 1.0, "shaping"),
+                                                 (0.005, True, -1.0, "hold"), (0.6, True, 1.0, "shaping")])
+def test_controller_slow_topple_after_a_captured_step_uses_the_settled_sign(stood, only, sign, phase):
+    """Falling about the new support seen >= shaping_settled_s after touchdown: shaping_settled_sign; sooner:
+    shaping_sign, or no shaping with shaping_settled_only."""
     cfg = SafeFallConfig.from_params({**params.defaults("safe_fall_controller"), "shaping_sign": -1.0,
-                                      "shaping_settled_sign": 1.0, "shaping_settled_s": 0.2})
+                                      "shaping_settled_sign": 1.0, "shaping_settled_s": 0.2,
+                                      "shaping_settled_only": only})
     c = SafeFallController(config=cfg)
     c.step(_controller_obs(0.62, {"obstacles": TARGET, "imu": IMU, "fall_event": _event(0.62)}))
     # as after the swing of a step predicted to capture: landed, waiting for the robot to fall
@@ -333,5 +336,5 @@ def test_controller_slow_topple_after_a_captured_step_uses_the_settled_sign(stoo
         cmd = c.step(Observation(int(round(t * 1e9)), q[7:].copy(), np.zeros(M.njoints), s, "safe_fall",
                                  {"obstacles": TARGET, "imu": IMU}))
         assert cmd is not None
-    assert c.phase == "shaping" and c.shaping_config.sign == sign
-    assert any(f"sign {sign:+.0f}" in r for r in c.reasons)
+    assert c.phase == phase and c.shaping_config.sign == sign
+    assert any((f"sign {sign:+.0f}" if phase == "shaping" else "no inertia shaping") in r for r in c.reasons)

@@ -85,8 +85,9 @@ class SafeFallConfig:
     shaping_recruit: str = "pitch"
     shaping_damping: float = 1e-4
     shaping_direction: str = "away"
-    shaping_settled_sign: float = -1.0
+    shaping_settled_sign: float = 1.0
     shaping_settled_s: float = 0.2
+    shaping_settled_only: bool = True
 
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> SafeFallConfig:
@@ -438,14 +439,23 @@ class SafeFallController:
             if f.valid and (f.separatrix_margin > 0.0 or f.lean_angle > math.radians(c.shaping_lean_deg)):
                 self.falling_since = obs.time if self.falling_since is None else self.falling_since
                 if obs.time - self.falling_since >= 0.01 - 1e-9:
-                    self.phase = "shaping"
                     stood = None if self.touchdown_at is None else obs.time - self.touchdown_at
-                    if stood is not None and stood >= c.shaping_settled_s - 1e-9:
+                    settled = stood is not None and stood >= c.shaping_settled_s - 1e-9
+                    when = f"at {obs.time:.3f} s ({stood if stood is not None else math.nan:.3f} s after touchdown)"
+                    if settled:
                         # a slow topple from a settled stance (ours): its own sign
+                        self.phase = "shaping"
                         self.shaping_config = dataclasses.replace(c.shaping, sign=c.shaping_settled_sign)
-                    self.reasons.append(f"captured step, but falling about the new support at {obs.time:.3f} s "
-                                        f"({stood if stood is not None else math.nan:.3f} s after touchdown): "
-                                        f"inertia shaping, sign {self.shaping_config.sign:+.0f}")
+                        self.reasons.append(f"captured step, but falling about the new support {when}: "
+                                            f"inertia shaping, sign {self.shaping_config.sign:+.0f}")
+                    elif c.shaping_settled_only:
+                        self.phase = "hold"
+                        self.reasons.append(f"captured step, but falling about the new support {when}: "
+                                            "no inertia shaping (shaping_settled_only)")
+                    else:
+                        self.phase = "shaping"
+                        self.reasons.append(f"captured step, but falling about the new support {when}: "
+                                            f"inertia shaping, sign {self.shaping_config.sign:+.0f}")
             else:
                 self.falling_since = None
         if self.phase == "shaping":
