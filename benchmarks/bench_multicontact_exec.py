@@ -174,6 +174,7 @@ def main() -> int:
               f"{r['plan'].get('contact_sequence')}, final KE {r.get('final_ke')}, mode {r.get('final_mode')} "
               f"(plan {r.get('planned_final_mode')}), others {sorted(r.get('other_links_touching') or {})}, "
               f"momentum err {r.get('momentum_error_ns_max')}, ke max {r.get('ke_max')}, "
+              f"touching {r.get('final_mode_touching')}, success {r.get('success')}, "
               f"{r['wall_s']:.0f} s", file=sys.stderr)
     out["cases"] = cases
     out["load_average_end"] = os.getloadavg()

@@ -120,11 +120,21 @@ class _Probe:
         self.joint_speed_ratio: list[float] = []   # max |qdot| / URDF limit per tick
         self.fastest_joint: list[int] = []
         self._p_prev = None
+        self.final_heights: dict[str, float] = {}
 
     def kinetic_energy(self) -> float:
         q, v = self.world.pinocchio_state()
         M = pin.crba(self.hm.model, self.data, q)
         return float(0.5 * v @ M @ v)
+
+    def limb_heights(self) -> dict[str, float]:
+        """Lowest sole corner of each foot, and each hand frame, above the ground [m] (ground truth)."""
+        hm = self.hm
+        hm.forward(self.world.pinocchio_configuration())
+        out = {"LF": float(hm.sole_corners("l")[:, 2].min()), "RF": float(hm.sole_corners("r")[:, 2].min())}
+        for ext, side in (("LH", "l"), ("RH", "r")):
+            out[ext] = float(hm.frame_position(hm.hand_frame[side])[2])
+        return out
 
     def momentum(self) -> np.ndarray:
         q, v = self.world.pinocchio_state()
@@ -261,6 +271,7 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
                 break
             if loop.world.time > t_start + 60.0:
                 break
+        probe.final_heights = probe.limb_heights()
     finally:
         loop.close()
     return _report(sc, pm, executor, probe, info, cfg, loop.active_sources)
@@ -352,6 +363,13 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
     final_limbs = [e for e in LIMBS if touching[e][kw:].all()]
     out["final_mode"] = "/".join(final_limbs) if final_limbs else "(none)"
     out["final_mode_matches_plan"] = set(final_limbs) == set(planned_final)
+    out["final_limb_height_m"] = probe.final_heights
+    out["final_limb_load_n"] = {e: float(np.mean(probe.limb_force[e][kw:])) for e in LIMBS}
+    # touching = loaded, or a foot resting on the ground without load (lowest sole corner within 2 mm)
+    resting = [e for e in ("LF", "RF") if e not in final_limbs and probe.final_heights.get(e, 1.0) < 0.002]
+    touching_end = [e for e in LIMBS if e in final_limbs or e in resting]
+    out["final_mode_touching"] = "/".join(touching_end) if touching_end else "(none)"
+    out["final_mode_touching_matches_plan"] = set(touching_end) == set(planned_final)
     others = {}
     for name, by_tick in probe.link_force.items():
         ks = sorted(k for k, f in by_tick.items() if k >= k0 and f > fmin)
@@ -377,7 +395,7 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
                      "limb_force": {e: list(map(float, probe.limb_force[e])) for e in LIMBS},
                      "other_force": {n: [float(by.get(k, 0.0)) for k in range(len(t))]
                                      for n, by in probe.link_force.items()}}
-    out["success"] = bool(out["final_ke"] < 0.5 and out["final_mode_matches_plan"] and not others
+    out["success"] = bool(out["final_ke"] < 0.5 and out["final_mode_touching_matches_plan"] and not others
                           and not unplanned_limbs)
     return out
 
