@@ -6,7 +6,7 @@
     .venv/bin/python benchmarks/fall_closed_loop.py noise [SCALE]               # stepping_inertia, seeds 1-3
     .venv/bin/python benchmarks/fall_closed_loop.py repeat [SCALE]              # two lockstep runs identical?
     .venv/bin/python benchmarks/fall_closed_loop.py shaping [SCALE] [KEY=VALUE ...]  # stepping_inertia, diagnostics
-    .venv/bin/python benchmarks/fall_closed_loop.py shaping_sweep [FACTOR]      # sweep pushes, shaping signs
+    .venv/bin/python benchmarks/fall_closed_loop.py shaping_sweep [FACTOR] [VARIANTS]  # sweep pushes, shaping signs
 
 Each prints one JSON object. ``push`` also writes Fig. 9 / Fig. 11 PNGs into OUT (default runs/fall_figures).
 The push angle of ``ftb`` is clockwise from +x; thresholds from config/fall_thresholds.yaml (``humfall sweep``).
@@ -191,8 +191,11 @@ def shaping_sweep(variants: dict[str, tuple[str, list[str]]], directions=(0, 30,
     return {"factor": factor, "rows": rows}
 
 
-SHAPING_VARIANTS = {"stepping": ("stepping", []), "shaping_sign-1": ("stepping_inertia", ["shaping_sign=-1.0"]),
-                    "shaping_sign+1": ("stepping_inertia", ["shaping_sign=1.0"])}
+SHAPING_VARIANTS = {"stepping": ("stepping", []), "stepping_inertia": ("stepping_inertia", []),
+                    "shaping_sign-1": ("stepping_inertia", ["shaping_sign=-1.0", "shaping_settled_sign=-1.0",
+                                                            "shaping_settled_only=false"]),
+                    "shaping_sign+1": ("stepping_inertia", ["shaping_sign=1.0", "shaping_settled_sign=1.0",
+                                                            "shaping_settled_only=false"])}
 
 
 def main(argv: list[str]) -> None:
@@ -210,7 +213,8 @@ def main(argv: list[str]) -> None:
     elif what == "repeat":
         out = repeat(float(argv[1]) if len(argv) > 1 else 1.0)
     elif what == "shaping_sweep":
-        out = shaping_sweep(SHAPING_VARIANTS, factor=float(argv[1]) if len(argv) > 1 else 1.2)
+        names = argv[2].split(",") if len(argv) > 2 else list(SHAPING_VARIANTS)
+        out = shaping_sweep({k: SHAPING_VARIANTS[k] for k in names}, factor=float(argv[1]) if len(argv) > 1 else 1.2)
     elif what == "shaping":
         opts = dict(a.split("=", 1) for a in argv[2:] if a.split("=", 1)[0] in ("kind", "seed"))
         rest = tuple(a for a in argv[2:] if a.split("=", 1)[0] not in ("kind", "seed"))
