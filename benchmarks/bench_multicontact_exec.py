@@ -104,8 +104,8 @@ def main() -> int:
     ap.add_argument("--replay", default="", help="execute the stored plans of DIR (multicontact_push_<KE>J.json) "
                     "with their pushes instead of planning")
     ap.add_argument("--no-velocity-feedforward", action="store_true", help="ExecutorConfig.velocity_feedforward off")
-    ap.add_argument("--solver-velocity-clamp", action="store_true",
-                    help="keep SimWorld's maxJointVelocity clamp (does not conserve momentum)")
+    ap.add_argument("--speed-limit", choices=mr.SPEED_LIMITS, default="motor",
+                    help="RunConfig.speed_limit (solver: SimWorld's clamp, what ROS runs; not momentum-conserving)")
     ap.add_argument("--blend", type=float, default=0.0, help="ExecutorConfig.blend_time [s]")
     ap.add_argument("--latency", type=float, default=0.0, help="RunConfig.plan_latency [s]")
     ap.add_argument("--one-hand", action="store_true", help="ExecutorConfig.both_hands off")
@@ -131,7 +131,7 @@ def main() -> int:
     planner = None if a.replay else FallPlanner.from_params(**overrides)
     run_cfg = mr.RunConfig(time_budget=a.budget, hold=a.hold, both_hands=not a.one_hand, plan_latency=a.latency,
                            velocity_feedforward=not a.no_velocity_feedforward,
-                           solver_velocity_clamp=a.solver_velocity_clamp, blend_time=a.blend)
+                           speed_limit=a.speed_limit, blend_time=a.blend)
     out["run_config"] = run_cfg.__dict__
     cases = []
     for ke in [float(x) for x in a.kes.split(",")]:

@@ -57,11 +57,13 @@ class RunConfig:
         plan_latency: the plan is made from the state at the push's end but the executor takes over
             this much later [s] (the standing balance in between): what a planner that needs that
             long would do without pausing the simulator. 0: paused (the plan's state is the take-over's).
-        solver_velocity_clamp: keep ``SimWorld``'s ``maxJointVelocity`` (the URDF speed limits enforced by
-            clamping joint velocities in the solver). Off by default here: the clamp does not conserve
-            momentum (measured: a plan driving joints at their limits gains 12.8 N s in one airborne tick and
-            ~1000 J of kinetic energy; ``momentum_error_ns`` in the report); without it the speed limits
-            act through the clipped velocity targets only and the report gives the peak joint speeds.
+        speed_limit: how the URDF joint speed limits act. ``"solver"``: ``SimWorld``'s own
+            ``maxJointVelocity`` (joint velocities clamped in the solver; what the ROS graph runs). It does
+            not conserve momentum (measured: 70-100 N s gained in one tick, 12.8 N s in a tick without any
+            contact, ~1000 J of kinetic energy; ``momentum_error_ns_max``). ``"motor"`` (default): the clamp
+            off and each servo's ``maxVelocity`` (PyBullet's position motor limits the speed it drives at;
+            the joint can still be back-driven faster by impacts): momentum is conserved. ``"none"``: no
+            limit but the clipped velocity targets (the servos then drive joints 3-5 x past their limits).
     """
 
     settle: float = 1.5
@@ -73,7 +75,7 @@ class RunConfig:
     velocity_feedforward: bool = True
     blend_time: float = 0.0
     plan_latency: float = 0.0
-    solver_velocity_clamp: bool = False
+    speed_limit: str = "motor"
 
 
 def push_end_time(sc: dict) -> float:
@@ -250,10 +252,10 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
     hm = _model()
     loop = ClosedLoop(sc, controllers=[locomotion_controller(sc, hm), executor],
                       priorities={executor.source: EXECUTOR_PRIORITY})
-    if not cfg.solver_velocity_clamp:
-        w = loop.world
-        for name in w.model.joint_names:
-            pb.changeDynamics(w.robot, w.joint_ids[name], maxJointVelocity=1e4, physicsClientId=w.client)
+    if cfg.speed_limit not in SPEED_LIMITS:
+        raise ValueError(f"speed_limit must be one of {SPEED_LIMITS}")
+    if cfg.speed_limit != "solver":
+        _unclamp(loop.world, motor_limits=cfg.speed_limit == "motor")
     probe = _Probe(loop.world)
     rate = sc["sim"]["control_rate"]
     try:
@@ -275,6 +277,30 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
     finally:
         loop.close()
     return _report(sc, pm, executor, probe, info, cfg, loop.active_sources)
+
+
+SPEED_LIMITS = ("motor", "none", "solver")
+
+
+def _unclamp(world, motor_limits: bool) -> None:
+    """Remove ``world``'s solver velocity clamp; with ``motor_limits`` its servos get the URDF speed limits
+    as their ``maxVelocity`` instead (``setJointMotorControl2`` per joint: the array call has no such
+    argument). Applies to this world instance only."""
+    for name in world.model.joint_names:
+        pb.changeDynamics(world.robot, world.joint_ids[name], maxJointVelocity=1e4, physicsClientId=world.client)
+    if not motor_limits:
+        return
+    limits = [float(x) for x in world.model.limits.velocity]
+
+    def apply_targets(self=world):
+        for k, jid in enumerate(self._jidx):
+            pb.setJointMotorControl2(self.robot, jid, pb.POSITION_CONTROL, targetPosition=float(self.targets[k]),
+                                     targetVelocity=float(self.target_velocities[k]), force=float(self._efforts[k]),
+                                     positionGain=self.position_gain, velocityGain=self.velocity_gain,
+                                     maxVelocity=limits[k], physicsClientId=self.client)
+
+    world._apply_targets = apply_targets
+    world._apply_targets()
 
 
 _MODEL_CACHE: dict = {}
@@ -302,7 +328,8 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
                                          "start": push_time(sc, push), "end": push_end_time(sc)},
         "plan": info.get("plan", {"success": False, "reason": executor.reason}),
         "state_at_plan": {k: v for k, v in info.get("state", {}).items() if k not in ("q", "v")},
-        "take_over_time": executor.take_over_time, "plan_latency": cfg.plan_latency, "executor_failed": executor.failed,
+        "take_over_time": executor.take_over_time, "plan_latency": cfg.plan_latency, "speed_limit": cfg.speed_limit,
+        "executor_failed": executor.failed,
         "executor_reason": executor.reason, "ke_max": float(ke.max()) if len(ke) else float("nan"),
     }
     if executor.take_over_time is None:
@@ -422,4 +449,4 @@ def state_at(sc: dict, t: float) -> dict:
         loop.close()
 
 
-__all__ = ["EXECUTOR_PRIORITY", "RunConfig", "execute", "push_end_time", "state_at", "with_push"]
+__all__ = ["EXECUTOR_PRIORITY", "SPEED_LIMITS", "RunConfig", "execute", "push_end_time", "state_at", "with_push"]
