@@ -294,7 +294,9 @@ def _hull_core(cells: np.ndarray, sole_local: np.ndarray, pivot: np.ndarray, q: 
     """
     n_seg = 4 * pivot.shape[0] + (1 if pivot.shape[0] == 2 else 0)
     block = max(256, CHUNK_ELEMENTS // n_seg)
-    if len(cells) > block:
+    n_blocks = max(1, round(len(cells) / block))
+    if n_blocks > 1:
+        block = -(-len(cells) // n_blocks)   # equal blocks of about CHUNK_ELEMENTS (no small remainder)
         parts = [_hull_core(cells[i:i + block], sole_local, pivot if pivot.ndim == 2 else pivot[:, i:i + block],
                             q if q.ndim == 1 else q[i:i + block]) for i in range(0, len(cells), block)]
         return _Hull(cells, *(np.concatenate([getattr(h, f) for h in parts])
