@@ -79,10 +79,11 @@ def source_from_argv(argv: list[str]) -> str:
                 params.defaults(CONFIG)["source"])
 
 
-def make_node(source: str = "multicontact"):
-    # named like the launcher's process for a scenario controllers entry (<module stem>_<source>), so a
-    # composed run's params file section reaches it
-    node = ControllerNode(f"{CONFIG}_{source}", make_controller, config_name=CONFIG)
+def make_node(name: str | None = None):
+    """The node, named ``name`` (default ``multicontact_executor_<source>``, as the launcher names the process of
+    a scenario's controllers entry: ``<module stem>_<source>``; the composed runner passes that name, so a
+    composed run's params-file section reaches it)."""
+    node = ControllerNode(name or f"{CONFIG}_{source_from_argv(sys.argv)}", make_controller, config_name=CONFIG)
     ex = node.controller
     if isinstance(ex, MulticontactExecutor):
         node.get_logger().info(f"plan: {len(ex.segments)} segments "
@@ -95,7 +96,7 @@ def make_node(source: str = "multicontact"):
 
 def main(args=None) -> int:
     argv = sys.argv if args is None else args
-    return run_node(lambda: make_node(source_from_argv(argv)), args)
+    return run_node(lambda: make_node(f"{CONFIG}_{source_from_argv(argv)}"), args)
 
 
 if __name__ == "__main__":
