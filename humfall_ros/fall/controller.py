@@ -287,6 +287,7 @@ class SafeFallController:
     def _take_over(self, obs: Observation, ev) -> None:
         c = self.config
         t_dec = time.perf_counter()
+        cpu_dec = time.thread_time()
         s = obs.state
         notes = []
         ev_time = _get(ev, "stamp_ns", obs.stamp_ns) * 1e-9
@@ -341,6 +342,7 @@ class SafeFallController:
         sit.zones = zones
         res = ss.search(sit, self._sole_local, scfg, prediction=(G, Q))
         search_time = time.perf_counter() - t_dec
+        self.decision_cpu_s = time.thread_time() - cpu_dec   # the same span in this thread's CPU time [s]
         self.search_result = res
         ranked = sorted(res.cases.values(), key=lambda cr: cr.score, reverse=True)
         if not c.stepping:
