@@ -66,7 +66,7 @@ class RunConfig:
             limit but the clipped velocity targets (the servos then drive joints 3-5 x past their limits).
     """
 
-    settle: float = 1.5
+    settle: float = 3.0
     contact_force_min: float = 5.0
     final_window: float = 0.1
     time_budget: float = 120.0
