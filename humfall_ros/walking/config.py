@@ -42,12 +42,13 @@ class LocomotionConfig:
     com_feedback_max: float = 0.03        # m
     zmp_integral_gain: float = 0.0        # 1/s
     zmp_integral_max: float = 0.06        # m
-    cop_damping_gain: float = 0.0         # rad/(m s)
+    cop_damping_gain: float = 1.0         # rad/(m s)
     cop_damping_time_constant: float = 0.2  # s
+    cop_damping_time_constant_ds: float = 0.2  # s, in double support
     walk_ankle_max_offset: float = 0.05   # rad
-    sole_sinkage_gain: float = 0.0        # 1, times the URDF sole contact's sinkage under the planned load
+    sole_sinkage_gain: float = 1.0        # 1, times the URDF sole contact's sinkage under the planned load
     sole_sinkage_damping: bool = True     # the contact damper's lead in that sinkage
-    foot_height_gain: float = 0.0         # 1/s, double-support foot height difference per metre of CoP error rate
+    foot_height_gain: float = 0.05        # 1/s, double-support foot height difference per metre of CoP error rate
     foot_height_time_constant: float = 0.05  # s
     foot_height_max: float = 0.0005       # m
     heading_lateral_gain: float = 0.5     # rad/m, path heading correction per metre of lateral drift

@@ -125,7 +125,8 @@ class LocomotionController:
         self.stabilizer = WalkingStabilizer(model, dt, c.dcm_gain, c.com_feedback_max, c.cop_damping_gain,
                                             c.cop_damping_time_constant, c.walk_ankle_max_offset,
                                             c.zmp_integral_gain, c.zmp_integral_max, c.foot_height_gain,
-                                            c.foot_height_time_constant, c.foot_height_max)
+                                            c.foot_height_time_constant, c.foot_height_max,
+                                            c.cop_damping_time_constant_ds)
         self.sole_stiffness, self.sole_damping = sole_contact(model)
         self.weight = model.total_mass * GRAVITY
         self.messages: list[str] = []
@@ -381,7 +382,8 @@ class LocomotionController:
             if float(np.linalg.norm(v)) > 1e-7:
                 transfer_to = max(SIDES, key=lambda side: float((centres[side] - sample.zmp[:2]) @ v))
         st = self.stabilizer.update(s.capture_point, s.cop, s.feet_center, sample.capture_point, sample.zmp,
-                                    ref_feet_center, stance, stance_yaw, centres, transfer_to)
+                                    ref_feet_center, stance, stance_yaw, centres, transfer_to,
+                                    swing_loaded=stance is not None and bool(s.contacts["r" if stance == "l" else "l"]))
         self.last_stabilizer = st
         r = self.ik.solve(self.q_ik, self.tasks(sample, sample.com + st.com_offset, self.pattern, st.foot_z),
                           self.dt)

@@ -12,7 +12,9 @@ all relative to the feet (leg odometry drifts in the world, the feet drift with 
    the DCM control law ``p = p_ref + (1 + k / omega) e`` realised through the servos.
 2. **Ankle damping control of the CoP** (single support): the stance ankle pitch and roll are
    offset by ``d(theta)/dt = k_cop (p_ref - p_measured) - theta / T`` (a leaky integral, so the
-   offset returns to 0 in double support and on the swing foot before it lands), clipped to
+   offset returns to 0 on the swing foot before it lands; in double support faster, with
+   ``T_ds``: a rear foot still tilted by its stance offset loads its toe and the soles' planned
+   sinkage no longer holds the load split), clipped to
    ``walk_ankle_max_offset``. Ankle pitch > 0 turns the toes down (CoP forward), ankle roll > 0
    lifts the sole's +y edge (CoP towards -y); errors are taken in the stance sole's axes.
 3. **CoP integral** (single support): the CoM reference is shifted by ``Δc`` with
@@ -57,7 +59,8 @@ class WalkingStabilizer:
     def __init__(self, model: HumanoidModel, dt: float, dcm_gain: float, com_feedback_max: float,
                  cop_gain: float, cop_time_constant: float, ankle_max_offset: float, zmp_integral_gain: float = 0.0,
                  zmp_integral_max: float = 0.06, foot_height_gain: float = 0.0,
-                 foot_height_time_constant: float = 0.05, foot_height_max: float = 0.001):
+                 foot_height_time_constant: float = 0.05, foot_height_max: float = 0.001,
+                 cop_time_constant_ds: float | None = None):
         self.dt = float(dt)
         self.foot_height_gain = float(foot_height_gain)
         self.foot_height_tau = float(foot_height_time_constant)
@@ -68,6 +71,7 @@ class WalkingStabilizer:
         self.com_feedback_max = float(com_feedback_max)
         self.cop_gain = float(cop_gain)
         self.tau = float(cop_time_constant)
+        self.tau_ds = self.tau if cop_time_constant_ds is None else float(cop_time_constant_ds)
         self.ankle_max = float(ankle_max_offset)
         self.pitch_index = {s: model.joint_index(f"{s}_ankle_pitch") for s in SIDES}
         self.roll_index = {s: model.joint_index(f"{s}_ankle_roll") for s in SIDES}
@@ -81,11 +85,14 @@ class WalkingStabilizer:
 
     def update(self, measured_cp, measured_cop, measured_feet_center, ref_cp, ref_zmp, ref_feet_center,
                stance: str | None, stance_yaw: float, sole_centres: dict | None = None,
-               transfer_to: str | None = None) -> StabilizerOutput:
+               transfer_to: str | None = None, swing_loaded: bool = False) -> StabilizerOutput:
         """One tick. Positions [m] in their own frames (measured: the estimator's world, reference:
         the pattern's); ``stance``: the single-support foot or None (double support);
         ``sole_centres``: side -> reference sole centre (x, y) [m], ``transfer_to``: the foot the double
-        support's ZMP reference moves onto (loop 4; None: loop 4 leaks)."""
+        support's ZMP reference moves onto (loop 4; None: loop 4 leaks); ``swing_loaded``: the estimator
+        sees the swing foot in contact (an early touchdown): loops 2 and 3 hold off, since the measured
+        CoP is then no longer the stance foot's alone (winding the stance ankle up against it tilted
+        the rear foot by 0.5 deg at an early touchdown, which an e-stop then took over)."""
         mf = np.asarray(measured_feet_center, float)[:2]
         rf = np.asarray(ref_feet_center, float)[:2]
         e_cp = (np.asarray(measured_cp, float)[:2] - mf) - (np.asarray(ref_cp, float)[:2] - rf)
@@ -93,7 +100,8 @@ class WalkingStabilizer:
         off = np.clip(-self.dcm_gain * e_cp, -self.com_feedback_max, self.com_feedback_max)
         c, s = math.cos(stance_yaw), math.sin(stance_yaw)
         e_local = np.array([c * e_zmp[0] + s * e_zmp[1], -s * e_zmp[0] + c * e_zmp[1]])
-        if stance is not None and self.zmp_integral_gain > 0:  # 3. CoP integral (single support only)
+        ss = stance if not swing_loaded else None   # loops 2 and 3 act on the stance foot's CoP only
+        if ss is not None and self.zmp_integral_gain > 0:  # 3. CoP integral (single support only)
             self.zmp_integral = self.zmp_integral - self.dt * self.zmp_integral_gain * e_local
             n = float(np.linalg.norm(self.zmp_integral))
             if n > self.zmp_integral_max:
@@ -102,8 +110,8 @@ class WalkingStabilizer:
         off = off + np.array([c * zi[0] - s * zi[1], s * zi[0] + c * zi[1]])
         for side in SIDES:
             a = self.ankle[side]
-            rate = -a / self.tau
-            if side == stance:
+            rate = -a / (self.tau if stance is not None else self.tau_ds)
+            if side == ss:
                 rate = rate + self.cop_gain * np.array([-e_local[0], e_local[1]])
             self.ankle[side] = np.clip(a + self.dt * rate, -self.ankle_max, self.ankle_max)
         foot_z = self._foot_height(e_zmp, stance, sole_centres, transfer_to)
