@@ -67,7 +67,8 @@ def walking_scenario(speed_kmh: float = 1.0, steps: int = 20, overrides: list[st
 
 def walk_duration(sc: dict, ctl: LocomotionController) -> float:
     c, w = ctl.cfg, sc["walk"]
-    return w["start_time"] + c.crouch_duration + c.start_duration + (w["steps"] + 1) * c.step_period \
+    return w["start_time"] + c.crouch_duration + c.start_duration + (w["steps"] + 1) * c.step_period_for(
+        w["speed_kmh"] / 3.6) \
         + c.stop_duration + c.settle_duration + 0.5
 
 
@@ -167,7 +168,7 @@ def run_walk(speed_kmh: float = 1.0, steps: int = 20, overrides: list[str] | Non
         c0 = 0.5 * (start_feet["l"].translation + start_feet["r"].translation) if start_feet else np.zeros(3)
         c1 = 0.5 * (end_feet["l"].translation + end_feet["r"].translation)
         d = c1 - c0
-        T = ctl.cfg.step_period
+        T = ctl.cfg.step_period_for(cmd.speed) if cmd else ctl.cfg.step_period
         turning = cmd is not None and abs(cmd.yaw_rate) > 1e-9
         planned = (cmd.n_steps * cmd.speed * T) if cmd else 0.0
         yaw1 = 0.5 * (yaw_of(end_feet["l"].rotation) + yaw_of(end_feet["r"].rotation))

@@ -172,3 +172,25 @@ def test_multibody_zmp_formula_derived():
     got = multibody_zmp([0.1, -0.02, 0.7], [30.0, -12.0, 600.0 - m * 9.81], [4.0, -7.0, 0.0], m)
     assert got[0] == pytest.approx(float(sol[px].subs(vals)))
     assert got[1] == pytest.approx(float(sol[py].subs(vals)))
+
+
+def test_step_period_depends_on_the_speed():
+    cfg = LocomotionConfig.from_params()
+    assert cfg.step_period_for(1.0 / 3.6) == pytest.approx(cfg.step_period)
+    assert cfg.step_period_for(cfg.fast_step_speed_kmh / 3.6) == pytest.approx(cfg.step_period)
+    assert cfg.step_period_for(1.8 / 3.6) == pytest.approx(cfg.fast_step_period) != cfg.step_period
+    off = LocomotionConfig.from_params({"fast_step_period": 0.0})
+    assert off.step_period_for(1.8 / 3.6) == pytest.approx(off.step_period)
+    feet = {"l": Footstep("l", 0.0, 0.09, 0.0), "r": Footstep("r", 0.0, -0.09, 0.0)}
+    # a walk at 1.0 km/h that speeds up to 1.8 km/h: the steps planned after the change are shorter in time
+    # and advance speed * period each
+    p = WalkingPattern(cfg, DT, 0.18, 0.025, feet, [0.015, 0.0, 0.70], WalkCommand(1.0 / 3.6, 0.0))
+    p.set_command(WalkCommand(1.8 / 3.6, 0.0))
+    ss = [ph for ph in (p.single_support_phase(k) for k in range(1, 12))]
+    durations = [ph.ticks * DT for ph in ss]
+    slow = [d for d in durations if abs(d - (cfg.step_period - cfg.double_support)) < 1e-9]
+    fast = [d for d in durations if abs(d - (cfg.fast_step_period - cfg.double_support)) < 1e-9]
+    assert slow and fast and len(slow) + len(fast) == len(durations)
+    assert durations.index(fast[0]) == len(slow)            # once fast, it stays fast
+    xs = [ph.swing_to.x for ph in ss]
+    assert xs[-1] - xs[-2] == pytest.approx(1.8 / 3.6 * cfg.fast_step_period, abs=1e-6)

@@ -21,6 +21,8 @@ class LocomotionConfig:
     ankle_max_offset: float = 0.12        # rad
     resume_time: float = 1.0              # s, standing: blend back from the measured posture
     step_period: float = 0.8              # s
+    fast_step_period: float = 0.7         # s, above fast_step_speed_kmh (0: step_period at every speed)
+    fast_step_speed_kmh: float = 1.35     # km/h
     double_support: float = 0.1           # s
     com_height: float = 0.70              # m
     swing_apex: float = 0.05              # m
@@ -75,7 +77,20 @@ class LocomotionConfig:
         cfg = cls(**values)
         if cfg.double_support >= cfg.step_period:
             raise params.ParamError("locomotion: double_support must be shorter than step_period")
+        if 0 < cfg.fast_step_period <= cfg.double_support:
+            raise params.ParamError("locomotion: double_support must be shorter than fast_step_period")
         return cfg
+
+    def step_period_for(self, speed: float) -> float:
+        """The step period [s] of a walk at ``speed`` [m/s]: ``fast_step_period`` above ``fast_step_speed_kmh``
+        (when set), else ``step_period``."""
+        if self.fast_step_period > 0 and speed * 3.6 > self.fast_step_speed_kmh + 1e-9:
+            return self.fast_step_period
+        return self.step_period
+
+    def single_support_for(self, speed: float) -> float:
+        """T_ss [s] at ``speed`` [m/s]."""
+        return self.step_period_for(speed) - self.double_support
 
     @property
     def single_support(self) -> float:

@@ -3,8 +3,9 @@
 Online, one control tick at a time (no rclpy). The timeline is built step by step from the
 walking command and always reaches at least the preview horizon ahead, so a new command (speed,
 turn, stop) shapes the steps that start after the horizon (a latency of about two steps, the
-price of preview control). Per step: single support of ``step_period - double_support`` on the
-stance foot while the other swings (:mod:`.swing`), then a double support in which the ZMP
+price of preview control). Per step: single support of ``T - double_support`` on the
+stance foot while the other swings (:mod:`.swing`; ``T = config.step_period_for(speed)``: 0.8 s, 0.7 s above
+1.35 km/h by default), then a double support in which the ZMP
 reference moves linearly from the stance sole to the new one (a fixed, non-zero duration).
 Before the first step: an optional crouch (CoM height from standing to ``com_height``, min-jerk,
 ZMP at the feet centre) and a start double support (ZMP onto the first stance foot). After the
@@ -195,17 +196,17 @@ class WalkingPattern:
         stance_zmp = sole_zmp(feet[other(side)], self.zmp_offset_x)
         stop = self.stopping or (self.steps_left is not None and self.steps_left <= 0)
         self.step_count += 1
+        T = cfg.step_period_for(self.command.speed)
         if stop:
             target = footstep_at(self.path_pose, side, self.width, self.step_count, stop=True)
         else:
-            T = cfg.step_period
             d = float(np.clip(self.steer_target - self.steer_total, -cfg.steer_max_per_step, cfg.steer_max_per_step))
             self.steer_total += d
             self.path_pose = path_advance(self.path_pose, self.command.speed * T, self.command.yaw_rate * T + d)
             target = footstep_at(self.path_pose, side, self.width, self.step_count)
             if self.steps_left is not None:
                 self.steps_left -= 1
-        self._append(Phase("ss", self._end(), self._ticks(cfg.single_support), stance_zmp, stance_zmp, dict(feet),
+        self._append(Phase("ss", self._end(), self._ticks(T - cfg.double_support), stance_zmp, stance_zmp, dict(feet),
                            self.step_count, target))
         feet[side] = target
         self._feet_end = feet
