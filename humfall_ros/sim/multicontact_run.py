@@ -57,12 +57,12 @@ class RunConfig:
         plan_latency: the plan is made from the state at the push's end but the executor takes over
             this much later [s] (the standing balance in between): what a planner that needs that
             long would do without pausing the simulator. 0: paused (the plan's state is the take-over's).
-        speed_limit: how the URDF joint speed limits act. ``"solver"``: ``SimWorld``'s own
-            ``maxJointVelocity`` (joint velocities clamped in the solver; what the ROS graph runs). It does
-            not conserve momentum (measured: 70-100 N s gained in one tick, 12.8 N s in a tick without any
-            contact, ~1000 J of kinetic energy; ``momentum_error_ns_max``). ``"motor"`` (default): the clamp
-            off and each servo's ``maxVelocity`` (PyBullet's position motor limits the speed it drives at;
-            the joint can still be back-driven faster by impacts): momentum is conserved. ``"none"``: no
+        speed_limit: how the URDF joint speed limits act. ``"motor"`` (default, ``SimWorld``'s own since
+            2026-12-02, so also what the ROS graph runs): each servo's ``maxVelocity`` (PyBullet's position
+            motor limits the speed it drives at; the joint can still be back-driven faster by impacts):
+            momentum is conserved. ``"solver"``: the solver's ``maxJointVelocity`` clamp SimWorld used
+            before; it does not conserve momentum (measured: 70-100 N s gained in one tick, 12.8 N s in a
+            tick without any contact, ~1000 J of kinetic energy; ``momentum_error_ns_max``). ``"none"``: no
             limit but the clipped velocity targets (the servos then drive joints 3-5 x past their limits).
     """
 
@@ -254,8 +254,8 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
                       priorities={executor.source: EXECUTOR_PRIORITY})
     if cfg.speed_limit not in SPEED_LIMITS:
         raise ValueError(f"speed_limit must be one of {SPEED_LIMITS}")
-    if cfg.speed_limit != "solver":
-        _unclamp(loop.world, motor_limits=cfg.speed_limit == "motor")
+    if cfg.speed_limit != "motor":  # "motor" is SimWorld's own
+        _unclamp(loop.world, motor_limits=False, solver_clamp=cfg.speed_limit == "solver")
     probe = _Probe(loop.world)
     rate = sc["sim"]["control_rate"]
     try:
@@ -282,24 +282,15 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
 SPEED_LIMITS = ("motor", "none", "solver")
 
 
-def _unclamp(world, motor_limits: bool) -> None:
-    """Remove ``world``'s solver velocity clamp; with ``motor_limits`` its servos get the URDF speed limits
-    as their ``maxVelocity`` instead (``setJointMotorControl2`` per joint: the array call has no such
-    argument). Applies to this world instance only."""
-    for name in world.model.joint_names:
-        pb.changeDynamics(world.robot, world.joint_ids[name], maxJointVelocity=1e4, physicsClientId=world.client)
-    if not motor_limits:
-        return
-    limits = [float(x) for x in world.model.limits.velocity]
-
-    def apply_targets(self=world):
-        for k, jid in enumerate(self._jidx):
-            pb.setJointMotorControl2(self.robot, jid, pb.POSITION_CONTROL, targetPosition=float(self.targets[k]),
-                                     targetVelocity=float(self.target_velocities[k]), force=float(self._efforts[k]),
-                                     positionGain=self.position_gain, velocityGain=self.velocity_gain,
-                                     maxVelocity=limits[k], physicsClientId=self.client)
-
-    world._apply_targets = apply_targets
+def _unclamp(world, motor_limits: bool, solver_clamp: bool = False) -> None:
+    """Change how ``world`` bounds joint speeds (this world instance only). ``SimWorld`` gives each servo
+    its URDF speed limit as ``maxVelocity`` (``motor_limits``, its own default); without: no limit at all,
+    or with ``solver_clamp`` the solver's ``maxJointVelocity`` at the limits (what SimWorld did before
+    2026-12-02: it does not conserve momentum)."""
+    world._motor_max_velocity = [float(x) for x in world.model.limits.velocity] if motor_limits else None
+    for name, limit in zip(world.model.joint_names, world.model.limits.velocity):
+        pb.changeDynamics(world.robot, world.joint_ids[name], maxJointVelocity=float(limit) if solver_clamp else 1e4,
+                          physicsClientId=world.client)
     world._apply_targets()
 
 
