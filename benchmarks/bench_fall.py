@@ -33,12 +33,13 @@ def _stats(xs: list[float]) -> dict:
             "n": len(xs)}
 
 
-def capture_takeover(name: str = "standing_push", overrides: list[str] | None = None):
-    """(observations of the run up to the trigger, the trigger observation, the event), on ClosedLoop."""
+def capture_takeover(name: str = "standing_push", overrides: list[str] | None = None, sc: dict | None = None):
+    """(observations of the run up to the trigger, the trigger observation, the event), on ClosedLoop
+    (the scenario ``name`` with ``overrides``, or the validated scenario ``sc``)."""
     from humfall_ros.fall import runs
     from humfall_ros.sim.closed_loop import ClosedLoop
 
-    sc = scenario.load(name, overrides)
+    sc = sc if sc is not None else scenario.load(name, overrides)
     ctrls, monitors = runs.controllers_for(sc, "none")
     loop = ClosedLoop(sc, ctrls, monitors)
     seen = []
@@ -135,21 +136,7 @@ def halved_recorded() -> dict:
 
 
 def _capture_until_trigger(sc):
-    from humfall_ros.fall import runs
-    from humfall_ros.sim.closed_loop import ClosedLoop
-
-    ctrls, monitors = runs.controllers_for(sc, "none")
-    loop = ClosedLoop(sc, ctrls, monitors)
-    seen = []
-    try:
-        for _ in range(int(1.5 * sc["sim"]["control_rate"])):
-            obs = loop.step()
-            seen.append(obs)
-            if obs.inputs["ftb/status"].event is not None:
-                return seen, obs, obs.inputs["ftb/status"].event
-    finally:
-        loop.close()
-    raise RuntimeError("the FTB did not fire")
+    return capture_takeover(sc=sc)
 
 
 def record(path: pathlib.Path) -> dict:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from humfall_ros import launch, scenario
-from humfall_ros.sim.closed_loop import ClosedLoop, locomotion_controller
+from humfall_ros.sim.closed_loop import ClosedLoop, locomotion_controller, run_scenario
 
 import takeover_controller as tc
 from test_suite_graph import joint_states_from_bag
@@ -142,11 +142,7 @@ def test_a_walk_is_identical_in_process_and_over_ros(run_up):
     assert status == 0, r
     assert r["metrics"]["fell"] is False
     assert set(r["node_exit_codes"]) >= {"locomotion", "estop_planner"}
-    mine = ClosedLoop(scenario.load("walking", ov))
-    try:
-        res = mine.run()
-    finally:
-        mine.close()
+    res = run_scenario(scenario.load("walking", ov))
     ros = _rows(r, len(res.joint_positions))
     assert np.array_equal(ros, res.joint_positions)
     steps = {m for _, m in bag_topic(r["bag"], "/walking/state", "step_index")}

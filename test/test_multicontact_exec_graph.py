@@ -12,7 +12,7 @@ from humfall_ros.multicontact.collocation import Segment
 from humfall_ros.multicontact.executor import StoredPlan
 from humfall_ros.multicontact.model import load_model as load_planar
 from humfall_ros.nodes.multicontact_executor import make_controller
-from humfall_ros.sim.closed_loop import ClosedLoop, locomotion_controller
+from humfall_ros.sim.closed_loop import locomotion_controller, run_scenario
 
 from test_contract_graph import _rows, bag_topic
 
@@ -52,12 +52,9 @@ def test_the_executor_node_takes_over_at_the_plan_time_and_matches_the_in_proces
     assert active[int(1.19e9)] == "multicontact"            # never released
     sc = scenario.load("multicontact_push", ov)
     p = {**params.defaults("multicontact_executor"), "plan_file": str(plan)}
-    loop = ClosedLoop(sc, controllers=[locomotion_controller(sc, load_humanoid()), make_controller(p, load_humanoid())],
-                      priorities={"multicontact": 40})
-    try:
-        mine = loop.run()
-    finally:
-        loop.close()
+    hm = load_humanoid()
+    mine = run_scenario(sc, controllers=[locomotion_controller(sc, hm), make_controller(p, hm)],
+                        priorities={"multicontact": 40})
     ros = _rows(r, len(mine.joint_positions))
     assert np.array_equal(ros, mine.joint_positions)
     # and the arms did follow the plan (raised by ~0.6 rad over 0.4 s)
