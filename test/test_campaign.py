@@ -317,6 +317,26 @@ def test_threshold_report_from_a_stored_map(tmp_path):
     assert "below_range" not in text and ">ok<" in text
 
 
+def test_sweep_report_draws_both_avoidance_angles_per_controller_and_a_cross_table(tmp_path):
+    d = tiny(tmp_path, design={"grid": {"push.0.direction_deg": [0.0, 90.0, 180.0],
+                                        "controller": ["stepping", "stepping_inertia"]}})
+    spec, base0, study, digest = prepare(spec_mod.from_dict(d), RunOptions())
+    store = ResultStore(tmp_path / "out")
+    store.open(spec.model_dump(mode="json"), digest, base0)
+    for t in study.trials:  # synthetic outcomes: every stepping_inertia trial falls, stepping ones only at 180 deg
+        falls = t.settings["controller"] == "stepping_inertia" or t.settings["push.0.direction_deg"] == 180.0
+        store.add(make_row(t, {"status": "ok", "metrics": {"fell": falls, "avoidance_angle_deg": 100.0,
+                                                           "avoidance_angle_p2_deg": 150.0}}, "inprocess"))
+    store.merge()
+    text = write_report(tmp_path / "out").read_text()
+    assert "Mean avoidance angle α (" in text and "Mean avoidance angle α2 (" in text
+    assert "Fell / trials: push.0.direction_deg (rows) × controller (columns)" in text
+    table = text[text.index("Fell / trials"):]
+    cells = [c.split("</td>")[0] for c in table.split("<td>")[1:7]]
+    # rows 0, 90, 180 deg (numeric order); columns stepping, stepping_inertia
+    assert cells == ["0 / 1", "1 / 1", "0 / 1", "1 / 1", "1 / 1", "1 / 1"]
+
+
 def test_threshold_map_resumes_mid_bisection(tmp_path):
     import pyarrow.parquet as pq
 

@@ -290,16 +290,50 @@ def _sweep_section(table: pa.Table, spec: dict) -> str:
                                      or pa.types.is_floating(t.schema.field(c).type)):
             parts.append(f'<img src="data:image/png;base64,{_rate_plot(_numeric(t, c), fell, c[4:])}">')
     dcol = next((c for c in cols if c.startswith("set.") and c.endswith("direction_deg")), None)
-    if dcol and "m.avoidance_angle_deg" in cols:
-        d, a = _numeric(t, dcol), _numeric(t, "m.avoidance_angle_deg")
+    group_col = "set.controller" if "set.controller" in cols else None
+    groups = [str(g) for g in t.column(group_col).to_pylist()] if group_col else ["mean"] * t.num_rows
+    for metric, name in (("m.avoidance_angle_deg", "avoidance angle α (at the CoP when the push began)"),
+                         ("m.avoidance_angle_p2_deg", "avoidance angle α2 (paper 1 Fig. 5: CoP after the step)")):
+        if not dcol or metric not in cols:
+            continue
+        d, a = _numeric(t, dcol), _numeric(t, metric)
         m = np.isfinite(d) & np.isfinite(a)
-        if m.any():
-            bins = np.round(d[m] / 30.0) * 30.0 % 360.0
-            dirs = sorted(set(bins))
-            parts.append("<h3>Avoidance angle (paper 1 Fig. 5) by push direction</h3>")
-            png = _polar({"mean": (dirs, [a[m][bins == b].mean() for b in dirs])}, "avoidance angle", "radius: deg")
-            parts.append(f'<img src="data:image/png;base64,{png}">')
+        if not m.any():
+            continue
+        bins = np.round(d / 30.0) * 30.0 % 360.0
+        lines = {}
+        for g in sorted(set(groups)):
+            sel = m & np.array([x == g for x in groups])
+            dirs = sorted(set(bins[sel]))
+            if dirs:
+                lines[g] = (dirs, [a[sel & (bins == b)].mean() for b in dirs])
+        parts.append(f"<h3>Mean {name} by push direction</h3>")
+        parts.append(f'<img src="data:image/png;base64,{_polar(lines, name.split(" (")[0], "radius: deg")}">')
+    parts.append(_cross_table(t, fell, [c for c in cols if c.startswith("set.")]))
     return "\n".join(parts)
+
+
+def _cross_table(t: pa.Table, fell: list[bool], keys: list[str]) -> str:
+    """Trials and falls for each pair of values of the first two design keys (e.g. e-stop speed x phase)."""
+    if len(keys) < 2:
+        return ""
+    a, b = (t.column(k).to_pylist() for k in keys[:2])
+    def order(v):  # numbers by value, then everything else by its text
+        return (0, float(v), "") if isinstance(v, (int, float)) and not isinstance(v, bool) else (1, 0.0, str(v))
+
+    rows, cols_ = sorted(set(a), key=order), sorted(set(b), key=order)
+    if len(rows) * len(cols_) > 400:
+        return ""
+    cell = {}
+    for x, y, f in zip(a, b, fell):
+        n, k = cell.get((x, y), (0, 0))
+        cell[(x, y)] = (n + 1, k + int(f))
+    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in cols_)
+    body = "".join("<tr><th>" + html.escape(str(r)) + "</th>" + "".join(
+        f"<td>{cell[(r, c)][1]} / {cell[(r, c)][0]}</td>" if (r, c) in cell else "<td></td>" for c in cols_)
+        + "</tr>" for r in rows)
+    return (f"<h3>Fell / trials: {html.escape(keys[0][4:])} (rows) × {html.escape(keys[1][4:])} (columns)</h3>"
+            f"<table><tr><th></th>{head}</tr>{body}</table>")
 
 
 def _timing_section(table: pa.Table, meta: dict) -> str:
