@@ -21,6 +21,8 @@ DECLARATIONS = {d.name: d for d in (
     Declaration("release_time", "double", 2.0, "sim time to release (s)", (0.0, 3600.0)),
     Declaration("arm_offset", "double", 0.4, "shoulder pitch offset reached while in control (rad)", (-1.5, 1.5)),
     Declaration("ramp_time", "double", 0.3, "time to reach the offset (s)", (0.01, 10.0)),
+    Declaration("mute_time", "double", -1.0, "node only: from this sim time on, publish no answer at all "
+                "(a hung source, for the stall test) (s); < 0: never", (-1.0, 3600.0)),
 )}
 
 
@@ -59,9 +61,15 @@ def make_controller(p: dict, model) -> TakeoverController:
 
 
 def make_node(name: str):
+    from humfall_ros.nodes.common import stamp_key
     from humfall_ros.nodes.controller_node import ControllerNode
 
-    return ControllerNode(name, make_controller, declarations=DECLARATIONS)
+    node = ControllerNode(name, make_controller, declarations=DECLARATIONS)
+    mute_ns = int(round(node.params["mute_time"] * 1e9))
+    if mute_ns >= 0:  # a hung source: the answers of every tick from mute_time on are never sent
+        publish = node.pub.publish
+        node.pub.publish = lambda msg: None if stamp_key(msg.header.stamp) >= mute_ns else publish(msg)
+    return node
 
 
 def main(args=None) -> int:

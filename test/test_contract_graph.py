@@ -107,17 +107,18 @@ def test_two_controllers_with_one_priority_are_refused_before_anything_starts(ru
     assert not (tmp_path / "runs").exists()
 
 
-def test_a_controller_that_never_answers_stalls_the_run_with_its_name(run_up, tmp_path):
-    # a source registered in lockstep that never publishes: the bridge names it and the tick, exits non-zero
-    ov = [f"controllers=[{{node: {TAKEOVER}, source: mute, priority: 50, params: {{source: test}}}}]",
-          "params.sim_bridge.stall_timeout=8.0"]
-    # (tick 0's wait includes every source's warm-up: at load ~6 locomotion's first answer took over 3 s)
+def test_a_controller_that_goes_silent_stalls_the_run_with_its_name(run_up, tmp_path):
+    # a lockstep source that answers up to t = 0.2 s and then never again: after stall_timeout the bridge
+    # names it and the tick, writes the metrics and exits 3 (tick 0's wait is start_timeout's: start-up)
+    ov = [f"controllers=[{{node: {TAKEOVER}, source: test, priority: 50, "
+          f"params: {{take_over_time: -1.0, mute_time: 0.2}}}}]",
+          "params.sim_bridge.stall_timeout=3.0"]
     status, r = run_up("standing_quiet", "duration=1.0", *ov)
     assert status != 0
     m = r["metrics"]
-    assert m["stalled_source"] == "mute" and m["stalled_at_s"] == 0.0
+    assert m["stalled_source"] == "test" and m["stalled_at_s"] == pytest.approx(0.2)
     log = (pathlib.Path(r["bag"]).parent / "logs" / "sim_bridge.log").read_text()
-    assert "no command from mute" in log and "tick 0" in log
+    assert "no command from test" in log and "tick 100" in log and "stall_timeout" in log
     assert json.loads((pathlib.Path(r["bag"]).parent / "result.json").read_text())["node_exit_codes"]["sim_bridge"] == 3
 
 

@@ -7,6 +7,8 @@ obstacles, and reports ground-truth run metrics at the end.
 Lockstep (default): after publishing the sensors stamped t_k, the bridge waits
 until every source in ``lockstep_sources`` has sent its command stamped t_k
 (a JointState with no names means "I release control this tick"), then steps.
+A source silent for ``stall_timeout`` (the first tick: ``start_timeout``, which
+covers every source's start-up) ends the run as stalled, named in the metrics.
 Results then depend only on the commands, never on CPU load. If nothing moves
 for ``retransmit_period`` wall seconds (start-up discovery), the tick's sensors
 are sent again; downstream nodes answer a repeated stamp with their last output.
@@ -480,20 +482,24 @@ class SimBridge(Node):
                         self.publish_sensors()
                         last_send = now
                         executor.spin_once(timeout_sec=0.0)
-                    if not self.lockstep and now - waited_since > self.start_timeout:
-                        missing = sorted(set(self.lockstep_sources) - self.answered)
+                    # tick 0 waits for every source's start-up (imports, first pinocchio call, DDS
+                    # matching: seconds on a loaded machine); later ticks only for a computation
+                    timeout = self.start_timeout if first_tick else self.stall_timeout
+                    if now - waited_since <= timeout:
+                        continue
+                    missing = sorted(set(self.lockstep_sources) - self.answered)
+                    if not self.lockstep:
                         self.get_logger().warning(f"free-run: no first command from {missing} after "
-                                                  f"{self.start_timeout:.0f} s; starting without it")
+                                                  f"{timeout:.0f} s; starting without it")
                         break
-                    if now - waited_since > self.stall_timeout:
-                        missing = sorted(set(self.lockstep_sources) - self.answered)
-                        self.get_logger().error(f"lockstep stalled at t={self.world.time:.3f} s (tick "
-                                                f"{int(round(self.world.time * self.control_rate))}): no command from "
-                                                f"{', '.join(missing)} after {self.stall_timeout:.0f} s; "
-                                                "ending the run")
-                        self.stalled_ticks += 1
-                        self.stalled = (",".join(missing), self.world.time)
-                        break
+                    self.get_logger().error(f"lockstep stalled at t={self.world.time:.3f} s (tick "
+                                            f"{int(round(self.world.time * self.control_rate))}): no command from "
+                                            f"{', '.join(missing)} after {timeout:.0f} s "
+                                            f"({'start_timeout' if first_tick else 'stall_timeout'}); "
+                                            "ending the run")
+                    self.stalled_ticks += 1
+                    self.stalled = (",".join(missing), self.world.time)
+                    break
                 if self.stalled is not None:
                     break
                 if first_tick:  # time (and the real-time factor) starts once the loop is closed
