@@ -53,6 +53,8 @@ class LocomotionConfig:
     foot_height_gain: float = 0.05        # 1/s, double-support foot height difference per metre of CoP error rate
     foot_height_time_constant: float = 0.05  # s
     foot_height_max: float = 0.0005       # m
+    swing_tilt_compensation: bool = False  # keep the swing foot on its path under the stance ankle offsets
+    swing_tilt_ramp: float = 0.03         # s, that correction's ramp-in after the lift-off
     heading_lateral_gain: float = 0.5     # rad/m, path heading correction per metre of lateral drift
     steer_max_per_step: float = 0.0175    # rad, largest heading correction added to one planned step
     steer_filter_time: float = 0.4        # s, low-pass of the measured heading drift
