@@ -25,6 +25,7 @@ import sys
 import time
 
 import numpy as np
+import pinocchio as pin
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))   # the source tree, not an installed copy
 
@@ -32,6 +33,7 @@ from humfall_ros import scenario  # noqa: E402
 from humfall_ros.control.contract import Observation
 from humfall_ros.estop.config import EstopConfig, trigger_params
 from humfall_ros.estop.controller import EstopController
+from humfall_ros.estop.frame import FootPose, PlanarMotion
 from humfall_ros.estop.metrics import estop_result
 from humfall_ros.estop.statespace import fit_zmp_lag
 from humfall_ros.model.humanoid import point_in_polygon_margin
@@ -141,7 +143,8 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
     tick_cop = average_cop_per_tick(loop.world)
     tr = {k: [] for k in ("t", "com", "com_velocity", "cop", "margin", "zmp_ref", "com_ref", "support", "state",
                           "estop_com_ref", "estop_zmp_ref", "active", "cop_truth", "walking",
-                          "angular_momentum")}
+                          "angular_momentum", "com_truth", "sole_truth")}
+    data = model.model.createData()
     walk_refused = None
     fell, fell_at = False, None
     t_end = sc["duration"]
@@ -170,6 +173,12 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
             tr["estop_zmp_ref"].append(np.array(es.zmp_ref))
             tr["active"].append(loop.active)
             tr["cop_truth"].append(tick_cop["cop"].copy())
+            q_true = loop.world.pinocchio_configuration()
+            tr["com_truth"].append(pin.centerOfMass(model.model, data, q_true).copy())
+            pin.updateFramePlacements(model.model, data)
+            tr["sole_truth"].append(np.array([FootPose(data.oMf[model.frame_ids[model.foot_link[f]]].translation.copy(),
+                                                       data.oMf[model.frame_ids[model.foot_link[f]]].rotation.copy())
+                                              .sole_center(model, f)[:2] for f in ("l", "r")]))
             if walk_refused is None and any("refused" in m for m in walk.messages):
                 walk_refused = next(m for m in walk.messages if "refused" in m)
                 break
@@ -199,6 +208,9 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
                   if "cop" in k or "margin" in k})
         m["max_cop_minor_m_tick_avg"] = float(np.nanmax(np.abs(plan.frame.to_local(
             trace["cop_truth"][trace["t"] >= start, :2])[:, 0])))
+        # the same on the robot's feet (ground truth): the plan's frame carried from the pattern's feet onto
+        # the measured soles at the start (the robot may have yawed / drifted off its pattern's world frame)
+        m.update(feet_figures(plan, trace, start))
     else:
         m.update({"feasible": None, "fell": fell})
     m["trigger_time_s"] = s.trigger_time
@@ -208,12 +220,15 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
     return Trial(speed_kmh, phase, m, trace, plan, list(estop.messages) + list(walk.messages))
 
 
-def acceptance(plan, status, trace: dict, start: float) -> dict:
-    """The issue's per-trial figures beyond result.json's section."""
+def acceptance(plan, status, trace: dict, start: float, frame=None, polygon=None) -> dict:
+    """The issue's per-trial figures beyond result.json's section (in the plan's frame, or ``frame`` /
+    ``polygon``: the same carried onto the measured feet)."""
+    frame = plan.frame if frame is None else frame
+    polygon = plan.support_polygon if polygon is None else polygon
     t = trace["t"]
     after = t >= start
-    local_com = plan.frame.to_local(trace["com"][:, :2])
-    local_cop = plan.frame.to_local(trace["cop"][:, :2])
+    local_com = frame.to_local(trace["com"][:, :2])
+    local_cop = frame.to_local(trace["cop"][:, :2])
     # the feet's centre line is the Minor axis' x = 0 (through both sole centres, Fig. 3)
     v0 = float(np.hypot(*plan.state.com_velocity[:2]))
     bound = math.log(max(v0, 0.01) / 0.01) / plan.omega_c + 0.3
@@ -222,7 +237,7 @@ def acceptance(plan, status, trace: dict, start: float) -> dict:
     settle = float(t[moving[-1] + 1] - start) if len(moving) and moving[-1] + 1 < len(t) else (
         0.0 if not len(moving) else math.nan)
     fin = local_com[-1]
-    in_poly = point_in_polygon_margin(np.array([*trace["com"][-1, :2], 0.0]), plan.support_polygon)
+    in_poly = point_in_polygon_margin(np.array([*trace["com"][-1, :2], 0.0]), polygon)
     cop_major = local_cop[after, 1]
     tail = t >= start + plan.stop_time
     return {
@@ -249,14 +264,59 @@ def acceptance(plan, status, trace: dict, start: float) -> dict:
     }
 
 
-def truth_margins(trace: dict, plan, start: float) -> np.ndarray:
+def truth_margins(trace: dict, plan, start: float, polygon=None) -> np.ndarray:
     """Distance [m] of the tick-averaged CoP inside the stop's double-support polygon (the plan's, from the
-    feet at the start) from ``start`` [s] on; NaN before; -inf when airborne."""
+    feet at the start, or ``polygon``) from ``start`` [s] on; NaN before; -inf when airborne."""
+    polygon = plan.support_polygon if polygon is None else polygon
     out = np.full(len(trace["t"]), np.nan)
     for i in np.nonzero(trace["t"] >= start)[0]:
         c = trace["cop_truth"][i]
-        out[i] = point_in_polygon_margin(c, plan.support_polygon) if np.isfinite(c).all() else -math.inf
+        out[i] = point_in_polygon_margin(c, polygon) if np.isfinite(c).all() else -math.inf
     return out
+
+
+def feet_motion(plan, trace: dict, start: float) -> PlanarMotion:
+    """The rigid motion from the plan's (the pattern's) sole centres onto the measured ones at ``start``."""
+    i = int(np.searchsorted(trace["t"], start))
+    feet = plan.state.feet
+    sl, sr = trace["sole_truth"][i]
+    return PlanarMotion.between_feet(feet["l"].sole_center(MODEL(), "l"), feet["r"].sole_center(MODEL(), "r"),
+                                     sl, sr)
+
+
+def feet_figures(plan, trace: dict, start: float) -> dict:
+    """The acceptance figures on the robot's own feet (ground truth CoG, tick-averaged CoP, sole centres): the
+    plan's frame and polygon carried by :func:`feet_motion`; ``*_feet`` keys, plus the pattern-to-feet yaw and
+    offset and how far a sole slid during the stop."""
+    mo = feet_motion(plan, trace, start)
+    frame = plan.frame.moved(mo)
+    polygon = mo.apply(plan.support_polygon)
+    i = int(np.searchsorted(trace["t"], start))
+    slide = float(np.max(np.linalg.norm(trace["sole_truth"][i:] - trace["sole_truth"][i], axis=2)))
+    truth = dict(trace, com=trace["com_truth"], cop=trace["cop_truth"],
+                 margin=truth_margins(trace, plan, start, polygon))
+    a = acceptance(plan, None, truth, start, frame=frame, polygon=polygon)
+    after = trace["t"] >= start
+    fin = frame.to_local(trace["com_truth"][-1, :2])
+    plan_only = ("n3_lower_bound_m", "v0_mps", "omega_c", "beta", "predicted_max_zmp_minor_m",
+                 "predicted_max_zmp_major_m", "predicted_min_margin_m", "predicted_stop_time_s", "stop_time_bound_s")
+    out = {f"{k}_feet": v for k, v in a.items() if k not in plan_only}
+    out.update({"final_cog_minor_m_feet": float(fin[0]),
+                "max_cop_minor_m_feet": float(np.nanmax(np.abs(frame.to_local(trace["cop_truth"][after, :2])[:, 0]))),
+                "pattern_to_feet_yaw_deg": math.degrees(mo.yaw),
+                "pattern_to_feet_offset_m": float(np.linalg.norm(mo.apply(plan.frame.origin) - plan.frame.origin)),
+                "sole_slide_m": slide})
+    return out
+
+
+_MODEL = []
+
+
+def MODEL():
+    if not _MODEL:
+        from humfall_ros.model.humanoid import load_model
+        _MODEL.append(load_model())
+    return _MODEL[0]
 
 
 def fit_omega_f(trace: dict) -> dict:
@@ -341,7 +401,21 @@ COLUMNS = (("speed_kmh", "km/h"), ("step", "step"), ("phase", "phase"), ("wait_s
            ("stop_time_estimator_v_s", "stop time s"), ("stop_time_bound_s", "bound s"))
 
 
-def markdown_table(rows: list[dict]) -> str:
+# the acceptance table on the robot's feet (ground truth; feet_figures)
+FEET_COLUMNS = (("speed_kmh", "km/h"), ("step", "step"), ("phase", "phase"), ("wait_s", "SS wait s"),
+                ("feasible", "pred. feasible"), ("fallback", "fallback"), ("crouch_height_m", "CoG height m"),
+                ("fell", "fell"), ("pattern_to_feet_yaw_deg", "feet yaw off pattern deg"), ("n3_m", "n3 m"),
+                ("final_cog_vs_n3_m_feet", "final CoG - n3 m"), ("final_cog_minor_m_feet", "final CoG Minor m"),
+                ("final_cog_inside_m_feet", "final CoG inside m"),
+                ("predicted_max_zmp_minor_m", "pred. max ZMP Minor m"), ("max_cop_minor_m_feet", "max CoP Minor m"),
+                ("min_cop_margin_from_start_m_feet", "min CoP margin m"),
+                ("min_cop_margin_after_0.3s_m_feet", "min margin after 0.3 s m"),
+                ("cop_major_overshoot_m_feet", "CoP beyond n3 m"), ("cop_major_settled_m_feet", "CoP Major settled m"),
+                ("stop_time_estimator_v_s", "stop time s"), ("stop_time_bound_s", "bound s"),
+                ("sole_slide_m", "sole slide m"))
+
+
+def markdown_table(rows: list[dict], columns=COLUMNS) -> str:
     """The trial table (docs/estop.md), tick-averaged CoP figures; signed Major values as measured."""
     def f(v):
         if v is None:
@@ -350,9 +424,9 @@ def markdown_table(rows: list[dict]) -> str:
             return "yes" if v else "no"
         return f"{v:.3f}" if isinstance(v, float) else str(v)
 
-    head = "| " + " | ".join(h for _, h in COLUMNS) + " |"
-    sep = "|" + "---|" * len(COLUMNS)
-    body = ["| " + " | ".join(f(r.get(k)) for k, _ in COLUMNS) + " |" for r in rows]
+    head = "| " + " | ".join(h for _, h in columns) + " |"
+    sep = "|" + "---|" * len(columns)
+    body = ["| " + " | ".join(f(r.get(k)) for k, _ in columns) + " |" for r in rows]
     return "\n".join([head, sep, *body])
 
 
@@ -362,18 +436,28 @@ def main(argv=None) -> int:
     ap.add_argument("--phases", default=",".join(PHASES))
     ap.add_argument("--json", default="")
     ap.add_argument("--fallback", default="")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="estop_planner parameter overrides (numbers parsed), e.g. crouch_min_cog_height=0.699")
     ap.add_argument("--step", type=int, default=5, help="estop.at.step (default 5: after the 5th step)")
     ap.add_argument("--fit", action="store_true", help="fit omega_f on each trial's walking part")
     ap.add_argument("--save", default="", help="folder for one .npz trace per trial (humfall_ros.estop.plots)")
     ap.add_argument("--markdown", nargs="*", default=None, help="print the table of these --json files and exit")
+    ap.add_argument("--pattern-frame", action="store_true",
+                    help="with --markdown: the old table in the pattern's frame (default: on the measured feet)")
     a = ap.parse_args(argv)
     if a.markdown:
         rows = [figures_from_npz(path) if path.endswith(".npz") else r for path in a.markdown
                 for r in ([None] if path.endswith(".npz") else json.load(open(path)))]
-        print(markdown_table(rows))
+        print(markdown_table(rows, COLUMNS if a.pattern_frame else FEET_COLUMNS))
         return 0
     rows = []
     over = {"fallback": a.fallback} if a.fallback else {}
+    for kv in a.set:
+        k, v = kv.split("=", 1)
+        try:
+            over[k] = int(v) if v.lstrip("-").isdigit() else float(v)
+        except ValueError:
+            over[k] = v
     for v in a.speeds:
         for ph in a.phases.split(","):
             tr = run_trial(v, ph, step=a.step, **over)

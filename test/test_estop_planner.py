@@ -10,7 +10,7 @@ import pytest
 
 from humfall_ros import params
 from humfall_ros.estop.config import NODE_KEYS, EstopConfig, TriggerPhase
-from humfall_ros.estop.frame import FootPose, StopFrame
+from humfall_ros.estop.frame import FootPose, PlanarMotion, StopFrame
 from humfall_ros.estop.planner import EstopInputError, EstopPlanner, PatternState
 from humfall_ros.estop.posture import configuration_from_feet
 from humfall_ros.model.humanoid import load_model, point_in_polygon_margin
@@ -65,6 +65,22 @@ def test_frame_major_axis_from_right_to_left_sole_origin_under_the_zmp():
     assert f.to_local(zmp)[1] == pytest.approx(0.0, abs=1e-12)         # pbar_y(0) = 0
     p = np.array([0.3, 0.2])
     np.testing.assert_allclose(f.to_world(f.to_local(p)), p)
+
+
+def test_frame_carried_onto_moved_feet_keeps_local_coordinates():
+    rng = np.random.default_rng(3)
+    lc, rc, zmp = np.array([0.3, 0.1]), np.array([0.0, -0.1]), np.array([0.05, -0.08])
+    frame = StopFrame.from_feet(lc, rc, zmp)
+    yaw, shift = -0.3, np.array([0.4, -0.2])
+    R = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    mo = PlanarMotion.between_feet(lc, rc, R @ lc + shift, R @ rc + shift)
+    assert mo.yaw == pytest.approx(yaw) and np.allclose(mo.translation, shift)
+    moved = frame.moved(mo)
+    # the moved frame is the frame of the moved feet, and a point moved with the feet keeps its local coordinates
+    direct = StopFrame.from_feet(R @ lc + shift, R @ rc + shift, R @ zmp + shift)
+    assert np.allclose(moved.origin, direct.origin) and np.allclose(moved.major, direct.major)
+    p = rng.normal(size=(5, 2))
+    assert np.allclose(moved.to_local(mo.apply(p)), frame.to_local(p))
 
 
 def test_plan_uses_only_the_pattern_state(planner):

@@ -97,5 +97,43 @@ class StopFrame:
     def vector_to_world(self, local) -> np.ndarray:
         return np.asarray(local, float) @ self.rotation.T
 
+    def moved(self, motion: PlanarMotion) -> StopFrame:
+        """This frame carried by a rigid planar motion (e.g. from the pattern's feet onto the measured ones)."""
+        major = motion.rotation @ self.major
+        return StopFrame(motion.apply(self.origin), major, np.array([major[1], -major[0]]))
 
-__all__ = ["FootPose", "StopFrame", "double_support_polygon"]
+
+@dataclasses.dataclass(frozen=True)
+class PlanarMotion:
+    """A rigid motion of the ground plane: ``p -> rotation @ p + translation`` [m].
+
+    Attributes:
+        rotation: (2, 2); translation: [m] (2,).
+    """
+
+    rotation: np.ndarray
+    translation: np.ndarray
+
+    @property
+    def yaw(self) -> float:
+        """Its rotation angle [rad]."""
+        return float(np.arctan2(self.rotation[1, 0], self.rotation[0, 0]))
+
+    def apply(self, p) -> np.ndarray:
+        """World xy (..., 2) moved [m]."""
+        return np.asarray(p, float)[..., :2] @ self.rotation.T + self.translation
+
+    @staticmethod
+    def between_feet(left_from, right_from, left_to, right_to) -> PlanarMotion:
+        """The rigid motion taking two sole centres onto two others (exact when their distances agree; otherwise
+        the mid-points coincide and the left-right directions align) [m], xy read."""
+        a0, b0 = np.asarray(left_from, float)[:2], np.asarray(right_from, float)[:2]
+        a1, b1 = np.asarray(left_to, float)[:2], np.asarray(right_to, float)[:2]
+        d0, d1 = a0 - b0, a1 - b1
+        yaw = float(np.arctan2(d1[1], d1[0]) - np.arctan2(d0[1], d0[0]))
+        c, s = np.cos(yaw), np.sin(yaw)
+        R = np.array([[c, -s], [s, c]])
+        return PlanarMotion(R, 0.5 * (a1 + b1) - R @ (0.5 * (a0 + b0)))
+
+
+__all__ = ["FootPose", "PlanarMotion", "StopFrame", "double_support_polygon"]
