@@ -53,7 +53,7 @@ demo: setup
 	$(VENV_ABS)/bin/humfall up --scenario $(SCENARIO) --controller $(CONTROLLER)
 
 test: setup lint
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(PY) -m pytest -q --durations=15 $(PYTEST_ARGS)
 
 lint: $(VENV)/.deps-stamp
 	$(VENV_ABS)/bin/ruff check humfall_ros test benchmarks tools

@@ -141,3 +141,20 @@ def check_overrides(node: str, values: dict[str, Any], prefix: str = "") -> dict
 
 
 __all__ = ["Declaration", "ParamError", "check_overrides", "declarations", "defaults"]
+
+
+def config_from(cls: type, values: dict[str, Any], where: str | None = None, ignore: tuple[str, ...] = ()):
+    """``cls(**values)`` for a config dataclass built from declared parameters.
+
+    A key that is not a field of ``cls`` is refused (ParamError naming every such key), never
+    dropped: a misspelt parameter must not silently run another controller. Keys in ``ignore``
+    (a node's own parameters, which its config does not carry) are left out first. Missing keys
+    take the dataclass defaults; the dataclass's ``__post_init__`` does its own checks.
+    """
+    names = {f.name for f in dataclasses.fields(cls)}
+    kept = {k: v for k, v in values.items() if k not in ignore}
+    unknown = sorted(set(kept) - names)
+    if unknown:
+        raise ParamError(f"{where or cls.__name__}: unknown parameters {unknown} (a {cls.__name__} has "
+                         f"{', '.join(sorted(names))})")
+    return cls(**kept)

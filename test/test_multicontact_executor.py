@@ -167,7 +167,7 @@ def test_executor_without_a_plan_releases_for_good_and_says_why(models):
         MulticontactExecutor([], pm.joint_names, hm.joint_names)
     with pytest.raises(ValueError, match="hold"):
         ExecutorConfig(hold="sideways")
-    with pytest.raises(ValueError, match="unknown keys"):
+    with pytest.raises(ValueError, match="unknown parameters"):
         ExecutorConfig.from_params({"landing_wait": 0.1, "typo": 1})
 
 

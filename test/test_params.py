@@ -79,3 +79,20 @@ def test_overrides_are_typed_and_checked():
         params.check_overrides("locomotion", {"ankle_kp": 1e6})
     with pytest.raises(params.ParamError, match="expected bool"):
         params.check_overrides("sim_bridge", {"lockstep": 1})
+
+
+def test_config_from_refuses_unknown_keys_and_drops_only_the_ignored():
+    import dataclasses
+
+    @dataclasses.dataclass
+    class Cfg:
+        gain: float = 1.0
+        name: str = "a"
+
+    assert params.config_from(Cfg, {"gain": 2.0}) == Cfg(2.0, "a")  # missing keys take the defaults
+    assert params.config_from(Cfg, {"gain": 2.0, "queue_size": 3}, ignore=("queue_size",)) == Cfg(2.0)
+    with pytest.raises(params.ParamError, match=r"my_node: unknown parameters \['gian'\]"):
+        params.config_from(Cfg, {"gian": 2.0}, where="my_node")
+    with pytest.raises(ValueError):  # ParamError is a ValueError: callers' except clauses still hold
+        params.config_from(Cfg, {"gain": 1.0, "extra": 0})
+

@@ -22,6 +22,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.multicontact.collocation import Segment, hermite_eval
 from humfall_ros.multicontact.model import FEET
@@ -63,11 +64,7 @@ class ExecutorConfig:
     @staticmethod
     def from_params(d: dict) -> ExecutorConfig:
         """From ExecutorConfig field names (e.g. the node's declared values); unknown keys are refused."""
-        names = {f.name for f in dataclasses.fields(ExecutorConfig)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"ExecutorConfig: unknown keys {sorted(unknown)}")
-        return ExecutorConfig(**d)
+        return params.config_from(ExecutorConfig, d)
 
 
 PlanSource = Callable[[Observation], "list[Segment] | None"]
