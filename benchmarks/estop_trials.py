@@ -211,6 +211,7 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
         # the same on the robot's feet (ground truth): the plan's frame carried from the pattern's feet onto
         # the measured soles at the start (the robot may have yawed / drifted off its pattern's world frame)
         m.update(feet_figures(plan, trace, start))
+        m.update(walking_touchdowns(trace, start))
     else:
         m.update({"feasible": None, "fell": fell})
     m["trigger_time_s"] = s.trigger_time
@@ -254,11 +255,13 @@ def acceptance(plan, status, trace: dict, start: float, frame=None, polygon=None
         "predicted_stop_time_s": float(plan.stop_time),
         "stop_time_estimator_v_s": settle,
         "stop_time_bound_s": bound,
-        "max_cop_major_m": float(np.max(cop_major)) if len(cop_major) else math.nan,
+        "max_cop_major_m": float(np.nanmax(cop_major)) if len(cop_major) else math.nan,
         # along the stop's direction (sign of n3): the largest CoP displacement beyond n3 (paper: <= n3 + 2 cm)
-        "cop_major_overshoot_m": float(np.max(np.sign(plan.major.n3) * cop_major) - abs(plan.major.n3))
+        "cop_major_overshoot_m": float(np.nanmax(np.sign(plan.major.n3) * cop_major) - abs(plan.major.n3))
         if len(cop_major) else math.nan,
-        "cop_major_settled_m": float(np.median(local_cop[tail, 1])) if tail.any() else math.nan,
+        "cop_major_overshoot_after_0.3s_m": float(np.nanmax(np.sign(plan.major.n3) * local_cop[t >= start + 0.3, 1])
+                                                  - abs(plan.major.n3)) if (t >= start + 0.3).any() else math.nan,
+        "cop_major_settled_m": float(np.nanmedian(local_cop[tail, 1])) if tail.any() else math.nan,
         "max_displacement_m": float(np.max(np.abs(local_com[after, 1]))) if after.any() else math.nan,
         "omega_c": float(plan.omega_c), "beta": float(plan.beta),
     }
@@ -307,6 +310,32 @@ def feet_figures(plan, trace: dict, start: float) -> dict:
                 "pattern_to_feet_offset_m": float(np.linalg.norm(mo.apply(plan.frame.origin) - plan.frame.origin)),
                 "sole_slide_m": slide})
     return out
+
+
+def walking_touchdowns(trace: dict, start: float, window: float = 0.3) -> dict:
+    """Walking's own touchdown transients before the stop (the comparison for the stop's first ticks): over
+    each double-support start of the walk (support single -> double, after the first 1 s), the largest
+    tick-averaged CoP displacement past the double support's final ZMP reference along the CoG's direction
+    within ``window`` [s], and the CoP's smallest margin to the measured contact polygon in that window
+    (-inf: a tick without a contact polygon). Medians and worst over the touchdowns [m]."""
+    t, sup, cop, zr, v = trace["t"], trace["support"], trace["cop_truth"], trace["zmp_ref"], trace["com_velocity"]
+    over, marg = [], []
+    for i in range(1, len(t)):
+        if not (sup[i] == "double" and str(sup[i - 1]).startswith("single") and t[0] + 1.0 < t[i] < start - 0.01):
+            continue
+        h = v[i, :2] / max(float(np.linalg.norm(v[i, :2])), 1e-9)
+        j = i
+        while j + 1 < len(t) and sup[j + 1] == "double":
+            j += 1
+        w = (t >= t[i]) & (t < t[i] + window)
+        over.append(float(np.nanmax((cop[w, :2] - zr[j, :2]) @ h)))
+        marg.append(float(np.min(trace["margin"][w])))
+    if not over:
+        return {}
+    return {"walking_touchdown_cop_overshoot_m": float(np.median(over)),
+            "walking_touchdown_cop_overshoot_max_m": float(np.max(over)),
+            "walking_touchdown_min_margin_m": float(np.median(marg)),
+            "walking_touchdowns": len(over)}
 
 
 _MODEL = []
@@ -370,6 +399,7 @@ def save_trace(path, trial: Trial) -> None:
     extra = {}
     if p is not None:
         extra = {"frame_origin": p.frame.origin, "frame_major": p.frame.major, "polygon": p.support_polygon,
+                 "plan_soles": np.array([p.state.feet[f].sole_center(MODEL(), f)[:2] for f in ("l", "r")]),
                  "n3": p.major.n3, "start": trial.metrics.get("trigger_time_s", np.nan) + trial.metrics.get(
                      "wait_s", 0.0)}
     np.savez_compressed(path, **{k: v for k, v in trial.trace.items()}, **extra,
@@ -410,7 +440,10 @@ FEET_COLUMNS = (("speed_kmh", "km/h"), ("step", "step"), ("phase", "phase"), ("w
                 ("predicted_max_zmp_minor_m", "pred. max ZMP Minor m"), ("max_cop_minor_m_feet", "max CoP Minor m"),
                 ("min_cop_margin_from_start_m_feet", "min CoP margin m"),
                 ("min_cop_margin_after_0.3s_m_feet", "min margin after 0.3 s m"),
-                ("cop_major_overshoot_m_feet", "CoP beyond n3 m"), ("cop_major_settled_m_feet", "CoP Major settled m"),
+                ("cop_major_overshoot_m_feet", "CoP beyond n3 m"),
+                ("walking_touchdown_cop_overshoot_m", "walking: CoP beyond DS-end ZMP m"),
+                ("cop_major_overshoot_after_0.3s_m_feet", "CoP beyond n3 after 0.3 s m"),
+                ("cop_major_settled_m_feet", "CoP Major settled m"),
                 ("stop_time_estimator_v_s", "stop time s"), ("stop_time_bound_s", "bound s"),
                 ("sole_slide_m", "sole slide m"))
 
