@@ -7,6 +7,8 @@
     .venv/bin/python benchmarks/fall_closed_loop.py repeat [SCALE]              # two lockstep runs identical?
     .venv/bin/python benchmarks/fall_closed_loop.py shaping [SCALE] [KEY=VALUE ...]  # stepping_inertia, diagnostics
     .venv/bin/python benchmarks/fall_closed_loop.py shaping_sweep [FACTOR] [VARIANTS]  # sweep pushes, shaping signs
+    .venv/bin/python benchmarks/fall_closed_loop.py walk [SPEEDS] [KIND] [KEY=VALUE ...]  # walking.yaml: FTB triggers?
+    .venv/bin/python benchmarks/fall_closed_loop.py walking_push [KINDS] [KEY=VALUE ...]  # walking_push.yaml
 
 Each prints one JSON object. ``push`` also writes Fig. 9 / Fig. 11 PNGs into OUT (default runs/fall_figures).
 The push angle of ``ftb`` is clockwise from +x; thresholds from config/fall_thresholds.yaml (``humfall sweep``).
@@ -198,6 +200,66 @@ SHAPING_VARIANTS = {"stepping": ("stepping", []), "stepping_inertia": ("stepping
                                                             "shaping_settled_only=false"])}
 
 
+def walk(speeds=(0.5, 1.0, 1.35, 1.8), kind: str = "stepping", overrides: tuple[str, ...] = ()) -> dict:
+    """walking.yaml (20 steps) at each speed with the FTB (gait-referenced) and the safe-fall controller present:
+    does the FTB trigger? Per speed: the trigger (time, reason), steps walked, the largest capture point error
+    relative to the feet and its tick, the largest P->G lean, the largest separatrix margin, fell."""
+    from humfall_ros.sim.closed_loop import ClosedLoop
+
+    rows = []
+    for v in speeds:
+        t0 = time.perf_counter()
+        sc = scenario.load("walking", [f"walk.speed_kmh={v}", "params.ftb_monitor.use_walking_state=true",
+                                       *overrides])
+        ctrls, mons = runs.controllers_for(sc, kind)
+        loop = ClosedLoop(sc, ctrls, mons)
+        ftb, loco = mons[0], ctrls[0]
+        err, lean, margin, steps = (0.0, 0.0), 0.0, -math.inf, 0
+        try:
+            for _ in range(int(round(sc["duration"] * sc["sim"]["control_rate"]))):
+                loop.step()
+                f = loop.outputs["ftb/status"][-1].features
+                if math.isfinite(f.capture_point_error) and f.capture_point_error > err[0]:
+                    err = (f.capture_point_error, loop.world.time)
+                if math.isfinite(f.lean_angle):
+                    lean = max(lean, f.lean_angle)
+                if math.isfinite(f.separatrix_margin):
+                    margin = max(margin, f.separatrix_margin)
+                steps = max(steps, loco.state.step_index)
+            m = loop.metrics()
+        finally:
+            loop.close()
+        ev = ftb.event
+        rows.append({"speed_kmh": v, "triggered": ev is not None, "trigger_time_s": None if ev is None else ev.time,
+                     "reason": None if ev is None else ev.reason, "steps": steps, "fell": m["fell"],
+                     "max_capture_point_error_m": round(err[0], 4), "at_s": round(err[1], 3),
+                     "max_lean_deg": round(math.degrees(lean), 1), "max_separatrix_margin": round(margin, 4),
+                     "wall_s": round(time.perf_counter() - t0, 1)})
+    return {"kind": kind, "overrides": list(overrides), "rows": rows,
+            "no_trigger": all(not r["triggered"] for r in rows)}
+
+
+def walking_push(kinds=runs.CONTROLLERS, overrides: tuple[str, ...] = (), out: str | None = None) -> dict:
+    """walking_push.yaml for each controller: the acceptance figures (``runs.summary``)."""
+    res, got = {}, {}
+    for k in kinds:
+        t0 = time.perf_counter()
+        r = runs.run(scenario.load("walking_push", list(overrides)), k, keep_trace=out is not None)
+        got[k] = r
+        res[k] = {**runs.summary(r), "wall_s": round(time.perf_counter() - t0, 1)}
+    if out:
+        from humfall_ros.fall import plots
+
+        d = pathlib.Path(out)
+        d.mkdir(parents=True, exist_ok=True)
+        obstacles = scenario.load("walking_push", list(overrides))["obstacles"]
+        res["figures"] = [str(plots.fig11(got, obstacles, d / "fig11_walking_push.png"))]
+        for k, r in got.items():
+            if r.decision is not None:
+                res["figures"].append(str(plots.fig9(r, obstacles, d / f"fig9_{k}_walking_push.png")))
+    return {"overrides": list(overrides), **res}
+
+
 def main(argv: list[str]) -> None:
     what = argv[0] if argv else "push"
     if what == "push":
@@ -220,6 +282,14 @@ def main(argv: list[str]) -> None:
         rest = tuple(a for a in argv[2:] if a.split("=", 1)[0] not in ("kind", "seed"))
         out = shaping(float(argv[1]) if len(argv) > 1 else 1.0, rest, opts.get("kind", "stepping_inertia"),
                       int(opts["seed"]) if "seed" in opts else None)
+    elif what == "walk":
+        speeds = tuple(float(x) for x in argv[1].split(",")) if len(argv) > 1 else (0.5, 1.0, 1.35, 1.8)
+        out = walk(speeds, argv[2] if len(argv) > 2 else "stepping", tuple(argv[3:]))
+    elif what == "walking_push":
+        kinds = argv[1].split(",") if len(argv) > 1 else list(runs.CONTROLLERS)
+        rest = [a for a in argv[2:] if not a.startswith("out=")]
+        figs = [a.split("=", 1)[1] for a in argv[2:] if a.startswith("out=")]
+        out = walking_push(kinds, tuple(rest), figs[0] if figs else None)
     else:
         raise SystemExit(f"unknown experiment {what!r}")
     print(json.dumps(out, default=str))

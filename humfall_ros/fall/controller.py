@@ -88,6 +88,7 @@ class SafeFallConfig:
     shaping_settled_sign: float = 1.0
     shaping_settled_s: float = 0.2
     shaping_settled_only: bool = True
+    single_support_lift_m: float = 0.01
 
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> SafeFallConfig:
@@ -184,6 +185,45 @@ def _imu_quat(imu) -> np.ndarray | None:
     return q if q.shape == (4,) and np.all(np.isfinite(q)) and np.linalg.norm(q) > 0.5 else None
 
 
+def _side(v) -> str:
+    """A footstep's side: "l"/"r", "left"/"right" or the message's LEFT = 0 / RIGHT = 1."""
+    if isinstance(v, str):
+        return v[:1].lower()
+    return "l" if int(v) == 0 else "r"
+
+
+def planned_landing_of(gait, swing: str) -> np.ndarray | None:
+    """The gait's planned landing (x [m], y [m], yaw [rad]) of the ``swing`` sole, or None.
+
+    ``gait``: the walking controller's ``WalkingState`` (``next_footsteps``: (side, x, y, yaw, index,
+    stop) tuples, the one in flight first) or its ROS message (``Footstep[]``: side 0/1, position, yaw).
+    The first upcoming footstep of the swing side is the one in flight.
+    """
+    for f in getattr(gait, "next_footsteps", None) or []:
+        if isinstance(f, (tuple, list)):
+            side, x, y, yaw = _side(f[0]), float(f[1]), float(f[2]), float(f[3])
+        else:
+            side, x, y, yaw = _side(f.side), float(f.position.x), float(f.position.y), float(f.yaw)
+        if side == swing:
+            v = np.array([x, y, yaw])
+            return v if np.all(np.isfinite(v)) else None
+    return None
+
+
+def _gait_stance(gait) -> str | None:
+    """The gait's stance side in single support ("l" / "r"), "double", or None (no gait seen: standing)."""
+    if gait is None:
+        return None
+    v = getattr(gait, "support", "double")
+    if isinstance(v, str):
+        return {"single_left": "l", "single_right": "r", "left": "l", "right": "r"}.get(v, "double")
+    return "double"
+
+
+def _walking(gait) -> bool:
+    return gait is not None and bool(getattr(gait, "walking", False)) and not bool(getattr(gait, "released", False))
+
+
 def fall_event_of(obs: Observation):
     """The fall event to act on this tick: the one ``ftb/status`` of this tick carries (lockstep-repeatable:
     it does not depend on when the latched ``fall_event`` arrives), else the latched ``fall_event`` input."""
@@ -224,10 +264,15 @@ class SafeFallController:
         self.reasons: list[str] = []
         self.ignored_events = 0
         self.shaping_config = self.config.shaping
+        self.gait = None
+        self.single_support: str | None = None
 
     # ------------------------------------------------------------------ contract
     def step(self, obs: Observation) -> JointTargets | None:
         if not self.taken_over:
+            gait = obs.inputs.get("walking/state")
+            if _walking(gait):
+                self.gait = gait   # the last walking state (the walking controller releases on the event)
             ev = fall_event_of(obs)
             if ev is None:
                 return None
@@ -323,10 +368,26 @@ class SafeFallController:
         touchdown = float(np.clip(dT, c.min_swing_s, c.max_swing_s))
         from humfall_ros.fall.stepping_zone import sole_pose_2d
 
+        # single support (walking): one foot loaded and the other off the ground; the candidates are
+        # continue the planned step (the gait's footstep in flight), re-target the swing sole, keep it lifted
+        # (standing, a foot off the ground is a double-support situation: the five cases, as before)
+        single, planned = None, None
+        loaded = [sd for sd in SIDES if s.contacts[sd]]
+        gait_support = _gait_stance(self.gait)
+        if len(loaded) == 1 and gait_support == loaded[0]:
+            swing_sd = "r" if loaded[0] == "l" else "l"
+            if placements[swing_sd].translation[2] > c.single_support_lift_m:
+                single = loaded[0]
+                planned = planned_landing_of(self.gait, swing_sd) if self.gait is not None else None
+                notes.append(f"single support on {single}: swing {swing_sd} at "
+                             f"{placements[swing_sd].translation[2] * 100:.1f} cm, planned landing "
+                             + ("unknown" if planned is None else f"{np.round(planned, 3).tolist()}"))
+        self.single_support = single
         sit = ss.FallSituation(np.asarray(s.com, float), np.asarray(s.com_velocity, float), np.asarray(s.cop, float),
                                np.asarray(s.capture_point, float), edge, normal, soles,
                                {sd: sole_pose_2d(placements[sd]) for sd in SIDES}, target, touchdown, dT,
-                               obstacles=self._obstacle_footprints(obs))
+                               obstacles=self._obstacle_footprints(obs), single_support=single,
+                               planned_landing=planned)
         scfg = c.search
         stance_sides, pivots = ss.case_pivots(sit, scfg)
         G, _, Q = ss.predict_touchdown(s.com, s.com_velocity, pivots, touchdown, scfg.rk4_steps)
@@ -352,7 +413,7 @@ class SafeFallController:
             if cr.landing is None:
                 chosen = cr
                 break
-            swing = cr.case.swing
+            swing = self._swing_of(cr.case)
             piv, G_td, _ = lift_pred[swing]
             stance = "r" if swing == "l" else "l"
             pv = piv.mean(axis=0)
@@ -370,17 +431,17 @@ class SafeFallController:
             chosen = ranked[-1]
         self.chosen = chosen
         case = chosen.case
-        swing = case.swing if case in (ss.StepCase.STEP_LEFT, ss.StepCase.STEP_RIGHT, ss.StepCase.LIFT_LEFT,
-                                       ss.StepCase.LIFT_RIGHT) else None
+        swing = self._swing_of(case)
         self.swing_side = swing
         if swing is not None:
             if chosen.landing is not None:
                 landing = StepController.landing_placement(*chosen.landing)
-            else:  # keep it lifted: straight up, flat
+            else:  # keep it lifted: straight up (single support: no lower than it is), flat
                 lp = placements[swing]
                 yaw = math.atan2(lp.rotation[1, 0], lp.rotation[0, 0])
+                z = max(0.10, float(lp.translation[2])) if single else 0.10
                 landing = StepController.landing_placement(lp.translation[0], lp.translation[1], yaw,
-                                                           0.10 + self.stepper.config.press_depth)
+                                                           z + self.stepper.config.press_depth)
             self.stepper.start(q, swing, landing, obs.time, touchdown)
             self.phase = "swing"
             self.lift_off_yaw = math.atan2(placements[swing].rotation[1, 0], placements[swing].rotation[0, 0])
@@ -399,6 +460,12 @@ class SafeFallController:
             res.cell_count, search_time, reachable,
             {k.value: v.alpha2 for k, v in res.cases.items()}, "; ".join(self.reasons))
         self.predicted_touchdown_time = obs.time + touchdown
+
+    def _swing_of(self, case: ss.StepCase) -> str | None:
+        """The sole a case moves: its own for lift / step, the non-stance one for continue (single support)."""
+        if case is ss.StepCase.CONTINUE_STEP:
+            return None if self.single_support is None else ("r" if self.single_support == "l" else "l")
+        return case.swing
 
     # ------------------------------------------------------------------ ticks
     def _tick(self, obs: Observation) -> JointTargets:

@@ -50,21 +50,53 @@ class FallRun:
     search: object | None = None
 
 
+class GaitFedFtb:
+    """The FTB monitor fed ``walking/state`` from the walking controller (``use_walking_state``).
+
+    The loop runs monitors before controllers, so the state read is the one the walking controller
+    computed on the previous tick (2 ms old; on the graph the FTB waits for the same tick's
+    ``walking/state``). The monitor's ``name``, ``latched``, ``event`` and ``state`` are the FTB's.
+    """
+
+    def __init__(self, ftb: FtbMonitor, walking):
+        self.inner = ftb
+        self.walking = walking
+        self.name = ftb.name
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def step(self, observation):
+        state = getattr(self.walking, "state", None)
+        if state is None:
+            return self.inner.step(observation)
+        return self.inner.step(dataclasses.replace(observation,
+                                                   inputs={**observation.inputs, "walking/state": state}))
+
+
 def controllers_for(sc: dict, kind: str, model=None):
     """(controllers, monitors) of the run, as the launcher would start them for ``kind``."""
     from humfall_ros.launch import CONTROLLER_PARAMS
     from humfall_ros.model.humanoid import load_model
-    from humfall_ros.sim.closed_loop import locomotion_controller, node_params
+    from humfall_ros.sim.closed_loop import SameTickInputs, locomotion_controller, node_params
 
     if kind not in CONTROLLERS:
         raise ValueError(f"controller must be one of {CONTROLLERS}, got {kind!r}")
     model = model or load_model()
     ftb = FtbMonitor(FtbConfig.from_params(node_params(sc, "ftb_monitor")))
     ctrls = [locomotion_controller(sc, model)]  # the locomotion node's own controller
+    if ftb.config.use_walking_state:
+        ftb = GaitFedFtb(ftb, ctrls[0])
     if kind != "none":
         p = node_params(sc, "safe_fall_controller")
         p.update(CONTROLLER_PARAMS.get(kind, {}).get("safe_fall_controller", {}))
-        ctrls.append(SafeFallController(model, SafeFallConfig.from_params(p)))
+        safe = SafeFallController(model, SafeFallConfig.from_params(p))
+        loco = ctrls[0]
+        # walking/state of the same tick (the node reads the latest message): the planned footstep
+        ctrls.append(SameTickInputs(safe, {"walking/state": lambda: loco.state}))
     return ctrls, [ftb]
 
 
@@ -135,4 +167,4 @@ def summary(r: FallRun) -> dict:
     return out
 
 
-__all__ = ["CONTROLLERS", "FallRun", "controllers_for", "run", "summary"]
+__all__ = ["CONTROLLERS", "FallRun", "GaitFedFtb", "controllers_for", "run", "summary"]

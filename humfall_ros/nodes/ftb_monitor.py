@@ -119,16 +119,10 @@ def status_from_msg(msg: FtbStatus) -> core.FtbStatus:
                           msg.reason, ev if msg.event_tick else None, ev)
 
 
-class GaitFromMsg:
-    """``walking/state`` (WalkingState) as ``fall.ftb.GaitReference``."""
-
-    SUPPORT = {0: "double", 1: "left", 2: "right"}
-
-    def __init__(self, msg):
-        self.walking = bool(msg.walking) and not bool(getattr(msg, "released", False))
-        self.support = self.SUPPORT.get(int(msg.support), "double")
-        self.reference_capture_point = _vec(msg.capture_point_ref)
-        self.reference_support_polygon = np.zeros((0, 2))
+def GaitFromMsg(msg):  # noqa: N802 - kept name (was a class whose int(msg.support) raised on the string field)
+    """``walking/state`` (WalkingState: ``support`` is the string "double" / "single_left" / "single_right")
+    as ``fall.ftb.GaitReference`` (``core.gait_reference``)."""
+    return core.gait_reference(msg)
 
 
 class FtbMonitorNode(Node):

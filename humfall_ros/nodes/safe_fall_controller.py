@@ -3,7 +3,8 @@
 A ``ControllerNode`` (humfall_ros/nodes/controller_node.py) running
 ``fall.controller.SafeFallController`` as source ``safe_fall``. Its tick waits for
 ``centroidal_state``, ``joint_states``, ``mux/state``, ``ftb/status`` and ``imu`` of the
-same stamp; it takes over on the fall event that ``ftb/status`` of that tick carries (not
+same stamp (and reads the latest ``walking/state``: the planned footstep while walking); it takes
+over on the fall event that ``ftb/status`` of that tick carries (not
 on the arrival of the latched ``fall_event``: lockstep runs stay repeatable) and never
 releases. Targets come from the latched ``obstacles`` topic. The decision is published once
 on ``safe_fall/decision`` (``humfall_interfaces/SafeFallDecision``, transient-local).
@@ -15,14 +16,17 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from humfall_interfaces.msg import FtbStatus, SafeFallDecision
+from humfall_interfaces.msg import FtbStatus, SafeFallDecision, WalkingState
 
 from humfall_ros.fall.controller import SafeFallConfig, SafeFallController
-from humfall_ros.nodes.common import QOS_LATCHED, run_node
+from humfall_ros.nodes.common import QOS_LATCHED, QOS_RELIABLE, run_node
 from humfall_ros.nodes.controller_node import IMU, OBSTACLES, ControllerNode, Input
 from humfall_ros.nodes.ftb_monitor import status_from_msg
 
 FTB_STATUS = Input("ftb/status", FtbStatus, "ftb/status", status_from_msg, per_tick=True)
+# the latest walking/state (not waited for): the controller keeps the last walking one for the planned
+# footstep of a single-support take-over (fall.controller.planned_landing_of reads the message)
+WALKING_STATE = Input("walking/state", WalkingState, "walking/state", lambda msg: msg, qos=QOS_RELIABLE)
 
 
 def make_controller(p: dict, model) -> SafeFallController:
@@ -63,7 +67,7 @@ def decision_to_msg(d, fall_event_stamp_ns: int | None) -> SafeFallDecision:
 
 class SafeFallControllerNode(ControllerNode):
     def __init__(self):
-        super().__init__("safe_fall_controller", make_controller, inputs=[FTB_STATUS, IMU, OBSTACLES])
+        super().__init__("safe_fall_controller", make_controller, inputs=[FTB_STATUS, IMU, OBSTACLES, WALKING_STATE])
         self.pub_decision = self.create_publisher(SafeFallDecision, "safe_fall/decision", QOS_LATCHED)
         self._published = None
 
