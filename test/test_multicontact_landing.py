@@ -196,3 +196,50 @@ def test_frontier_ranks_landings_beyond_the_limits_last(model, monkeypatch):
     assert res.contact_sequence == ["LF/RF", "LF/RF/RH"]
     assert not any(n.landing is not None and n.landing.limb == "LH" for n in res.nodes)
     assert any(e.get("landing_refused") for e in res.nlp_log)
+
+
+class _KeyOpt(_FakeOpt):
+    """A release (RF stays) that keeps the start state, and a hand landing whose state has
+    the centre of mass 0.3 m lower and arrives with more energy than the release keeps: the
+    line-20 key pops the release first, the departures that look past the edge the landing."""
+
+    def opt_transition_motion(self, q0, v0, mode, target, env, deadline=None):
+        ext = (set(target) ^ set(mode)).pop()
+        change = "add" if ext in target else "remove"
+        q = np.array(q0, float)
+        v = np.array(v0, float)
+        if change == "add":
+            q[1] -= 0.3                       # root (hence CoM) 0.3 m lower: height converted
+            v = v * np.sqrt(self.pre_ke_of[ext] / self.model.kinetic_energy(q, v))
+        return self._seg(q, v, mode, target, change, ext, True, self.model.kinetic_energy(q, v))
+
+
+@pytest.mark.parametrize("order,lookahead,first", [("pre_impact", False, "RF"), ("mechanical", False, "LF/RF/LH"),
+                                                   ("landing_first", False, "LF/RF/LH"),
+                                                   ("pre_impact", True, "LF/RF/LH")])
+def test_frontier_keys_that_look_past_the_edge_pop_the_landing_before_the_release(model, order, lookahead, first):
+    env = Environment()
+    q0 = nominal_configuration(model)
+    v0 = np.zeros(model.n)
+    v0[0] = 1.0                               # forward, 0.5 M J
+    v0 *= np.sqrt(20.0 / model.kinetic_energy(q0, v0))
+    fake = _KeyOpt(model, LandingLimits(hand_normal_speed_max=1e9, foot_normal_speed_max=1e9,
+                                        hand_energy_max=1e9, foot_energy_max=1e9),
+                   stop_at=set(), pre_ke_of={"LH": 40.0, "RH": 40.0, "LF": 40.0, "RF": 40.0})
+    if lookahead:    # self-motions: the landing's ends lower than the release's
+        base = fake.opt_self_motion
+
+        def sm(q, v, mode, env_, deadline=None):
+            seg = base(q, v, mode, env_, deadline)
+            seg.ke[-1] = 3.0 if "LH" in mode_label(mode) else 30.0
+            return seg
+        fake.opt_self_motion = sm
+    res = tree_mod.search(fake, q0, v0, ("LF", "RF"), env, time_budget=30.0, max_depth=2,
+                          frontier_order=order, lookahead=lookahead, landing_policy="ignore")
+    assert not res.success
+    expanded = [e["mode"] for e in res.nlp_log if e["kind"] == "transition" and e["node"] != 0]
+    assert expanded[0] == first, expanded   # the first child popped is the first one expanded
+    if order == "mechanical":
+        land = next(n for n in res.nodes if n.landing is not None)
+        dz = model.com(land.q)[1] - model.com(q0)[1]
+        assert land.priority == pytest.approx(land.pre_impact_ke + model.total_mass * 9.81 * dz)

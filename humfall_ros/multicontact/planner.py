@@ -51,6 +51,8 @@ class PlannerConfig:
     # paper) or 'post_impact' (departure); landings beyond the limits: rank_last | refuse | ignore
     frontier_order: str = "pre_impact"
     landing_policy: str = "rank_last"
+    # departure: solve a child's self-motion when it is made and key it on its end energy (tree.search)
+    frontier_lookahead: bool = False
     stance: dict = dataclasses.field(default_factory=dict)
 
     @staticmethod
@@ -241,7 +243,8 @@ class FallPlanner:
                                   self.cfg.check_feedback_max)
         res = search(self.opt, vr.q, vr.v, vr.mode, vr.env, max_depth=self.cfg.max_depth,
                      time_budget=vr.time_budget, symmetry_cut=self.cfg.symmetry_cut, check_plan=check,
-                     frontier_order=self.cfg.frontier_order, landing_policy=self.cfg.landing_policy)
+                     frontier_order=self.cfg.frontier_order, landing_policy=self.cfg.landing_policy,
+                     lookahead=self.cfg.frontier_lookahead)
         out = result_dict(self.model, res, vr)
         out["total_time_s"] = time.perf_counter() - t0
         return out

@@ -137,24 +137,38 @@ def _mirror_mode(mode: Mode) -> Mode:
     return make_mode(mirror_extremity(e) for e in mode)
 
 
+FRONTIER_ORDERS = ("pre_impact", "post_impact", "mechanical", "landing_first")
+
+
 def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
            eps_ke: float | None = None, max_depth: int = 4, time_budget: float = 60.0,
            symmetry_cut: bool = True, check_plan=None, frontier_order: str = "pre_impact",
-           landing_policy: str = "rank_last") -> SearchResult:
+           landing_policy: str = "rank_last", lookahead: bool = False) -> SearchResult:
     """Algorithm 1: grow the tree by least kinetic energy until a node's
     self-motion ends with E_K < eps_KE, the frontier empties or the budget ends.
 
     ``frontier_order``: 'pre_impact' ranks a child by E_K(End(y_ij)) as line 20
     does (for an added contact: the energy just before the impact);
     'post_impact' (departure) by the energy after the impact map (line 16).
+    Departures that look past the edge (docs/multicontact.md, "Frontier keys"):
+    'mechanical' adds the potential energy relative to the root,
+    M g (z_com(End(y_ij)) - z_com(x_0)), to the line-20 key: the energy still in
+    the robot, so a release that keeps the centre of mass high no longer ranks
+    before a landing that has already converted its height; 'landing_first' pops
+    every child reached by a landing within the limits before any release (then
+    by the line-20 key). ``lookahead`` (departure) solves a child's self-motion
+    (line 5) as soon as the child is made and keys it on E_K(End(y_self)), the
+    energy its own stabilisation attempt ends with (a child whose self-motion
+    failed ranks after every child whose converged); a child that stops within
+    eps_KE is checked and returned at once.
     ``landing_policy`` for a landing beyond ``opt.cfg.landing_limits``:
     'rank_last' (the node and its subtree are popped after every node within
     the limits), 'refuse' (the node is not added) or 'ignore'.
     ``check_plan(segments) -> reason | None``, when given, must accept the
     path's segments before a node is declared terminal; a rejected node is
     expanded like any other (its reason is kept in the node and the log)."""
-    if frontier_order not in ("pre_impact", "post_impact"):
-        raise ValueError(f"frontier_order {frontier_order!r}: 'pre_impact' or 'post_impact'")
+    if frontier_order not in FRONTIER_ORDERS:
+        raise ValueError(f"frontier_order {frontier_order!r}: one of {', '.join(FRONTIER_ORDERS)}")
     if landing_policy not in ("rank_last", "refuse", "ignore"):
         raise ValueError(f"landing_policy {landing_policy!r}: 'rank_last', 'refuse' or 'ignore'")
     limits = opt.cfg.landing_limits
@@ -168,7 +182,10 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
     root.priority = root.ke
     nodes = [root]
     counter = itertools.count()
-    frontier = [(False, root.ke, next(counter), 0)]   # (over the landing limits, energy, tie, node)
+    # (over the landing limits, class (landing_first: releases 1; lookahead: failed self-motion 1), key, tie, node)
+    frontier = [(False, 0, root.ke, next(counter), 0)]
+    z_root = float(model.com(q0)[1])
+    g_mass = model.total_mass * 9.81
     log: list[dict] = []
     deepest = 0
 
@@ -186,6 +203,29 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
                     "attempts": seg.attempts, "status": seg.status,
                     "objective": seg.objective, "attempt_log": seg.attempt_log})
 
+    def path_to(d):
+        path, i = [], d.id
+        while i is not None:
+            path.append(i)
+            i = nodes[i].parent
+        return path[::-1]
+
+    def try_terminal(d) -> bool:
+        """Lines 6-10 with the optional acceptance check; True: d is the solution."""
+        y = d.self_motion
+        if not (y.success and y.final_ke < eps_ke):
+            return False
+        path = path_to(d)
+        rejected = None
+        if check_plan is not None:
+            rejected = check_plan([nodes[i].edge for i in path[1:]] + [y])
+            log[-1]["plan_check"] = rejected or "passed"
+        if rejected is None:
+            d.status = "terminal"
+            return True
+        d.rejected = rejected
+        return False
+
     while frontier:
         if time.perf_counter() >= deadline:
             return result(False, f"no solution within the time budget of {time_budget:.1f} s "
@@ -193,28 +233,16 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         *_, nid = heapq.heappop(frontier)
         d = nodes[nid]
         deepest = max(deepest, d.depth)
-        try:
-            y = opt.opt_self_motion(d.q, d.v, d.mode, env, deadline=deadline)   # line 5
-        except TimeoutError:
-            continue
-        d.self_motion = y
-        record("self_motion", d, y)
-        if y.success and y.final_ke < eps_ke:                                  # lines 6-10
-            path = []
-            i = d.id
-            while i is not None:
-                path.append(i)
-                i = nodes[i].parent
-            path = path[::-1]
-            rejected = None
-            if check_plan is not None:
-                rejected = check_plan([nodes[i].edge for i in path[1:]] + [y])
-                log[-1]["plan_check"] = rejected or "passed"
-            if rejected is None:
-                d.status = "terminal"
+        if d.self_motion is None:
+            try:
+                y = opt.opt_self_motion(d.q, d.v, d.mode, env, deadline=deadline)   # line 5
+            except TimeoutError:
+                continue
+            d.self_motion = y
+            record("self_motion", d, y)
+            if try_terminal(d):                                                  # lines 6-10
                 return result(True, f"stabilised at depth {d.depth}: final kinetic energy "
-                                    f"{y.final_ke:.3g} J < {eps_ke:g} J", path)
-            d.rejected = rejected
+                                    f"{d.self_motion.final_ke:.3g} J < {eps_ke:g} J", path_to(d))
         d.status = "expanded"
         if d.depth >= max_depth:
             continue
@@ -254,14 +282,31 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
                     continue
             ke_j = model.kinetic_energy(qj, vj)
             over = d.over_limits or (rep is not None and not rep.within_limits and landing_policy == "rank_last")
+            key = ke_j if (pre is None or frontier_order == "post_impact") else pre      # line 20
+            if frontier_order == "mechanical":
+                key += g_mass * (float(model.com(qj)[1]) - z_root)
+            cls = 1 if (frontier_order == "landing_first" and change == "remove") else 0
             child = TreeNode(len(nodes), d.id, d.depth + 1, sigma_j, qj, vj, ke_j,
                              pre_impact_ke=pre, min_normal_impulse=min_imp, landing_impulse=landing, edge=y_ij,
-                             landing=rep, over_limits=over,
-                             priority=pre if (pre is not None and frontier_order == "pre_impact") else ke_j)
+                             landing=rep, over_limits=over, priority=key)
             nodes.append(child)                                               # lines 17-19
             d.children.append(child.id)
             deepest = max(deepest, child.depth)
-            heapq.heappush(frontier, (child.over_limits, child.priority, next(counter), child.id))   # line 20
+            if lookahead and not child.over_limits and time.perf_counter() < deadline:
+                try:
+                    y_c = opt.opt_self_motion(qj, vj, sigma_j, env, deadline=deadline)   # line 5, early
+                except TimeoutError:
+                    y_c = None
+                if y_c is not None:
+                    child.self_motion = y_c
+                    record("self_motion", child, y_c)
+                    log[-1]["lookahead"] = True
+                    if try_terminal(child):
+                        return result(True, f"stabilised at depth {child.depth}: final kinetic energy "
+                                            f"{y_c.final_ke:.3g} J < {eps_ke:g} J", path_to(child))
+                    cls = 0 if y_c.success else 1
+                    child.priority = key = y_c.final_ke if y_c.success else key
+            heapq.heappush(frontier, (child.over_limits, cls, key, next(counter), child.id))   # line 20
     if time.perf_counter() >= deadline:   # the last NLPs were cut by the budget: not a complete search
         return result(False, f"no solution within the time budget of {time_budget:.1f} s "
                              f"(deepest tree depth reached: {deepest})", [])
