@@ -233,6 +233,27 @@ def test_lipm_zmp_supremum_equals_n3_when_beta_within_omega_f():
     assert hi == pytest.approx(np.max(p(t)[0]), abs=1e-9) and lo == pytest.approx(np.min(p(t)[0]), abs=1e-6)
 
 
+def test_no_zmp_continuous_start_with_alpha_minus_omega_c():
+    """The LIPM ZMP's step at the take-over: p(0) = (omega_c - beta) / (omega_f + omega_c) * (y0 + ydot0/omega_c)
+    (from eq. 16-17: p(0) = -beta n3 / omega_f). It vanishes only at beta = omega_c (unstable), so with
+    alpha = -omega_c the stop cannot start at the pattern's ZMP (pbar_y(0) = 0); the smallest step,
+    beta -> -omega_c, is 2 omega_c / (omega_f + omega_c) of eq. 22's bound, at n3 = 2 omega_f / (omega_f + omega_c)
+    of it."""
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        omega_c, omega_f = rng.uniform(2.5, 5.0), rng.uniform(8.0, 60.0)
+        y0, v0 = rng.normal(0.1, 0.1), rng.uniform(0.0, 0.8)
+        beta = -rng.uniform(1.001 * omega_c, omega_f)
+        sol = solve_major(MajorAxisModel(omega_c, omega_f), -omega_c, beta, y0, v0)
+        bound = y0 + v0 / omega_c
+        assert lipm_zmp(sol.response, omega_c)(0.0)[0] == pytest.approx(
+            (omega_c - beta) / (omega_f + omega_c) * bound, rel=1e-7, abs=1e-12)
+    b, wc, wf, bd = sp.symbols("beta omega_c omega_f b", real=True)
+    n3 = bd * wf * (1 - wc / b) / (wf + wc)
+    assert sp.simplify(-b * n3 / wf - (wc - b) / (wf + wc) * bd) == 0
+    assert sp.solve(sp.Eq(-b * n3 / wf, 0), b) == [wc]
+
+
 def test_supremum_two_modes_finds_an_interior_extremum():
     t = np.linspace(0, 20, 200001)
     f = 0.1 + 0.5 * np.exp(-1.0 * t) - 0.7 * np.exp(-3.0 * t)      # rises, peaks, decays
