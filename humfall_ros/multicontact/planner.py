@@ -49,7 +49,7 @@ class PlannerConfig:
     check_feedback_max: float = 0.5
     # frontier key of a child reached by a landing: 'pre_impact' (Alg. 1 line 20, the
     # paper) or 'post_impact' (departure); landings beyond the limits: rank_last | refuse | ignore
-    frontier_order: str = "pre_impact"
+    frontier_order: str = "mechanical"
     landing_policy: str = "rank_last"
     # departure: solve a child's self-motion when it is made and key it on its end energy (tree.search)
     frontier_lookahead: bool = False
