@@ -49,6 +49,8 @@ class WalkResult:
     peak_speed_joint: str
     est_com_err: float           # m, feet relative, max while walking
     est_cp_err: float
+    contact_delay_ms: float      # estimator contact flag vs ground truth (sole > 30 N), largest at touchdown [ms]
+    contact_delay_liftoff_ms: float  # and at lift-off
     tick_ms_median: float        # controller step only
     tick_ms_p99: float
     sim_time: float
@@ -97,6 +99,8 @@ def run_walk(speed_kmh: float = 1.0, steps: int = 20, overrides: list[str] | Non
         prev_support = "double"
         planned_td, actual_td = [], []
         contact_prev = {"l": True, "r": True}
+        est_prev = {"l": True, "r": True}
+        truth_ev, est_ev = [], []     # (time, side, touchdown?) of the true and the estimated contact flags
         orig_step = ctl.step
 
         def timed(obs):
@@ -129,7 +133,14 @@ def run_walk(speed_kmh: float = 1.0, steps: int = 20, overrides: list[str] | Non
             for s in SIDES:
                 if contacts[s] and not contact_prev[s] and st.walking:
                     actual_td.append((world.time, s))
+                if contacts[s] != contact_prev[s] and st.walking:
+                    truth_ev.append((world.time, s, contacts[s]))
             contact_prev = contacts
+            for s in SIDES:
+                e = bool(obs.state.contacts[s])
+                if e != est_prev[s] and st.walking:
+                    est_ev.append((world.time, s, e))
+                est_prev[s] = e
             prev_support = st.support if st.walking else "double"
             if st.walking and cop is not None:
                 if st.support != "double":
@@ -180,6 +191,7 @@ def run_walk(speed_kmh: float = 1.0, steps: int = 20, overrides: list[str] | Non
         ze = np.array(zmp_err_est) if zmp_err_est else np.array([np.nan])
         zf = np.array(zmp_err_foot) if zmp_err_foot else np.array([np.nan])
         td = _touchdown_errors(planned_td, actual_td)
+        delay_td, delay_lo = _contact_delays(truth_ev, est_ev)
         est_com = loop.errors.get("com_error_feet_relative", float("nan"))  # max over the run (ClosedLoop)
         est_cp = loop.errors.get("capture_point_error_feet_relative", float("nan"))
         res = WalkResult(fell, sc["walk"]["speed_kmh"], sc["walk"]["steps"], float(np.sqrt(np.mean(zr ** 2))),
@@ -187,7 +199,7 @@ def run_walk(speed_kmh: float = 1.0, steps: int = 20, overrides: list[str] | Non
                          float(np.sqrt(np.mean(zf ** 2))), float(np.max(zf)), margin_ok / max(margin_n, 1),
                          float(np.hypot(d[0], d[1]) if turning else d[0]), planned,
                          float("nan") if turning else float(abs(d[1])), math.degrees(yaw1) - planned_yaw,
-                         max_slip, td, float(ratio[j]), model.joint_names[j], est_com, est_cp,
+                         max_slip, td, float(ratio[j]), model.joint_names[j], est_com, est_cp, delay_td, delay_lo,
                          float(np.median(ts)), float(np.percentile(ts, 99)), world.time, list(ctl.messages))
         return res, tr
     finally:
@@ -226,6 +238,18 @@ def _touchdown_errors(planned: list, actual: list) -> float:
             return float("inf")
         worst = max(worst, min(abs(ta - t) for ta in cand))
     return 1e3 * worst
+
+
+def _contact_delays(truth: list, est: list, window: float = 0.1) -> tuple[float, float]:
+    """Largest delay [ms] of the estimator's contact flag behind the true one (each true change of a sole matched
+    to the first estimated change of the same sole and kind within ``window`` [s] after it; an estimated change
+    before the true one counts as 0; none within the window: inf), at touchdowns and at lift-offs."""
+    out = {True: 0.0, False: 0.0}
+    for t, s, on in truth:
+        cand = [te for te, se, eo in est if se == s and eo == on and -window < te - t < window]
+        d = min((te - t for te in cand), key=abs) if cand else float("inf")
+        out[on] = max(out[on], 1e3 * max(d, 0.0))
+    return out[True], out[False]
 
 
 def momentum_check(speed_kmh: float = 1.0, steps: int = 3) -> dict:

@@ -194,3 +194,29 @@ def test_step_period_depends_on_the_speed():
     assert durations.index(fast[0]) == len(slow)            # once fast, it stays fast
     xs = [ph.swing_to.x for ph in ss]
     assert xs[-1] - xs[-2] == pytest.approx(1.8 / 3.6 * cfg.fast_step_period, abs=1e-6)
+
+
+def test_rear_foot_liftoff_at_the_end_of_the_double_support():
+    """liftoff_height: the rear sole rises in the last liftoff_duration of a step's double support, the swing
+    starts from there (continuous), and the start double support has none (no foot swung before it)."""
+    import dataclasses
+
+    cfg = dataclasses.replace(LocomotionConfig(), liftoff_height=1e-4, liftoff_duration=0.03)
+    feet = {"l": Footstep("l", 0.0, 0.09, 0.0), "r": Footstep("r", 0.0, -0.09, 0.0)}
+    p = WalkingPattern(cfg, DT, 0.18, 0.025, feet, [0.015, 0.0, 0.70], WalkCommand(1.0 / 3.6, 0.0), n_steps=3)
+    samples = []
+    while not (samples and samples[-1].finished):
+        samples.append(p.step())
+    kinds = [s.support for s in samples]
+    first = kinds.index(SupportPhase.SINGLE_LEFT)                    # the first swing (right) starts at 0
+    assert samples[first].feet["r"].position[2] == pytest.approx(0.0, abs=1e-6)
+    assert all(s.feet["r"].position[2] == 0.0 for s in samples[:first])
+    # the double support after it: the left foot (rear, it swings next) lifts at the end, the right is down
+    k = next(i for i in range(first, len(kinds)) if kinds[i] == SupportPhase.SINGLE_RIGHT)  # next swing: left
+    ds = samples[k - round(cfg.double_support / DT):k]
+    n_lift = round(cfg.liftoff_duration / DT)
+    assert all(s.feet["l"].position[2] == 0.0 for s in ds[:len(ds) - n_lift])
+    assert ds[-1].feet["l"].position[2] == pytest.approx(1e-4, rel=0.05)
+    assert np.all(np.diff([s.feet["l"].position[2] for s in ds]) >= 0)
+    assert samples[k].feet["l"].position[2] == pytest.approx(1e-4, abs=2e-6)   # the swing continues from there
+    assert ds[-1].feet["r"].position[2] == 0.0

@@ -28,6 +28,8 @@ class LocomotionConfig:
     swing_apex: float = 0.05              # m
     landing_height: float = 0.0008        # m, the swing ends this high; the foot descends in the double support
     landing_duration: float = 0.02        # s
+    liftoff_height: float = 0.0           # m, the rear foot rises this much at the end of a step's double support
+    liftoff_duration: float = 0.03        # s, over this last part of it
     step_width_offset: float = 0.0        # m
     crouch_duration: float = 1.0          # s
     start_duration: float = 0.8           # s

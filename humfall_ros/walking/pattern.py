@@ -54,6 +54,8 @@ class Phase:
     step_index: int
     swing_to: Footstep | None = None  # ss: where the swing foot lands
     landing: str | None = None     # ds after a swing: the foot that just landed (it finishes its descent)
+    liftoff: float = 0.0           # ds before a swing: the rear foot rises this much at its end [m]; ss: the swing
+                                   # foot starts this high
 
     @property
     def end(self) -> int:
@@ -206,8 +208,9 @@ class WalkingPattern:
             target = footstep_at(self.path_pose, side, self.width, self.step_count)
             if self.steps_left is not None:
                 self.steps_left -= 1
+        prev = self.phases[-1] if self.phases else None
         self._append(Phase("ss", self._end(), self._ticks(T - cfg.double_support), stance_zmp, stance_zmp, dict(feet),
-                           self.step_count, target))
+                           self.step_count, target, liftoff=prev.liftoff if prev is not None else 0.0))
         feet[side] = target
         self._feet_end = feet
         new_zmp = sole_zmp(target, self.zmp_offset_x)
@@ -221,7 +224,7 @@ class WalkingPattern:
             self.finish_tick = self._end()
         else:
             self._append(Phase("ds", self._end(), self._ticks(cfg.double_support), stance_zmp, new_zmp, dict(feet),
-                             self.step_count, landing=side))
+                               self.step_count, landing=side, liftoff=cfg.liftoff_height))
             self.next_swing = other(side)
 
     # ------------------------------------------------------------------ per tick
@@ -269,7 +272,7 @@ class WalkingPattern:
         if ph.kind == "ss":
             sw = ph.swing_to
             a = ph.feet[sw.side]
-            pos, yaw, v, wz = swing_foot(np.array([a.x, a.y, 0.0]), np.array([sw.x, sw.y, h]), a.yaw, sw.yaw,
+            pos, yaw, v, wz = swing_foot(np.array([a.x, a.y, ph.liftoff]), np.array([sw.x, sw.y, h]), a.yaw, sw.yaw,
                                          self.cfg.swing_apex, frac, ph.ticks * self.dt)
             feet[sw.side] = FootState(pos, yaw, v, wz)
             support = SupportPhase.SINGLE_LEFT if ph.stance == "l" else SupportPhase.SINGLE_RIGHT
@@ -281,6 +284,12 @@ class WalkingPattern:
                 f = feet[ph.landing]
                 f.position[2] = h * (1.0 - s_)
                 f.velocity[2] = -h * ds_ / T
+            if ph.liftoff > 0 and ph.landing is not None:  # the rear foot starts its lift-off at the end
+                T = self.cfg.liftoff_duration
+                s_, ds_ = min_jerk(((k - ph.start) - (ph.ticks - T / self.dt)) * self.dt / T)
+                f = feet[other(ph.landing)]
+                f.position[2] = ph.liftoff * s_
+                f.velocity[2] = ph.liftoff * ds_ / T
         zr = self.zmp_reference(k)
         upcoming = [p.swing_to for p in self.phases[self._phase_i:] if p.swing_to is not None][:4]
         finished = self.ended and k >= self.finish_tick
