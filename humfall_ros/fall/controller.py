@@ -79,6 +79,7 @@ class SafeFallConfig:
     ik_velocity_fraction: float = 0.95
     stance_leg_weight: float = 10.0
     replan_s: float = 0.0
+    replan_single_support_s: float = 0.1
     shaping_lean_deg: float = 20.0
     shaping_gain: float = 0.02
     shaping_sign: float = -1.0
@@ -89,6 +90,10 @@ class SafeFallConfig:
     shaping_settled_s: float = 0.2
     shaping_settled_only: bool = True
     single_support_lift_m: float = 0.01
+    capture_balance: bool = True
+    balance_kp: float = 0.3
+    balance_kd: float = 0.05
+    balance_max_offset: float = 0.12
 
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> SafeFallConfig:
@@ -266,6 +271,8 @@ class SafeFallController:
         self.shaping_config = self.config.shaping
         self.gait = None
         self.single_support: str | None = None
+        self.balancer = None
+        self.shape_allowed = False
 
     # ------------------------------------------------------------------ contract
     def step(self, obs: Observation) -> JointTargets | None:
@@ -487,8 +494,13 @@ class SafeFallController:
                 if not is_lift:
                     self.touchdown_at = obs.time
                 shape = c.inertia_shaping and self.target is not None and not is_lift
-                # a predicted capture holds and shapes only once the robot is seen falling about its new support
-                self.phase = ("shaping" if not self.chosen.captured else "landed") if shape else "hold"
+                self.shape_allowed = shape
+                # a predicted capture holds (or balances) and shapes only once the robot is seen falling about its
+                # new support
+                if self.chosen.captured and not is_lift and c.capture_balance:
+                    self.phase = "landed"
+                else:
+                    self.phase = ("shaping" if not self.chosen.captured else "landed") if shape else "hold"
                 self.hold = self.last_command.copy()
                 self.falling_since = None
             else:
@@ -498,12 +510,13 @@ class SafeFallController:
                     self.phase = "hold"
                     return JointTargets(self.last_command.copy())
                 q = configuration_from_sensors(self.m, obs.joint_position, quat, obs.state.com)
-                if not is_lift and obs.time - p.start_time < c.replan_s - 1e-9:
+                replan = c.replan_single_support_s if self.single_support else c.replan_s
+                if not is_lift and obs.time - p.start_time < replan - 1e-9:
                     self._replan(obs, q)
                 pos, vel, _ = self.stepper.command(q, obs.time, c.control_period_s)
                 self.last_command = pos
                 return JointTargets(pos, vel)
-        if self.phase == "landed":
+        if self.phase == "landed" and self.shape_allowed:
             f = features_of(obs.state)
             if f.valid and (f.separatrix_margin > 0.0 or f.lean_angle > math.radians(c.shaping_lean_deg)):
                 self.falling_since = obs.time if self.falling_since is None else self.falling_since
@@ -527,6 +540,8 @@ class SafeFallController:
                                             f"inertia shaping, sign {self.shaping_config.sign:+.0f}")
             else:
                 self.falling_since = None
+        if self.phase == "landed" and c.capture_balance:
+            return self._balance(obs)
         if self.phase == "shaping":
             quat = _imu_quat(obs.inputs.get("imu"))
             if quat is not None:
@@ -538,6 +553,29 @@ class SafeFallController:
                 self.last_command = pos
                 return JointTargets(pos, qd)
         return JointTargets(self.hold.copy() if self.hold is not None else np.asarray(obs.joint_position, float))
+
+    def _balance(self, obs: Observation) -> JointTargets:
+        """After a captured step: the standing balance (ankle strategy, ``control.standing.StandingBalance``) about
+        the landed posture, the CoM held over the middle of the two soles (ours; the paper stops at the step).
+
+        Holding the landed posture stiffly let the robot rock from sole to sole with a growing amplitude
+        (walking_push: captured in x, toppled sideways 1.2 s after touchdown)."""
+        c = self.config
+        s = obs.state
+        if self.balancer is None:
+            from humfall_ros.control.standing import StandingBalance
+
+            self.balancer = StandingBalance(self.m, dict(zip(self.m.joint_names, self.hold)), c.balance_kp,
+                                            c.balance_kd, c.balance_max_offset)
+            quat = _imu_quat(obs.inputs.get("imu"))
+            if quat is not None:
+                q = configuration_from_sensors(self.m, obs.joint_position, quat, s.com)
+                self.m.forward(q)
+                mid = np.vstack([self.m.sole_corners(sd)[:, :2] for sd in SIDES]).mean(axis=0)
+                self.balancer.reference = mid - np.asarray(s.feet_center, float)[:2]
+        pos = self.balancer.command(s.com, s.com_velocity, s.support_polygon, s.feet_center)
+        self.last_command = pos
+        return JointTargets(pos)
 
     def _replan(self, obs: Observation, q: np.ndarray) -> None:
         """Re-decide the landing of the chosen swing side from this tick's state (ours, not the paper's).
@@ -569,9 +607,14 @@ class SafeFallController:
                              yaw_reference=self.lift_off_yaw)
         cells = ss.zone_cells(zone, c.search, self._obstacle_footprints(obs))
         case = self.chosen.case
+        if case is ss.StepCase.CONTINUE_STEP:   # re-deciding the planned step over the cells: a re-target
+            case = ss.StepCase.STEP_LEFT if swing == "l" else ss.StepCase.STEP_RIGHT
         r = ss._cells(case, cells, pivot, Q[0], self.target, G[0], self._sole_local, c.search)
         if r is None:
             return
+        if r.case is not self.chosen.case:
+            self.reasons.append(f"re-plan at {obs.time:.3f} s: the planned step re-targeted ({r.case.value})")
+            self.decision.case = r.case.value
         self.chosen = r
         plan.landing = StepController.landing_placement(*r.landing)
         d = self.decision
