@@ -272,7 +272,7 @@ class SafeFallController:
         self.gait = None
         self.single_support: str | None = None
         self.balancer = None
-        self.shape_allowed = False
+        self.shape_allowed = self.config.inertia_shaping   # set at touchdown (a target, not a lift)
 
     # ------------------------------------------------------------------ contract
     def step(self, obs: Observation) -> JointTargets | None:
