@@ -221,6 +221,78 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
     return Trial(speed_kmh, phase, m, trace, plan, list(estop.messages) + list(walk.messages))
 
 
+class ArmedAtStop:
+    """A monitor (the FTB) stepped only from ``after`` [s] past the e-stop's start (``clock()``: sim time); before
+    that it answers None and latches nothing (a false trigger of the walk or of the stop's first ticks does not
+    hand the robot to safe_fall before the push)."""
+
+    def __init__(self, monitor, estop, after: float = 0.0, clock=None):
+        self.inner, self.estop, self.name = monitor, estop, monitor.name
+        self.after, self.clock = float(after), clock
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    @property
+    def latched(self):
+        return self.inner.latched if self._armed() else {}
+
+    @property
+    def event(self):
+        return self.inner.event if self._armed() else None
+
+    def _armed(self) -> bool:
+        st = self.estop.status.start_time
+        return math.isfinite(st) and (self.clock is None or self.clock() >= st + self.after - 1e-9)
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def step(self, observation):
+        return self.inner.step(observation) if self._armed() else None
+
+
+def run_push_during_stop(speed_kmh: float = 1.0, phase: str = "ds_start", force=(300.0, 0.0, 0.0),
+                         delay: float = 0.5, duration: float = 0.1, kind: str = "stepping", step: int = 5,
+                         after: float = 4.0, armed: bool = True, arm_after: float = 0.0) -> dict:
+    """A push on the chest ``delay`` [s] after the stop's start: the suite's ClosedLoop (``humfall up``'s
+    controllers for ``controller: kind``: locomotion, the FTB monitor, safe_fall, the e-stop fed walking's
+    state). Returns who commanded when (the mux's source per tick, compressed), the e-stop's state and
+    messages, the FTB's fall event time and the ground-truth fall metrics. ``armed``: the FTB monitor runs from
+    the stop's start only (:class:`ArmedAtStop`; in walking_estop at 1.0 km/h it fires during the walk, at
+    2.9 s, before any push), from ``arm_after`` [s] past the stop's start (measured: armed at the start it fires
+    12 ms into the stop, unpushed)."""
+    sc = scenario.load("walking_estop", [f"walk.speed_kmh={speed_kmh}", f"estop.at.step={step}",
+                                         f"estop.at.phase={phase}", f"controller={kind}",
+                                         "params.ftb_monitor.use_walking_state=true"])
+    loop = ClosedLoop(sc)
+    estop = next(c.inner for c in loop.controllers if c.source == "estop")
+    if armed:
+        loop.monitors = [ArmedAtStop(m, estop, arm_after, lambda: loop.world.time) for m in loop.monitors]
+    pushed_at = None
+    sources, t_end = [], sc["duration"]
+    try:
+        while loop.world.time < t_end:
+            obs = loop.step()
+            if not sources or sources[-1][1] != loop.active:
+                sources.append((round(obs.time, 3), loop.active))
+            st = estop.status.start_time
+            if pushed_at is None and math.isfinite(st) and obs.time >= st + delay:
+                loop.world.add_push(np.asarray(force, float), (0.0, 0.0, 0.2), duration, link="chest")
+                pushed_at = obs.time
+            if math.isfinite(st):
+                t_end = min(t_end, st + after)
+        gt = loop.ground_truth.metrics.result()
+    finally:
+        loop.close()
+    ev = getattr(loop.monitors[0], "event", None) if loop.monitors else None
+    return {"speed_kmh": speed_kmh, "phase": phase, "force_n": list(force), "push_time_s": pushed_at,
+            "estop_start_s": estop.status.start_time, "estop_state": estop.status.state,
+            "fall_event_s": getattr(ev, "time", None), "sources": sources, "fell": gt["fell"],
+            "metrics": {k: v for k, v in gt.items() if isinstance(v, (bool, int, float, str, type(None)))},
+            "estop_messages": [m for m in estop.messages if "yield" in m or "fall" in m]}
+
+
 def acceptance(plan, status, trace: dict, start: float, frame=None, polygon=None) -> dict:
     """The issue's per-trial figures beyond result.json's section (in the plan's frame, or ``frame`` /
     ``polygon``: the same carried onto the measured feet)."""
@@ -477,7 +549,20 @@ def main(argv=None) -> int:
     ap.add_argument("--markdown", nargs="*", default=None, help="print the table of these --json files and exit")
     ap.add_argument("--pattern-frame", action="store_true",
                     help="with --markdown: the old table in the pattern's frame (default: on the measured feet)")
+    ap.add_argument("--push", type=float, nargs="*", default=None, metavar="FX [FY]",
+                    help="push during the stop (0.1 s on the chest, --push-delay after its start) with safe_fall")
+    ap.add_argument("--push-delay", type=float, default=0.5)
+    ap.add_argument("--controller", default="stepping")
+    ap.add_argument("--arm-after", type=float, default=0.0, help="the FTB runs from this long after the stop's start")
     a = ap.parse_args(argv)
+    if a.push is not None:
+        f = [*a.push, 0.0, 0.0][:3]
+        for v in a.speeds:
+            for ph in a.phases.split(","):
+                print(json.dumps(run_push_during_stop(v, ph, f, a.push_delay, kind=a.controller, step=a.step,
+                                                      arm_after=a.arm_after),
+                                 default=str), flush=True)
+        return 0
     if a.markdown:
         rows = [figures_from_npz(path) if path.endswith(".npz") else r for path in a.markdown
                 for r in ([None] if path.endswith(".npz") else json.load(open(path)))]
