@@ -317,7 +317,10 @@ def test_controller_slow_topple_after_a_captured_step_uses_the_settled_sign(stoo
     shaping_sign, or no shaping with shaping_settled_only."""
     cfg = SafeFallConfig.from_params({**params.defaults("safe_fall_controller"), "shaping_sign": -1.0,
                                       "shaping_settled_sign": 1.0, "shaping_settled_s": 0.2,
-                                      "shaping_settled_only": only})
+                                      "shaping_settled_only": only,
+                                      # the constructed state's joints are the standing posture: the soles' hull
+                                      # the capture balance reads the fall over is under the CoM, not behind it
+                                      "capture_balance": False})
     c = SafeFallController(config=cfg)
     c.step(_controller_obs(0.62, {"obstacles": TARGET, "imu": IMU, "fall_event": _event(0.62)}))
     # as after the swing of a step predicted to capture: landed, waiting for the robot to fall

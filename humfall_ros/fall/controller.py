@@ -94,6 +94,7 @@ class SafeFallConfig:
     balance_kp: float = 0.3
     balance_kd: float = 0.05
     balance_max_offset: float = 0.12
+    settle_s: float = 0.5
 
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> SafeFallConfig:
@@ -478,7 +479,9 @@ class SafeFallController:
     def _tick(self, obs: Observation) -> JointTargets:
         c = self.config
         st = obs.inputs.get("ftb/status")
-        if self.phase in ("landed", "shaping") and getattr(st, "state", None) is FtbState.FALLEN:
+        # (the capture balance goes on: the FTB's falling_timeout_s reads "fallen" for a robot rocking to a stand)
+        ends = ("shaping",) if c.capture_balance else ("landed", "shaping")
+        if self.phase in ends and getattr(st, "state", None) is FtbState.FALLEN:
             # the trunk is down (FTB: fallen): shaping ends with the fall (paper 1 §IV shapes until the
             # impact); kept on, its integrated joint velocities flipped the lying robot over and walked
             # it back into the target 1.3 s after it landed
@@ -517,8 +520,10 @@ class SafeFallController:
                 self.last_command = pos
                 return JointTargets(pos, vel)
         if self.phase == "landed" and self.shape_allowed:
-            f = features_of(obs.state)
-            if f.valid and (f.separatrix_margin > 0.0 or f.lean_angle > math.radians(c.shaping_lean_deg)):
+            f = features_of(obs.state, self._soles_hull(obs) if c.capture_balance else None)
+            # (with the capture balance the P->G lean is not used: rocking onto a sole's corner read 20 deg)
+            leaning = not c.capture_balance and f.lean_angle > math.radians(c.shaping_lean_deg)
+            if f.valid and (f.separatrix_margin > 0.0 or leaning):
                 self.falling_since = obs.time if self.falling_since is None else self.falling_since
                 if obs.time - self.falling_since >= 0.01 - 1e-9:
                     stood = None if self.touchdown_at is None else obs.time - self.touchdown_at
@@ -565,17 +570,66 @@ class SafeFallController:
         if self.balancer is None:
             from humfall_ros.control.standing import StandingBalance
 
-            self.balancer = StandingBalance(self.m, dict(zip(self.m.joint_names, self.hold)), c.balance_kp,
-                                            c.balance_kd, c.balance_max_offset)
+            self.balance_from = self.hold.copy()
+            self.balance_start = obs.time
+            self.settle = self.hold.copy()
             quat = _imu_quat(obs.inputs.get("imu"))
+            ref = None
             if quat is not None:
                 q = configuration_from_sensors(self.m, obs.joint_position, quat, s.com)
                 self.m.forward(q)
                 mid = np.vstack([self.m.sole_corners(sd)[:, :2] for sd in SIDES]).mean(axis=0)
-                self.balancer.reference = mid - np.asarray(s.feet_center, float)[:2]
+                ref = mid - np.asarray(s.feet_center, float)[:2]
+                if c.settle_s > 0:
+                    self.settle = self._settle_posture(q, mid)
+            self.balancer = StandingBalance(self.m, dict(zip(self.m.joint_names, self.settle)), c.balance_kp,
+                                            c.balance_kd, c.balance_max_offset)
+            self.balancer.reference = ref
+        a = 1.0 if c.settle_s <= 0 else min(1.0, (obs.time - self.balance_start) / c.settle_s)
+        w = 0.5 - 0.5 * math.cos(math.pi * a)
+        self.balancer.nominal = (1.0 - w) * self.balance_from + w * self.settle
         pos = self.balancer.command(s.com, s.com_velocity, s.support_polygon, s.feet_center)
         self.last_command = pos
         return JointTargets(pos)
+
+    def _soles_hull(self, obs: Observation):
+        """The hull of both soles (touching or not) in the measured configuration [m], (k, 2), or None (no IMU).
+
+        The new support after a step: with the capture balance the robot rocks from one sole's corner to the
+        other's, and over the touching corners alone the energy read "falling" (standing_push: 0.6 s after
+        touchdown, inertia shaping then took over from the balance and the robot fell)."""
+        quat = _imu_quat(obs.inputs.get("imu"))
+        if quat is None:
+            return None
+        q = configuration_from_sensors(self.m, obs.joint_position, quat, obs.state.com)
+        self.m.forward(q)
+        return support_polygon(np.vstack([self.m.sole_corners(sd)[:, :2] for sd in SIDES]).tolist())
+
+    def _settle_posture(self, q: np.ndarray, mid: np.ndarray) -> np.ndarray:
+        """Joints that put both soles flat on the ground where they are (x, y, yaw) and the CoM over their middle
+        at its present height, the trunk upright (the shared IK, ``model.ik``). The step leaves the robot on
+        sole edges (the swing target was pressed into the ground, the stance sole rolled): measured, it then
+        rocked from one sole corner to the other until it fell."""
+        from humfall_ros.model.ik import ComTask, FrameTask, OrientationTask, PostureTask
+
+        m = self.m
+        m.forward(q)
+        tasks = []
+        yaws = []
+        for sd in SIDES:
+            M = m.frame_placement(m.sole_frame[sd])
+            yaw = math.atan2(M.rotation[1, 0], M.rotation[0, 0])
+            yaws.append(yaw)
+            flat = StepController.landing_placement(M.translation[0], M.translation[1], yaw, 0.0)
+            tasks.append(FrameTask(m.sole_frame[sd], flat, weight=100.0))
+        com = m.com(q)
+        heading = math.atan2(sum(math.sin(y) for y in yaws), sum(math.cos(y) for y in yaws))
+        tasks += [ComTask(np.array([mid[0], mid[1], com[2]]), weight=10.0),
+                  OrientationTask(m.imu_frame, StepController.landing_placement(0, 0, heading).rotation, weight=1.0),
+                  PostureTask(np.asarray(q, float)[7:], weight=1e-3)]
+        r = self.stepper.ik.solve_to_convergence(q, tasks, dt=0.05, max_iterations=100, tolerance=1e-3)
+        self.settle_converged = bool(getattr(r, "converged", False))
+        return np.clip(np.asarray(r.q, float)[7:], m.limits.lower, m.limits.upper)
 
     def _replan(self, obs: Observation, q: np.ndarray) -> None:
         """Re-decide the landing of the chosen swing side from this tick's state (ours, not the paper's).

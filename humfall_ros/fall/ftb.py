@@ -74,6 +74,9 @@ TRANSITIONS: tuple[Transition, ...] = (
     Transition(FtbState.BALANCED, FtbState.FALLEN, "fallen", "lean beyond fallen_lean_deg without a trigger"),
     Transition(FtbState.FALLING, FtbState.FALLEN, "fallen", "lean beyond fallen_lean_deg"),
     Transition(FtbState.FALLING, FtbState.FALLEN, "falling_timeout", "falling_timeout_s spent in FALLING"),
+    Transition(FtbState.FALLING, FtbState.BALANCED, "recovered",
+               "inside the boundary, lean below recover_lean_deg and CoM slower than recover_speed for recover_s "
+               "(a step captured the fall); the latched event stays"),
     Transition(FtbState.FALLING, FtbState.BALANCED, "reset", "ftb/reset or sim time went back"),
     Transition(FtbState.FALLEN, FtbState.BALANCED, "reset", "ftb/reset or sim time went back"),
 )
@@ -98,6 +101,9 @@ class FtbConfig:
     robot_weight: float = 0.0   # [N]; 0: taken as the first observations' normal force
     push_end_time_s: float = -1.0  # [s] fixed mode without a push_end_time input (< 0: unknown)
     use_walking_state: bool = False  # the node's tick also waits for walking/state (the gait reference)
+    recover_s: float = 0.5
+    recover_speed: float = 0.05
+    recover_lean_deg: float = 10.0
 
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> FtbConfig:
@@ -459,6 +465,7 @@ class FtbMonitor:
         self.outside_since: float | None = None
         self.last_stamp: int | None = None
         self.event: FallEvent | None = None
+        self.inside_since: float | None = None
         self.weight = self.config.robot_weight if self.config.robot_weight > 0 else None
         self.com_height: float | None = None
 
@@ -533,9 +540,19 @@ class FtbMonitor:
                 self._enter(FtbState.FALLEN, t)
                 reason = "fallen without a trigger"
         elif self.state is FtbState.FALLING:
+            still = f.valid and f.lean_angle < math.radians(c.recover_lean_deg) and not self._outside(obs, f) \
+                and float(np.linalg.norm(np.asarray(s.com_velocity, float))) < c.recover_speed
+            if still:
+                self.inside_since = t if self.inside_since is None else self.inside_since
+            else:
+                self.inside_since = None
             if fallen:
                 self._enter(FtbState.FALLEN, t)
                 reason = f"lean beyond {c.fallen_lean_deg:.0f} deg"
+            elif still and t - self.inside_since >= c.recover_s - 1e-9:
+                self._enter(FtbState.BALANCED, t)
+                self.outside_since = self.inside_since = None
+                reason = f"recovered: inside the boundary and still for {c.recover_s:.2f} s"
             elif t - self.state_since >= c.falling_timeout_s:
                 self._enter(FtbState.FALLEN, t)
                 reason = f"{c.falling_timeout_s:.1f} s in falling"
