@@ -376,6 +376,12 @@ def feet_figures(plan, trace: dict, start: float) -> dict:
     plan_only = ("n3_lower_bound_m", "v0_mps", "omega_c", "beta", "predicted_max_zmp_minor_m",
                  "predicted_max_zmp_major_m", "predicted_min_margin_m", "predicted_stop_time_s", "stop_time_bound_s")
     out = {f"{k}_feet": v for k, v in a.items() if k not in plan_only}
+    # the same final CoG on the soles where they ended (they may slide during the stop)
+    last = PlanarMotion.between_feet(*[plan.state.feet[f].sole_center(MODEL(), f) for f in ("l", "r")],
+                                     *trace["sole_truth"][-1])
+    fin_end = plan.frame.moved(last).to_local(trace["com_truth"][-1, :2])
+    out.update({"final_cog_vs_n3_m_end_feet": float(fin_end[1] - plan.major.n3),
+                "final_cog_minor_m_end_feet": float(fin_end[0])})
     out.update({"final_cog_minor_m_feet": float(fin[0]),
                 "max_cop_minor_m_feet": float(np.nanmax(np.abs(frame.to_local(trace["cop_truth"][after, :2])[:, 0]))),
                 "pattern_to_feet_yaw_deg": math.degrees(mo.yaw),
@@ -508,6 +514,8 @@ FEET_COLUMNS = (("speed_kmh", "km/h"), ("step", "step"), ("phase", "phase"), ("w
                 ("feasible", "pred. feasible"), ("fallback", "fallback"), ("crouch_height_m", "CoG height m"),
                 ("fell", "fell"), ("pattern_to_feet_yaw_deg", "feet yaw off pattern deg"), ("n3_m", "n3 m"),
                 ("final_cog_vs_n3_m_feet", "final CoG - n3 m"), ("final_cog_minor_m_feet", "final CoG Minor m"),
+                ("final_cog_vs_n3_m_end_feet", "final CoG - n3 (end soles) m"),
+                ("final_cog_minor_m_end_feet", "final CoG Minor (end soles) m"),
                 ("final_cog_inside_m_feet", "final CoG inside m"),
                 ("predicted_max_zmp_minor_m", "pred. max ZMP Minor m"), ("max_cop_minor_m_feet", "max CoP Minor m"),
                 ("min_cop_margin_from_start_m_feet", "min CoP margin m"),

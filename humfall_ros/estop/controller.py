@@ -64,7 +64,7 @@ from humfall_ros.estop.frame import FootPose
 from humfall_ros.estop.planner import EstopInputError, EstopPlanner, PatternState, StopPlan
 from humfall_ros.estop.posture import configuration_from_feet
 from humfall_ros.estop.statespace import return_home, stop_duration_within_limits
-from humfall_ros.model.humanoid import SIDES, HumanoidModel
+from humfall_ros.model.humanoid import SIDES, HumanoidModel, quat_matrix
 from humfall_ros.model.ik import ComTask, FrameTask, OrientationTask, PostureTask, WholeBodyIK
 
 BLEND_TIME = 0.3          # s: the measured-posture CoG offset at the start is blended out over this
@@ -318,6 +318,7 @@ class EstopController:
         self._offset0 = np.zeros(3)
         self._trunk0 = np.eye(3)
         self._hold_feet = None
+        self._com_integral = np.zeros(3)
         self._upper0 = None
         self._upper_v0 = None
         self._t_b = 0.0
@@ -505,6 +506,7 @@ class EstopController:
         # walking's sole sinkage, foot height and ankle offsets have it): holding the pattern's flat, unsunk poses
         # instead steps every leg by millimetres in one tick (measured at 1.8 km/h: both soles unloaded for 40 ms)
         self._hold_feet = self._feet_of(q_seed)
+        self._com_integral = np.zeros(3)
         self._offset0 = self.m.com(q_seed) - plan.sample(0.0).com
         self._trunk0 = _base_rotation(q_seed)
         upper = ~self._legs
@@ -523,6 +525,16 @@ class EstopController:
         d = self.m.model.createData()
         pin.framesForwardKinematics(self.m.model, d, q)
         return {s: d.oMf[self.m.frame_ids[self.m.foot_link[s]]].copy() for s in SIDES}
+
+    def _yaw_off(self, imu, q: np.ndarray) -> float:
+        """The measured IMU yaw minus the IMU yaw of configuration ``q`` [rad] (0 without an IMU input)."""
+        if imu is None:
+            return 0.0
+        d = self.m.model.createData()
+        pin.framesForwardKinematics(self.m.model, d, q)
+        R_ik = d.oMf[self.m.frame_ids[self.m.imu_frame]].rotation
+        R = quat_matrix(np.asarray(imu[0], float))
+        return math.remainder(math.atan2(R[1, 0], R[0, 0]) - math.atan2(R_ik[1, 0], R_ik[0, 0]), math.tau)
 
     def _upper_targets(self, t: float) -> np.ndarray:
         """Upper-body joints: eq. 23 stop over T_b, then (when stopped) a smooth move home."""
@@ -549,7 +561,7 @@ class EstopController:
             self._t_stopped = observation.time
             self._set(EstopState.STOPPED, observation.stamp_ns, reason=self.status.reason)
         blend = max(0.0, 1.0 - t / BLEND_TIME)
-        target = ref.com + blend * self._offset0
+        target = ref.com + blend * self._offset0 + self._com_integral
         posture = self.q_ik[7:].copy()
         posture[~self._legs] = self._upper_targets(t)
         feet = plan.state.feet
@@ -567,13 +579,24 @@ class EstopController:
         c = self.cfg
         st = observation.state
         mid = 0.5 * (feet["l"].position + feet["r"].position)
-        err = (np.asarray(st.com, float) - np.asarray(st.feet_center, float)) - (ref.com - mid)
-        verr = np.asarray(st.com_velocity, float) - ref.com_velocity
+        # the measured vectors are in the estimator's world, the reference in the pattern's: turn the measured
+        # ones by the robot's yaw off its kinematic model (IMU yaw - the IK's IMU yaw; at 1.8 km/h the robot has
+        # yawed 11-17 deg off its pattern, which read the CoG 0.2 m from the feet centre as 4-6 cm of error)
+        Ry = _yaw_matrix(-self._yaw_off(observation.inputs.get("imu"), r.q))
+        err = Ry @ (np.asarray(st.com, float) - np.asarray(st.feet_center, float)) - (ref.com - mid)
+        verr = Ry @ np.asarray(st.com_velocity, float) - ref.com_velocity
         R = _yaw_matrix(yaw)
         e_l, v_l = R.T @ err, R.T @ verr                      # in the feet's heading frame
         d_pitch = float(np.clip(c.ankle_kp * e_l[0] + c.ankle_kd * v_l[0], -c.ankle_max_offset, c.ankle_max_offset))
         d_roll = float(np.clip(-(c.ankle_kp * e_l[1] + c.ankle_kd * v_l[1]), -c.ankle_max_offset,
                                c.ankle_max_offset))
+        # from the predicted stop time on: the integral of the horizontal CoG error relative to the feet moves the
+        # IK's CoG target against it (the servos sag under the crouched load; a P-only ankle strategy leaves it)
+        if t >= plan.stop_time and c.com_integral_gain > 0:
+            self._com_integral[:2] -= c.com_integral_gain * self.dt * err[:2]
+            n = float(np.hypot(*self._com_integral[:2]))
+            if n > c.com_integral_max:
+                self._com_integral[:2] *= c.com_integral_max / n
         q[self._pitch] += d_pitch
         q[self._roll] += d_roll
         q = np.clip(q, self.m.limits.lower, self.m.limits.upper)
