@@ -535,6 +535,10 @@ class SafeFallController:
                         self.shaping_config = dataclasses.replace(c.shaping, sign=c.shaping_settled_sign)
                         self.reasons.append(f"captured step, but falling about the new support {when}: "
                                             f"inertia shaping, sign {self.shaping_config.sign:+.0f}")
+                    elif c.shaping_settled_only and c.capture_balance:
+                        # the landing's jolt, not a topple (walking_push: read 12 ms after touchdown; holding then
+                        # let the robot fall): keep balancing, look again
+                        self.falling_since = None
                     elif c.shaping_settled_only:
                         self.phase = "hold"
                         self.reasons.append(f"captured step, but falling about the new support {when}: "
