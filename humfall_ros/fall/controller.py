@@ -527,7 +527,10 @@ class SafeFallController:
                 self.falling_since = obs.time if self.falling_since is None else self.falling_since
                 if obs.time - self.falling_since >= 0.01 - 1e-9:
                     stood = None if self.touchdown_at is None else obs.time - self.touchdown_at
-                    settled = stood is not None and stood >= c.shaping_settled_s - 1e-9
+                    # with the capture balance the robot has settled once the settle posture is reached (before,
+                    # its rocking reads falling over the soles' hull: walking_push shaped at 0.206 s and fell)
+                    wait = max(c.shaping_settled_s, c.settle_s) if c.capture_balance else c.shaping_settled_s
+                    settled = stood is not None and stood >= wait - 1e-9
                     when = f"at {obs.time:.3f} s ({stood if stood is not None else math.nan:.3f} s after touchdown)"
                     if settled:
                         # a slow topple from a settled stance (ours): its own sign
