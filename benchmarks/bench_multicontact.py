@@ -82,6 +82,17 @@ def run_case(planner: FallPlanner, ke: float, wall: float, budget: float, resim:
     case["landings"] = [{k: (round(v, 3) if isinstance(v, float) else v) for k, v in x.to_dict().items()}
                         for x in r.get("landings", [])]
     case["landings_within_limits"] = r.get("landings_within_limits", False)
+    # every tree node in short (what a failed case reached): mode, depth, node / pre-impact KE,
+    # touchdown normal speed of its landing, the energy its self-motion ended with (None: not popped)
+    tree = r.get("tree") or {"nodes": []}
+    case["tree_summary"] = [
+        {"id": n["id"], "parent": n["parent"], "depth": n["depth"], "mode": n["mode"], "ke": round(n["ke"], 2),
+         "pre_impact_ke": None if n["pre_impact_ke"] is None else round(n["pre_impact_ke"], 2),
+         "touchdown_normal_mps": None if n["landing"] is None else round(n["landing"]["normal_speed"], 2),
+         "over_limits": n["over_limits"], "key": round(n["priority"], 2),
+         "self_motion_end_ke": None if n["self_motion"] is None else round(n["self_motion"]["final_ke"], 3),
+         "self_motion_ok": None if n["self_motion"] is None else n["self_motion"]["success"]}
+        for n in tree["nodes"]]
     hands = [x for x in case["landings"] if x["limb"] in ("LH", "RH")]
     case["max_hand_touchdown_normal_speed"] = max((x["normal_speed"] for x in hands), default=None)
     case["max_pre_impact_ke_over_push"] = (round(max(x["pre_impact_ke"] for x in case["landings"]) / ke, 3)

@@ -259,3 +259,20 @@ def test_a_failed_seed_is_retried_with_the_next_duration_in_order():
         assert e["attempts"] == cfg.max_seed_attempts == len(e["attempt_log"])
         tried = [a["seed_T"] for a in e["attempt_log"]]
         assert tried == pytest.approx(list(cfg.seed_durations())[:len(tried)], abs=1e-4)  # logged to 4 digits
+
+
+def test_20J_paper_objective_lands_a_hand_gently_and_stops(planner):
+    """The paper's transition objective (pre-impact KE, Sec. III-A) with the default
+    frontier key ('mechanical': the line-20 key plus the potential energy relative to the
+    root, a departure): the 20 J push cannot be stopped by inertial shaping, the landing
+    child is popped before the release sibling, and its self-motion stops the robot. The
+    hand lands within the limits, and the impact of eq. 10 absorbs little."""
+    r = planner.plan({"kinetic_energy": 20.0, "direction": 1.0, "time_budget": 120.0})
+    assert r["success"], r["reason"]
+    assert r["final_ke"] < planner.opt.cfg.eps_ke
+    assert len(r["contact_sequence"]) >= 2 and r["landings"]
+    lim = planner.opt.cfg.landing_limits
+    for x in r["landings"]:
+        assert x.within_limits and x.normal_speed <= lim.speed_max(x.limb)
+        assert x.absorbed_energy < 0.5 * x.pre_impact_ke     # not a slam: the energy went out through the joints
+    assert r["landings_within_limits"]
