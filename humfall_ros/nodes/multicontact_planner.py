@@ -52,9 +52,13 @@ class MulticontactPlanner(Node):
 
     def _warm_up(self):
         """Build the NLP structures of the root two-foot mode (the sweep's first
-        level) so that the first request does not pay for them."""
+        level) and of the one-hand node below it (where the paper objective's plans
+        go next: 20 J stops there, 30 J+ expands it) so that a request does not pay for them."""
+        hand = ("LF", "RF", "LH")
         segments = [(("LF", "RF"), "", ""), (("LF", "RF"), "add", "LH"), (("LF", "RF"), "remove", "LF"),
-                    (("RF",), "", ""), (("RF",), "add", "LF")]   # (mode, change, extremity)
+                    (("RF",), "", ""), (("RF",), "add", "LF"),
+                    (hand, "", ""), (hand, "add", "RH"), (hand, "remove", "LF"),
+                    (hand, "remove", "RF")]   # (mode, change, extremity)
         t0 = time.perf_counter()
         for mode, change, ext in segments:
             if self._closing:
