@@ -395,7 +395,7 @@ class LocomotionController:
                           self.dt)
         self.q_ik = r.q
         q_cmd = self.stabilizer.apply(r.q[7:], st)
-        if self.cfg.swing_tilt_compensation:
+        if self.cfg.swing_tilt_compensation and self.pattern.command.speed * 3.6 > self.cfg.swing_tilt_min_speed_kmh:
             q_cmd = self._swing_tilt_compensation(r.q, q_cmd, sample, stance)
         if stance is not None:
             self._last_stance = stance
@@ -422,15 +422,18 @@ class LocomotionController:
         frame Jacobian of the sole w.r.t. its own leg's joints), brings it back to its IK placement ``M_o``.
         The base is the stance foot in single support (ramped in over ``swing_tilt_ramp`` at the lift-off);
         in the double support after a swing, the previous stance foot, with the correction of the landing
-        foot faded out linearly over the double support."""
+        foot faded out linearly over the double support, or (``swing_tilt_ds_hold``) held: the feet's relative
+        poses then stay the planned ones while the rear ankle's offset leaks (``cop_damping_time_constant_ds``),
+        and the correction goes to 0 with it, not by moving the landing foot against the ground."""
         m = self.m
         if stance is not None:
             base, other_ = stance, ("r" if stance == "l" else "l")
-            t_in = sample.phase_fraction * self.cfg.single_support_for(self.command.speed)
+            speed = self.pattern.command.speed if self.pattern is not None else self.command.speed
+            t_in = sample.phase_fraction * self.cfg.single_support_for(speed)
             w = min(1.0, t_in / self.cfg.swing_tilt_ramp) if self.cfg.swing_tilt_ramp > 0 else 1.0
         elif self._last_stance is not None:
             base, other_ = self._last_stance, ("r" if self._last_stance == "l" else "l")
-            w = 1.0 - sample.phase_fraction
+            w = 1.0 if self.cfg.swing_tilt_ds_hold else 1.0 - sample.phase_fraction
         else:
             return q_cmd
         if w <= 0.0:
@@ -440,6 +443,9 @@ class LocomotionController:
         M_o = m.frame_placement(m.sole_frame[other_]).copy()
         q = q_ik.copy()
         q[7:] = q_cmd
+        if self.cfg.swing_tilt_pitch_only:   # correct for the ankle pitch offsets only (the rolls left as they are)
+            rolls = [self.stabilizer.roll_index[s] for s in SIDES]
+            q[7:][rolls] = q_ik[7:][rolls]
         m.forward(q)
         M_bc = m.frame_placement(m.sole_frame[base])
         # re-base: the commanded robot with its base sole where the IK has it
