@@ -74,7 +74,7 @@ class EstopConfig:
     ankle_kp: float = 0.3
     ankle_kd: float = 0.05
     ankle_max_offset: float = 0.12
-    com_integral_gain: float = 0.8
+    com_integral_gain: float = 0.0
     com_integral_max: float = 0.03
     joint_stop_time: float = 0.3
     home_duration: float = 1.5

@@ -37,7 +37,7 @@ from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.estop.config import EstopConfig
 from humfall_ros.estop.controller import EstopController, EstopStatus, TopicEvent
 from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_LATCHED, QOS_RELIABLE, run_node
-from humfall_ros.nodes.controller_node import ControllerNode, Input
+from humfall_ros.nodes.controller_node import IMU, ControllerNode, Input
 
 try:  # the walking engineer's message; until it exists the node stops a standing robot
     from humfall_interfaces.msg import WalkingState as WalkingStateMsg
@@ -124,10 +124,12 @@ def status_to_msg(s: EstopStatus) -> EstopStatusMsg:
 
 
 def node_inputs() -> list[Input]:
-    """The node's event inputs (walking/state is added per tick by :class:`EstopPlannerNode` when asked)."""
+    """The node's inputs: the events, and the IMU per tick (the stop's ankle strategy turns the measured CoG by the
+    robot's yaw off its kinematic model, as every in-process observation allows); walking/state is added per tick
+    by :class:`EstopPlannerNode` when asked."""
     return [Input("estop", Empty, "estop", event_converter(), qos=QOS_LATCHED),
             Input("estop_release", Empty, "estop/release", event_converter(), qos=QOS_LATCHED),
-            Input("fall_event", FallEvent, "fall_event", lambda _msg: True)]
+            Input("fall_event", FallEvent, "fall_event", lambda _msg: True), IMU]
 
 
 WALKING_STATE = Input("walking/state", WalkingStateMsg, "walking/state", walking_state_from_msg, per_tick=True) \
