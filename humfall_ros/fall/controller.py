@@ -80,6 +80,7 @@ class SafeFallConfig:
     stance_leg_weight: float = 10.0
     replan_s: float = 0.0
     replan_single_support_s: float = 0.1
+    replan_capture_away: bool = False
     shaping_lean_deg: float = 20.0
     shaping_gain: float = 0.02
     shaping_sign: float = -1.0
@@ -670,6 +671,15 @@ class SafeFallController:
         case = self.chosen.case
         if case is ss.StepCase.CONTINUE_STEP:   # re-deciding the planned step over the cells: a re-target
             case = ss.StepCase.STEP_LEFT if swing == "l" else ss.StepCase.STEP_RIGHT
+        if c.replan_capture_away and len(cells):
+            # among the captures (Q2 >= capture_margin inside), the landing farthest from the target (ours): the
+            # deepest one moves forward with the push, towards the target (walking_push 360 N: under its edge)
+            h = ss._hull_core(cells, self._sole_local, pivot.reshape(-1, 2), np.asarray(Q[0], float)[:2])
+            ok = h.margin >= c.capture_margin
+            if np.any(ok):
+                far = np.hypot(cells[:, 0] - self.target[0], cells[:, 1] - self.target[1])
+                i = int(np.argmax(np.where(ok, far, -np.inf)))
+                cells = cells[i:i + 1]
         r = ss._cells(case, cells, pivot, Q[0], self.target, G[0], self._sole_local, c.search)
         if r is None:
             return
