@@ -93,11 +93,12 @@ def noise_runs(scale: float = 1.0, kind: str = "stepping_inertia") -> dict:
 
     ov = _push_overrides(scale)
     exact = runs.summary(runs.run(scenario.load("standing_push", ov), kind))
-    out = {"exact": {k: exact[k] for k in ("avoidance_angle_p2_deg", "min_target_distance_m", "decision_case")}}
+    keys = ("fell", "avoidance_angle_p2_deg", "min_target_distance_m", "decision_case")
+    out = {"exact": {k: exact[k] for k in keys}}
     for seed in (1, 2, 3):
         s = runs.summary(runs.run(scenario.load("standing_push", ov), kind,
                                   noise=dataclasses.replace(TYPICAL_NOISE, seed=seed)))
-        out[f"seed{seed}"] = {k: s[k] for k in ("avoidance_angle_p2_deg", "min_target_distance_m", "decision_case")}
+        out[f"seed{seed}"] = {k: s[k] for k in keys}
         a, b = s["avoidance_angle_p2_deg"], exact["avoidance_angle_p2_deg"]
         out[f"seed{seed}"]["alpha2_change_deg"] = None if a is None or b is None else round(abs(a - b), 1)
     return out
