@@ -240,12 +240,19 @@ def _touchdown_errors(planned: list, actual: list) -> float:
     return 1e3 * worst
 
 
-def _contact_delays(truth: list, est: list, window: float = 0.1) -> tuple[float, float]:
+def _contact_delays(truth: list, est: list, window: float = 0.1, settle: float = 0.05) -> tuple[float, float]:
     """Largest delay [ms] of the estimator's contact flag behind the true one (each true change of a sole matched
-    to the first estimated change of the same sole and kind within ``window`` [s] after it; an estimated change
-    before the true one counts as 0; none within the window: inf), at touchdowns and at lift-offs."""
+    to the nearest estimated change of the same sole and kind within ``window`` [s]; an estimated change before
+    the true one counts as 0; none within the window: inf), at touchdowns and at lift-offs. Only true changes
+    after the sole kept its state ``settle`` [s] count (a touchdown bounce's brief unload and reload do not)."""
     out = {True: 0.0, False: 0.0}
+    last: dict = {}
+    kept = []
     for t, s, on in truth:
+        if t - last.get(s, -math.inf) >= settle:
+            kept.append((t, s, on))
+        last[s] = t
+    for t, s, on in kept:
         cand = [te for te, se, eo in est if se == s and eo == on and -window < te - t < window]
         d = min((te - t for te in cand), key=abs) if cand else float("inf")
         out[on] = max(out[on], 1e3 * max(d, 0.0))
