@@ -55,9 +55,9 @@ class LocomotionConfig:
     foot_height_gain: float = 0.05        # 1/s, double-support foot height difference per metre of CoP error rate
     foot_height_time_constant: float = 0.05  # s
     foot_height_max: float = 0.0005       # m
-    swing_tilt_compensation: bool = False  # keep the swing foot on its path under the stance ankle offsets
+    swing_tilt_compensation: bool = True  # keep the swing foot on its path under the stance ankle offsets
     swing_tilt_ramp: float = 0.03         # s, that correction's ramp-in after the lift-off
-    swing_tilt_min_speed_kmh: float = 0.0  # km/h, that correction only in walks faster than this
+    swing_tilt_min_speed_kmh: float = 0.75  # km/h, that correction only in walks faster than this
     swing_tilt_pitch_only: bool = False   # correct for the ankle pitch offsets only
     swing_tilt_ds_hold: bool = False      # in the double support held on the landing foot (False: faded out)
     heading_lateral_gain: float = 0.5     # rad/m, path heading correction per metre of lateral drift
