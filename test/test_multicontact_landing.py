@@ -80,6 +80,10 @@ def test_landing_report_is_eq10_and_flags_limits(model):
     assert not rep2.within_limits and "absorbed energy" in rep2.exceeded and "touchdown" not in rep2.exceeded
     rep3, _ = landing_report(model, q, v, ("LF", "RF"), "LF", env, LandingLimits(1.0, 1.5, 1.0, 1e6))
     assert rep3.within_limits and rep3.exceeded == ""    # a foot is judged by the foot limits, not the hand's
+    at = LandingLimits(foot_normal_speed_max=rep.normal_speed - 1e-8, foot_energy_max=1e6)
+    assert landing_report(model, q, v, ("LF", "RF"), "LF", env, at)[0].within_limits   # at the limit (NLP tolerance)
+    over = LandingLimits(foot_normal_speed_max=rep.normal_speed - 1e-3, foot_energy_max=1e6)
+    assert not landing_report(model, q, v, ("LF", "RF"), "LF", env, over)[0].within_limits
 
 
 def test_planner_is_built_from_its_one_declaration():
