@@ -223,3 +223,32 @@ def test_topic_events_trigger_and_release_once_each():
     ctl.reset()                                                                # sim time went back
     still.inputs["estop"] = TopicEvent(2)
     assert ctl.step(still) is None and ctl.state == EstopState.IDLE           # the latched message: not again
+
+
+def test_feet_are_held_where_the_applied_targets_put_them():
+    """Bumpless feet: the IK holds both feet where the applied joint targets have them at the take-over (walking's
+    sole sinkage / ankle offsets), not at the pattern's flat poses; the rear foot sits at its pattern pose."""
+    import pinocchio as pin
+
+    from humfall_ros.estop.controller import feet_from_soles
+
+    ctl = EstopController(M, EstopConfig.defaults(trigger_time=0.0), DT)
+    applied = M.joint_vector(STANDING_POSTURE)
+    applied[M.joint_index("l_ankle_pitch")] += 0.03           # a walking ankle offset on the front foot
+    pattern = Pattern()
+    out = None
+    for k in range(20):
+        o = dataclasses.replace(obs(k * DT, **{"walking/state": pattern}), joint_targets=applied.copy())
+        out = ctl.step(o)
+    assert out is not None and ctl.state == EstopState.STOPPING
+    d = M.model.createData()
+    pin.framesForwardKinematics(M.model, d, ctl.q_ik)
+    feet = {s: d.oMf[M.frame_ids[M.foot_link[s]]] for s in "lr"}
+    for s in "lr":
+        assert np.linalg.norm(feet[s].translation - ctl._hold_feet[s].translation) < 1e-3
+        assert np.linalg.norm(pin.log3(feet[s].rotation.T @ ctl._hold_feet[s].rotation)) < 2e-3
+    rear = feet_from_soles(M, {"l": pattern.left_foot, "r": pattern.right_foot})["r"]
+    assert np.linalg.norm(ctl._hold_feet["r"].translation - rear.position) < 1e-9
+    # the front foot is not moved to the pattern's (0.15 m ahead): the applied legs' geometry is kept
+    pitch = [M.joint_index(f"{s}_ankle_pitch") for s in "lr"]
+    assert out.positions[pitch[0]] - out.positions[pitch[1]] == pytest.approx(0.03, abs=3e-3)
