@@ -157,8 +157,7 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[NodeSpec]:
     from humfall_ros.estop.config import trigger_params
 
     trigger = trigger_params(sc["estop"])
-    walks = sc["walk"].get("steps", 0) > 0 and sc["walk"].get("speed_kmh", 0.0) > 0
-    if trigger or walks:
+    if trigger or scenario_mod.walks(sc):
         # the e-stop listens on `estop` whenever the robot walks (humfall estop), and a scenario
         # trigger acts on exactly its tick (the same rule as closed_loop.runs_estop)
         nodes.append(NodeSpec("estop_planner", "humfall_ros.nodes.estop_planner", dict(trigger), "estop",
@@ -203,7 +202,9 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[NodeSpec]:
     for n in nodes:
         if n.name in declared:
             owned = set(n.params) | (SCENARIO_OWNED if n.name == "sim_bridge" else set())
-            n.params = {**n.params, **check_node_params(n.name, extra.get(n.name, {}), owned=owned)}
+            # what the scenario's content implies first: its params.<node> may still override it
+            n.params = {**scenario_mod.node_defaults(sc, n.name), **n.params,
+                        **check_node_params(n.name, extra.get(n.name, {}), owned=owned)}
     return nodes
 
 
@@ -394,7 +395,7 @@ def collect_result(sc: dict, run_dir: pathlib.Path, wall: float, record: bool, p
 def _ran_estop(sc: dict) -> bool:
     from humfall_ros.estop.config import trigger_params
 
-    return bool(trigger_params(sc["estop"])) or (sc["walk"].get("steps", 0) > 0 and sc["walk"].get("speed_kmh", 0) > 0)
+    return bool(trigger_params(sc["estop"])) or scenario_mod.walks(sc)
 
 
 def summary(r: dict) -> str:

@@ -588,3 +588,24 @@ def apply_override(sc: dict, assignment: str) -> dict:
 
 def dump(sc: dict) -> str:
     return yaml.safe_dump(sc, sort_keys=False)
+
+
+def walks(sc: dict) -> bool:
+    """The scenario schedules a walk (``walk.steps`` > 0 at a speed > 0)."""
+    w = sc.get("walk") or {}
+    return w.get("steps", 0) > 0 and w.get("speed_kmh", 0.0) > 0
+
+
+def node_defaults(sc: dict, node: str) -> dict[str, Any]:
+    """A node's parameter values that follow from what the scenario contains.
+
+    They sit between the node's declared defaults and the scenario's ``params.<node>``,
+    which may still override them (``humfall up`` and the in-process loop apply them alike):
+    a scenario that walks gives the fall trigger boundary the gait reference
+    (``ftb_monitor.use_walking_state``), since the standing boundary fires in normal steps
+    (docs/safe_fall.md: at 2.9 s of a 1.0 km/h walk).
+    """
+    out: dict[str, Any] = {}
+    if node == "ftb_monitor" and walks(sc):
+        out["use_walking_state"] = True
+    return out

@@ -111,3 +111,31 @@ def test_metrics_alpha2_at_the_measured_p2_and_prediction():
     assert p["touchdown_error_s"] == pytest.approx(1.04 - 1.05, abs=1e-9)
     assert p["landing_error_m"] == pytest.approx(0.01) and p["landing_yaw_error_deg"] == pytest.approx(0.573, abs=1e-3)
     assert r["predicted_avoidance_deg"] == pytest.approx(90.0) and r["captured"] is False
+
+
+def test_metrics_take_the_step_after_the_fall_event_not_a_walking_step_before_it():
+    # walking: the right foot steps at 0.2-0.6 s (a walk step, CoP there (0.15, 0)); the FTB fires at 1.0 s; the
+    # protective step lands at 1.3 s with the CoP at (0.6, -0.2): P2 and the prediction are that step's,
+    # whenever the event became known (the bridge learns it over the graph, after the ticks it stamps)
+    def run(event_known_at: float) -> dict:
+        m = FallMetrics([2.0, 0.0])
+        m.set_reference_cop([0.0, 0.0, 0.0])
+        for k in range(1000):
+            t = 0.002 * k
+            if t >= event_known_at:
+                m.note_fall_event(1.0)
+            down = {"l": True, "r": not (0.2 <= t < 0.6 or 1.05 <= t < 1.3)}
+            cop = [0.6, -0.2, 0.0] if t >= 1.3 else [0.15, 0.0, 0.0]
+            m.update_feet(t, cop, down, {"l": (0, 0.1, 0, 0), "r": (0.6 if t >= 1.3 else 0.1, -0.1, 0, 0)})
+            fell = t > 1.6
+            m.update(t, [1.0, -1.0, 0.3] if fell else [0.1, 0, 0.75], 1.2 if fell else 0.1, 0.8, 1.0, fell and t > 1.7)
+        return m.result()
+
+    early, late = run(1.0), run(1.5)
+    assert early["measured_p2"] == pytest.approx([0.6, -0.2]) and early == late
+    no_event = FallMetrics([2.0, 0.0])
+    for k in range(500):
+        t = 0.002 * k
+        no_event.update_feet(t, [0.15, 0.0, 0.0], {"l": True, "r": not (0.2 <= t < 0.6)}, {"l": (0, 0.1, 0, 0),
+                                                                                         "r": (0.1, -0.1, 0, 0)})
+    assert no_event.touchdowns["r"][0] == pytest.approx(0.6)  # without an event: the first after a lift-off

@@ -237,3 +237,24 @@ def test_gait_defaults_are_the_walking_controllers():
         lo, _ = params.declarations("locomotion")["double_support"].bounds
         with pytest.raises(scenario.ScenarioError, match=r"walk\.double_support: .* \(locomotion's double_support\)"):
             scenario.validate({"walk": {"double_support": lo / 2}})
+
+
+def test_a_walking_scenario_gives_the_fall_trigger_the_gait_reference_on_both_paths(tmp_path):
+    # humfall up (plan_nodes) and the in-process loop (node_params) apply scenario.node_defaults alike;
+    # the scenario's params.<node> still overrides it; a standing scenario leaves the declared default
+    from humfall_ros import launch
+    from humfall_ros.sim.closed_loop import node_params
+
+    def graph(sc):
+        return {n.name: n.params for n in launch.plan_nodes(sc, tmp_path, record=False)}["ftb_monitor"]
+
+    walking = scenario.load("walking", ["controller=stepping"])
+    assert scenario.walks(walking)
+    assert graph(walking)["use_walking_state"] is True
+    assert node_params(walking, "ftb_monitor")["use_walking_state"] is True
+    off = scenario.load("walking", ["controller=stepping", "params.ftb_monitor.use_walking_state=false"])
+    assert graph(off)["use_walking_state"] is False and node_params(off, "ftb_monitor")["use_walking_state"] is False
+    standing = scenario.load("standing_push", ["controller=stepping"])
+    assert not scenario.walks(standing)
+    assert "use_walking_state" not in graph(standing)
+    assert node_params(standing, "ftb_monitor")["use_walking_state"] is False

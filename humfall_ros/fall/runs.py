@@ -77,38 +77,6 @@ class GaitFedFtb:
                                                    inputs={**observation.inputs, "walking/state": state}))
 
 
-class StepAfterEvent:
-    """The swing sole's first touchdown after the fall event and the mean ground-truth CoP 0.05-0.15 s after it
-    (P2 as ``sim.metrics.FallMetrics`` measures it).
-
-    ``FallMetrics`` takes the first touchdown after *any* lift-off: while walking that is the first walking step,
-    seconds before the push (walking_push: P2 read (0.15, -0.01), the start of the walk). This records only
-    touchdowns after the event; ``run`` reports its alpha2 for walking scenarios.
-    """
-
-    def __init__(self):
-        self.lifted: dict[str, bool] = {}
-        self.touchdown: dict[str, float] = {}
-        self.cops: dict[str, list] = {}
-
-    def update(self, t: float, event_time: float | None, cop, down: dict) -> None:
-        if event_time is None or t < event_time - 1e-9:
-            return
-        for side, is_down in down.items():
-            if not is_down:
-                self.lifted[side] = True
-            elif self.lifted.get(side) and side not in self.touchdown:
-                self.touchdown[side] = t
-                self.cops[side] = []
-            td = self.touchdown.get(side)
-            if td is not None and cop is not None and td + 0.05 - 1e-9 <= t <= td + 0.15 + 1e-9:
-                self.cops[side].append(np.asarray(cop, float)[:2].copy())
-
-    def p2(self, side: str) -> np.ndarray | None:
-        c = self.cops.get(side)
-        return np.mean(c, axis=0) if c else None
-
-
 def controllers_for(sc: dict, kind: str, model=None):
     """(controllers, monitors) of the run, as the launcher would start them for ``kind``."""
     from humfall_ros.launch import CONTROLLER_PARAMS
@@ -152,7 +120,6 @@ def run(sc: dict, kind: str | None = None, noise=None, duration: float | None = 
     safe = ctrls[1] if len(ctrls) > 1 else None
     m = loop.ground_truth.metrics
     trace = []
-    after = StepAfterEvent()
     try:
         ticks = int(round((duration or sc["duration"]) * sc["sim"]["control_rate"]))
         for _ in range(ticks):
@@ -162,7 +129,6 @@ def run(sc: dict, kind: str | None = None, noise=None, duration: float | None = 
             m.update_feet(w.time, cop, down, poses)
             if ftb.event is not None:
                 m.note_fall_event(ftb.event.time)
-            after.update(w.time, None if ftb.event is None else ftb.event.time, cop, down)
             if safe is not None and safe.decision is not None:
                 m.note_decision(safe.decision)
             if keep_trace:
@@ -173,20 +139,6 @@ def run(sc: dict, kind: str | None = None, noise=None, duration: float | None = 
                     and w.time > m.landing_time + stop_after_landing_s:
                 break
         res = m.result()
-        if sc["walk"].get("steps", 0) > 0:   # walking: P2 from the touchdown after the event (StepAfterEvent)
-            from humfall_ros.sim.metrics import avoidance_angle_deg
-
-            res["avoidance_angle_p2_deg_metrics"] = res.get("avoidance_angle_p2_deg")
-            res["measured_p2_metrics"] = res.get("measured_p2")
-            side = "" if safe is None or safe.decision is None else safe.decision.swing_side
-            if not side and after.touchdown:
-                side = min((t, sd) for sd, t in after.touchdown.items())[1]
-            p2 = after.p2(side) if side else None
-            land, target = res.get("landing_com"), m.target_xy
-            res["measured_p2"] = None if p2 is None else [float(x) for x in p2]
-            res["avoidance_angle_p2_deg"] = None if p2 is None or land is None or target is None or not res["fell"] \
-                else avoidance_angle_deg(p2, np.asarray(land, float), target)
-            res["touchdown_after_event_s"] = after.touchdown.get(side) if side else None
     finally:
         loop.close()
     return FallRun(res, np.array(loop.joint_positions), list(loop.active_sources),
@@ -200,8 +152,7 @@ def summary(r: FallRun) -> dict:
     out = {k: m.get(k) for k in ("fell", "fall_direction_deg", "avoidance_angle_deg", "avoidance_angle_p2_deg",
                                  "predicted_avoidance_deg", "predicted_captured", "captured", "decision_case",
                                  "min_target_distance_m", "fall_event_time_s", "lead_time_s", "landing_time_s",
-                                 "prediction", "measured_p2", "touchdown_after_event_s",
-                                 "avoidance_angle_p2_deg_metrics")}
+                                 "prediction", "measured_p2")}
     d = r.decision
     if d is not None:
         out["decision"] = {"case": d.case, "landing": np.asarray(d.landing).round(4).tolist(),
@@ -216,4 +167,4 @@ def summary(r: FallRun) -> dict:
     return out
 
 
-__all__ = ["CONTROLLERS", "FallRun", "GaitFedFtb", "StepAfterEvent", "controllers_for", "run", "summary"]
+__all__ = ["CONTROLLERS", "FallRun", "GaitFedFtb", "controllers_for", "run", "summary"]

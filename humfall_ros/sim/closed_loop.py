@@ -55,8 +55,12 @@ class LoopResult:
 
 
 def node_params(sc: dict, node: str) -> dict:
-    """A node's parameters for this scenario: its declaration's defaults, then ``params.<node>``."""
+    """A node's parameters for this scenario: its declaration's defaults, what the scenario's
+    content implies (``scenario.node_defaults``), then ``params.<node>``."""
+    from humfall_ros.scenario import node_defaults
+
     p = params_mod.defaults(node)
+    p.update(node_defaults(sc, node))
     p.update(params_mod.check_overrides(node, sc["params"].get(node, {}), prefix=f"params.{node}."))
     return p
 
@@ -102,9 +106,9 @@ class SameTickInputs:
 def runs_estop(sc: dict) -> bool:
     """``humfall up`` starts the e-stop when the scenario walks or schedules a trigger."""
     from humfall_ros.estop.config import trigger_params
+    from humfall_ros.scenario import walks
 
-    walks = sc["walk"].get("steps", 0) > 0 and sc["walk"].get("speed_kmh", 0.0) > 0
-    return walks or bool(trigger_params(sc["estop"]))
+    return walks(sc) or bool(trigger_params(sc["estop"]))
 
 
 def suite(sc: dict, model) -> tuple[list[Controller], list[Monitor]]:
@@ -114,14 +118,17 @@ def suite(sc: dict, model) -> tuple[list[Controller], list[Monitor]]:
     monitor and the safe-fall controller (humfall_ros.fall.runs); the e-stop when the scenario walks
     or schedules a trigger (fed the walking state of the same tick).
     """
-    loco = locomotion_controller(sc, model)
-    controllers: list = [loco]
     monitors: list = []
     if sc["controller"] != "none":
         from humfall_ros.fall.runs import controllers_for
 
-        fall_controllers, monitors = controllers_for(sc, sc["controller"], model)
-        controllers += [c for c in fall_controllers if c.source != "locomotion"]
+        # its locomotion controller is the one the gait-fed FTB and the safe-fall controller read
+        controllers, monitors = controllers_for(sc, sc["controller"], model)
+        loco = controllers[0]
+        assert loco.source == "locomotion"
+    else:
+        loco = locomotion_controller(sc, model)
+        controllers = [loco]
     if runs_estop(sc):
         from humfall_ros.estop.config import EstopConfig, trigger_params
         from humfall_ros.estop.controller import EstopController

@@ -54,8 +54,8 @@ class FallMetrics:
         self.decision: dict | None = None
         self._feet_t = None
         self._lifted: dict[str, bool] = {}
-        self.touchdowns: dict[str, tuple] = {}   # side -> (t, (x, y, yaw), tilt [deg]): first after a lift-off
-        self._cops: dict[str, list] = {}
+        # side -> every touchdown after a lift-off: (t, (x, y, yaw), tilt [deg], CoPs 0.05-0.15 s after it)
+        self._touchdown_log: dict[str, list[tuple]] = {}
 
     def note_fall_event(self, t: float) -> None:
         """The FTB's trigger time [s] (``fall_event``'s stamp); the first one counts."""
@@ -92,15 +92,31 @@ class FallMetrics:
             return
         self._feet_t = t
         for side, is_down in down.items():
+            log = self._touchdown_log.setdefault(side, [])
             if not is_down:
                 self._lifted[side] = True
-            elif self._lifted.get(side) and side not in self.touchdowns:
+            elif self._lifted.get(side):
+                self._lifted[side] = False
                 x, y, yaw, tilt = poses[side]
-                self.touchdowns[side] = (float(t), (float(x), float(y), float(yaw)), float(tilt))
-                self._cops[side] = []
-            td = self.touchdowns.get(side)
-            if td is not None and cop is not None and td[0] + 0.05 - 1e-9 <= t <= td[0] + 0.15 + 1e-9:
-                self._cops[side].append(np.asarray(cop, float)[:2].copy())
+                log.append((float(t), (float(x), float(y), float(yaw)), float(tilt), []))
+            if log and cop is not None and log[-1][0] + 0.05 - 1e-9 <= t <= log[-1][0] + 0.15 + 1e-9:
+                log[-1][3].append(np.asarray(cop, float)[:2].copy())
+
+    @property
+    def touchdowns(self) -> dict[str, tuple]:
+        """side -> (t, (x, y, yaw), tilt [deg]) of the step that answers the fall: the first touchdown after
+        the fall event (with no event, the first after any lift-off). While walking, earlier touchdowns
+        are the walk's own steps. Kept for every touchdown and chosen here, so the result does not
+        depend on when the event became known (the bridge learns it over the graph)."""
+        return {side: e[:3] for side, e in ((s, self._step_entry(s)) for s in self._touchdown_log) if e is not None}
+
+    def _step_entry(self, side: str):
+        after = self.fall_event_time if self.fall_event_time is not None else -math.inf
+        return next((e for e in self._touchdown_log.get(side, []) if e[0] > after), None)
+
+    def _step_cops(self, side: str) -> list:
+        e = self._step_entry(side)
+        return e[3] if e is not None else []
 
     def set_reference_cop(self, cop) -> None:
         """The P of Fig. 5: the CoP when the disturbance begins."""
@@ -162,8 +178,8 @@ class FallMetrics:
         if self.decision is not None:
             stepped = td is not None and d["case"].startswith("step")
             out["captured"] = bool(stepped and not self.fell)
-        if td is not None and self._cops.get(side):
-            p2 = np.mean(self._cops[side], axis=0)
+        if td is not None and self._step_cops(side):
+            p2 = np.mean(self._step_cops(side), axis=0)
             out["measured_p2"] = [float(x) for x in p2]
             if self.fell and land is not None and self.target_xy is not None:
                 out["avoidance_angle_p2_deg"] = avoidance_angle_deg(p2, land, self.target_xy)
