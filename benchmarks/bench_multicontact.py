@@ -40,7 +40,8 @@ from humfall_ros.multicontact.modes import Environment  # noqa: E402
 from humfall_ros.multicontact.planner import FallPlanner  # noqa: E402
 
 # the planner before issue 14 (departures from paper 2, Sec. III-A / Alg. 1 line 20)
-DEPARTURE = {"transition_objective": "post_impact", "frontier_order": "post_impact", "landing_policy": "ignore"}
+DEPARTURE = {"transition_objective": "post_impact", "frontier_order": "post_impact", "landing_policy": "ignore",
+             "touchdown_speed_constraint": False}
 
 PAPER = {10: "inertial shaping", 20: "inertial shaping", 30: "protective step", 40: "protective step",
          50: "protective step", 60: "hand contact", 70: "hand contact", 80: "hand contact"}

@@ -18,7 +18,8 @@ from humfall_ros.multicontact.resim import dense_check, forward_resim, plan_chec
 
 # today's planner before issue 14, kept as an option: the post-impact objective and frontier key
 # (departures from paper 2, Sec. III-A), landings not limited
-DEPARTURE = {"transition_objective": "post_impact", "frontier_order": "post_impact", "landing_policy": "ignore"}
+DEPARTURE = {"transition_objective": "post_impact", "frontier_order": "post_impact", "landing_policy": "ignore",
+             "touchdown_speed_constraint": False}
 
 
 @pytest.fixture(scope="module")

@@ -113,7 +113,7 @@ class OptConfig:
     step_seed_capture_offset: float = float("nan")
     # touchdown normal speed of the landing limb as a constraint of the NLP (limits
     # from ``landing_limits``); off: the limits only rank plans (tree.py)
-    touchdown_speed_constraint: bool = False
+    touchdown_speed_constraint: bool = True
     # a foot landing must put the post-impact capture point at least this far inside
     # the landing foot (behind its toe for a forward fall): looks beyond the edge, which
     # eq. 9 does not (departure from the paper, off by default)
