@@ -157,7 +157,7 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[NodeSpec]:
     from humfall_ros.estop.config import trigger_params
 
     trigger = trigger_params(sc["estop"])
-    if trigger or scenario_mod.walks(sc):
+    if scenario_mod.runs_estop(sc):
         # the e-stop listens on `estop` whenever the robot walks (humfall estop), and a scenario
         # trigger acts on exactly its tick (the same rule as closed_loop.runs_estop)
         nodes.append(NodeSpec("estop_planner", "humfall_ros.nodes.estop_planner", dict(trigger), "estop",
@@ -375,7 +375,7 @@ def collect_result(sc: dict, run_dir: pathlib.Path, wall: float, record: bool, p
     stats = run_dir / "recording_stats.json"
     if stats.is_file():
         result["recording"] = json.loads(stats.read_text())
-    if bag is not None and "estop" not in result and sc["estop"] and _ran_estop(sc):
+    if bag is not None and "estop" not in result and sc["estop"] and scenario_mod.runs_estop(sc):
         try:  # the e-stop section (paper 3 figures) from the bag's estop/status and centroidal_state
             from humfall_ros.estop.metrics import estop_result_from_bag
 
@@ -390,12 +390,6 @@ def collect_result(sc: dict, run_dir: pathlib.Path, wall: float, record: bool, p
         except Exception as e:  # noqa: BLE001 - a plot failure must not lose the result
             result["plot_error"] = str(e)
     return result
-
-
-def _ran_estop(sc: dict) -> bool:
-    from humfall_ros.estop.config import trigger_params
-
-    return bool(trigger_params(sc["estop"])) or scenario_mod.walks(sc)
 
 
 def summary(r: dict) -> str:

@@ -603,9 +603,19 @@ def node_defaults(sc: dict, node: str) -> dict[str, Any]:
     which may still override them (``humfall up`` and the in-process loop apply them alike):
     a scenario that walks gives the fall trigger boundary the gait reference
     (``ftb_monitor.use_walking_state``), since the standing boundary fires in normal steps
-    (docs/safe_fall.md: at 2.9 s of a 1.0 km/h walk).
+    (docs/safe_fall.md: at 2.9 s of a 1.0 km/h walk), and one that runs the e-stop the stop's
+    reference (``use_estop_status``: the standing boundary fired 12 ms into an unpushed stop).
     """
     out: dict[str, Any] = {}
     if node == "ftb_monitor" and walks(sc):
         out["use_walking_state"] = True
+    if node == "ftb_monitor" and runs_estop(sc):
+        out["use_estop_status"] = True  # a stop is referenced to its own plan, not to the standing boundary
     return out
+
+
+def runs_estop(sc: dict) -> bool:
+    """``humfall up`` starts the e-stop (``estop_planner``): the scenario walks or schedules a trigger."""
+    from humfall_ros.estop.config import trigger_params
+
+    return walks(sc) or bool(trigger_params(sc.get("estop") or {}))

@@ -119,3 +119,48 @@ def test_no_trigger_in_normal_walking():
     e = np.array(errors, float)
     assert np.isfinite(e).sum() > 1000 and np.nanmax(e) < 0.08
     assert math.isfinite(np.nanmax(e))
+
+
+def test_stop_reference_while_the_estop_plays():
+    st = types.SimpleNamespace(active=True, state="stopping", omega_c=4.0, com_ref=(1.0, 0.02, 0.7),
+                               com_velocity_ref=(0.4, -0.08, 0.0), stamp_ns=0)
+    g = core.stop_reference(st, [0.95, 0.0])
+    assert g.walking and np.allclose(g.reference_capture_point[:2], [1.1, 0.0])
+    assert np.allclose(g.reference_feet_center, [0.95, 0.0])
+    assert core.capture_point_error([1.12, 0.01, 0], [0.95, 0.0, 0], g) == pytest.approx(math.hypot(0.02, 0.01))
+    for not_playing in ({"state": "stopped"}, {"active": False}, {"com_ref": (math.nan,) * 3}):
+        assert core.stop_reference(types.SimpleNamespace(**{**vars(st), **not_playing}), [0.95, 0.0]) is None
+    assert core.stop_reference(None, None) is None
+
+
+def test_an_unpushed_stop_is_not_a_fall_and_a_pushed_one_is_handed_to_safe_fall():
+    """walking_estop with the safe-fall suite (what `humfall up --controller stepping` runs): the FTB follows the
+    stop's plan (use_estop_status, set for any scenario that runs the e-stop), so an unpushed stop ends with no
+    fall event (on the standing boundary it fired 12 ms into the stop), and a 400 N push during the stop still
+    triggers and hands the robot from the e-stop to safe fall."""
+    from humfall_ros import scenario
+    from humfall_ros.sim.closed_loop import ClosedLoop
+
+    def run(push: bool):
+        sc = scenario.load("walking_estop", ["controller=stepping", "estop.at.step=2", "duration=4.8"])
+        loop = ClosedLoop(sc)
+        estop = next(c for c in loop.controllers if c.source == "estop")
+        pushed, sources = False, []
+        try:
+            while loop.world.time < sc["duration"] - 1e-9:
+                loop.step()
+                sources.append(loop.active)
+                start = estop.status.start_time
+                if push and not pushed and math.isfinite(start) and loop.world.time >= start + 0.5:
+                    loop.world.add_push(np.array([400.0, 0.0, 0.0]), (0.0, 0.0, 0.2), 0.1, link="chest")
+                    pushed = True
+        finally:
+            loop.close()
+        return loop.monitors[0], sources
+
+    ftb, sources = run(False)
+    assert ftb.config.use_walking_state and ftb.config.use_estop_status
+    assert "estop" in sources and "safe_fall" not in sources and ftb.event is None
+    ftb, sources = run(True)
+    assert ftb.event is not None and sources[-1] == "safe_fall"
+    assert sources.index("estop") < sources.index("safe_fall")

@@ -250,11 +250,11 @@ def test_a_walking_scenario_gives_the_fall_trigger_the_gait_reference_on_both_pa
 
     walking = scenario.load("walking", ["controller=stepping"])
     assert scenario.walks(walking)
-    assert graph(walking)["use_walking_state"] is True
+    assert graph(walking)["use_walking_state"] is True and graph(walking)["use_estop_status"] is True
     assert node_params(walking, "ftb_monitor")["use_walking_state"] is True
     off = scenario.load("walking", ["controller=stepping", "params.ftb_monitor.use_walking_state=false"])
     assert graph(off)["use_walking_state"] is False and node_params(off, "ftb_monitor")["use_walking_state"] is False
     standing = scenario.load("standing_push", ["controller=stepping"])
     assert not scenario.walks(standing)
-    assert "use_walking_state" not in graph(standing)
+    assert "use_walking_state" not in graph(standing) and "use_estop_status" not in graph(standing)
     assert node_params(standing, "ftb_monitor")["use_walking_state"] is False

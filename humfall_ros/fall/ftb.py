@@ -101,6 +101,7 @@ class FtbConfig:
     robot_weight: float = 0.0   # [N]; 0: taken as the first observations' normal force
     push_end_time_s: float = -1.0  # [s] fixed mode without a push_end_time input (< 0: unknown)
     use_walking_state: bool = False  # the node's tick also waits for walking/state (the gait reference)
+    use_estop_status: bool = False  # ... and for estop/status (the stop's reference while it plays)
     recover_s: float = 0.5
     recover_speed: float = 0.05
     recover_lean_deg: float = 10.0
@@ -185,6 +186,40 @@ def gait_reference(x) -> GaitReference | None:
     return GaitRef(bool(getattr(x, "walking", False)) and not bool(getattr(x, "released", False)),
                    SUPPORT_NAMES.get(support, "double"), np.asarray(cp, float).reshape(-1)[:3].copy(),
                    np.zeros((0, 2)), int(stamp or 0), np.array([0.5 * (lx + rx), 0.5 * (ly + ry)]))
+
+
+def stop_reference(estop_status, reference_feet_center=None) -> GaitRef | None:
+    """The e-stop's plan as the motion reference while it plays (None otherwise).
+
+    ``estop_status``: the e-stop's ``EstopStatus`` (or its message): ``active``, ``state``, ``omega_c`` and
+    this tick's ``com_ref`` / ``com_velocity_ref`` (paper 3's generated CoG, world). The reference capture
+    point is com_ref + com_velocity_ref / omega_c (the LIPM's, at the trigger height); the reference feet
+    (``reference_feet_center``, [m] (2,)) are walking's planned soles of its last walking tick (the feet do
+    not move during a stop; a released walking/state no longer carries them), so the error is taken
+    relative to the feet like walking's (NaN / None: absolute). Why:
+    a stopping robot still moves at walking speed over its front foot, and the standing boundary (energy
+    over the leading edge) fired 12 ms into an unpushed 1.0 km/h stop (safe fall then took over).
+    """
+    if estop_status is None:
+        return None
+    if not bool(getattr(estop_status, "active", False)) or str(getattr(estop_status, "state", "")) != "stopping":
+        return None
+
+    def v3(x):
+        if x is None:
+            return np.full(3, np.nan)
+        if hasattr(x, "x"):
+            return np.array([x.x, x.y, x.z], float)
+        return np.asarray(x, float).reshape(-1)[:3]
+
+    c, cd = v3(getattr(estop_status, "com_ref", None)), v3(getattr(estop_status, "com_velocity_ref", None))
+    w = float(getattr(estop_status, "omega_c", math.nan))
+    if not (np.all(np.isfinite(c[:2])) and np.all(np.isfinite(cd[:2])) and math.isfinite(w) and w > 0):
+        return None
+    cp = np.array([c[0] + cd[0] / w, c[1] + cd[1] / w, 0.0])
+    feet = np.full(2, np.nan) if reference_feet_center is None else np.asarray(reference_feet_center, float)[:2]
+    return GaitRef(True, "double", cp, np.zeros((0, 2)), int(getattr(estop_status, "stamp_ns", 0) or 0),
+                   feet.copy())
 
 
 def capture_point_error(capture_point, feet_center, gait: GaitReference) -> float:
@@ -468,6 +503,7 @@ class FtbMonitor:
         self.inside_since: float | None = None
         self.weight = self.config.robot_weight if self.config.robot_weight > 0 else None
         self.com_height: float | None = None
+        self.gait_feet: np.ndarray | None = None  # walking's reference feet centre of its last walking tick
 
     # ---------------------------------------------------------------- conditions
     def _outside(self, obs: Observation, f: FtbFeatures) -> str:
@@ -484,6 +520,10 @@ class FtbMonitor:
         if not f.valid:
             return ""
         gait = gait_reference(obs.inputs.get("walking/state"))
+        if gait is not None and gait.walking:
+            self.gait_feet = np.asarray(getattr(gait, "reference_feet_center", (math.nan, math.nan)), float)[:2]
+        else:  # an e-stop playing its plan is the motion reference then (on walking's last feet)
+            gait = stop_reference(obs.inputs.get("estop/status"), self.gait_feet) or gait
         walking = gait is not None and gait.walking
         backstop = c.walking_lean_backstop_deg if walking else c.lean_backstop_deg
         if f.lean_angle > math.radians(backstop):

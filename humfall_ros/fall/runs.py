@@ -51,16 +51,18 @@ class FallRun:
 
 
 class GaitFedFtb:
-    """The FTB monitor fed ``walking/state`` from the walking controller (``use_walking_state``).
+    """The FTB monitor fed ``walking/state`` from the walking controller (``use_walking_state``) and, once
+    ``estop`` is set (``use_estop_status``), ``estop/status`` from the e-stop controller.
 
-    The loop runs monitors before controllers, so the state read is the one the walking controller
+    The loop runs monitors before controllers, so the states read are the ones the controllers
     computed on the previous tick (2 ms old; on the graph the FTB waits for the same tick's
-    ``walking/state``). The monitor's ``name``, ``latched``, ``event`` and ``state`` are the FTB's.
+    messages). The monitor's ``name``, ``latched``, ``event`` and ``state`` are the FTB's.
     """
 
-    def __init__(self, ftb: FtbMonitor, walking):
+    def __init__(self, ftb: FtbMonitor, walking=None, estop=None):
         self.inner = ftb
         self.walking = walking
+        self.estop = estop
         self.name = ftb.name
 
     def __getattr__(self, name):
@@ -70,11 +72,16 @@ class GaitFedFtb:
         self.inner.reset()
 
     def step(self, observation):
+        extra = {}
         state = getattr(self.walking, "state", None)
-        if state is None:
+        if state is not None:
+            extra["walking/state"] = state
+        status = getattr(self.estop, "status", None)
+        if status is not None:
+            extra["estop/status"] = status
+        if not extra:
             return self.inner.step(observation)
-        return self.inner.step(dataclasses.replace(observation,
-                                                   inputs={**observation.inputs, "walking/state": state}))
+        return self.inner.step(dataclasses.replace(observation, inputs={**observation.inputs, **extra}))
 
 
 def controllers_for(sc: dict, kind: str, model=None):

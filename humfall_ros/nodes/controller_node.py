@@ -115,6 +115,7 @@ class ControllerNode(Node):
                 self.create_subscription(i.msg_type, i.topic, lambda m, i=i: self._on_latched(i, m),
                                          i.qos or QOS_LATCHED)
         self.last_cmd: JointState | None = None
+        self.tick_outputs: list[tuple[Any, Any]] = []  # (publisher, message) of the last tick, see publish_tick
         self.engaged = False
         self.failures = 0
         self.get_logger().info(f"controller {type(self.controller).__name__} as source {self.source!r}; "
@@ -132,6 +133,8 @@ class ControllerNode(Node):
         if action is Action.RETRANSMIT:
             if self.last_cmd is not None:
                 self.pub.publish(self.last_cmd)  # the bridge resent the tick: answer it again
+            for pub, out in self.tick_outputs:  # and the tick's other outputs (a reader may have missed them)
+                pub.publish(out)
             return
         if action is Action.RESET:
             self.get_logger().info(f"sim time went back to {stamp_key(msg.header.stamp) * 1e-9:.3f} s: "
@@ -162,6 +165,7 @@ class ControllerNode(Node):
         tick = self.gate.poll()
         if tick is None:
             return
+        self.tick_outputs = []
         stamp = tick.inputs["centroidal_state"].header.stamp
         try:
             obs = self.observation(tick.stamp_ns, tick.inputs)
@@ -191,5 +195,13 @@ class ControllerNode(Node):
             cmd.velocity = np.asarray(targets.velocities, float).tolist()
         return cmd
 
+    def publish_tick(self, pub, msg) -> None:
+        """Publish a per-tick output of this tick (walking/state, estop/status): sent again with the command
+        when the tick is retransmitted, since a reader that matched late (start-up) would otherwise wait for it
+        for ever in lockstep."""
+        pub.publish(msg)
+        self.tick_outputs.append((pub, msg))
+
     def after_step(self, observation: Observation, targets: JointTargets | None) -> None:
-        """Hook for subclasses: publish the controller's own per-tick state (e.g. walking/state)."""
+        """Hook for subclasses: publish the controller's own per-tick state (e.g. walking/state) with
+        :meth:`publish_tick`."""

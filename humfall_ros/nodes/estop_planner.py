@@ -160,7 +160,7 @@ class EstopPlannerNode(ControllerNode):
         self._logged = len(c.messages)
         msg = status_to_msg(c.status)
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(observation.stamp_ns), 1_000_000_000)
-        self.status_pub.publish(msg)
+        self.publish_tick(self.status_pub, msg)
 
 
 def main(args=None) -> int:

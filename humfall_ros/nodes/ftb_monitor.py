@@ -1,6 +1,7 @@
 """ftb_monitor: the fall trigger boundary (paper 1 §II-B) as a per-tick node (not a command source).
 
-Gathers the tick's ``centroidal_state`` (and ``walking/state`` with ``use_walking_state``) in
+Gathers the tick's ``centroidal_state`` (and ``walking/state`` with ``use_walking_state``, ``estop/status`` with
+``use_estop_status``) in
 its own tick gate, runs ``fall.ftb.FtbMonitor`` (the same object the in-process loop runs as
 a monitor) and publishes
 
@@ -133,7 +134,8 @@ class FtbMonitorNode(Node):
         self.monitor = core.FtbMonitor(self.config)
         self.pub_status = self.create_publisher(FtbStatus, "ftb/status", QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
         self.pub_event = self.create_publisher(FallEvent, "fall_event", QOS_LATCHED)
-        kinds = {"centroidal_state"} | ({"walking/state"} if self.config.use_walking_state else set())
+        kinds = ({"centroidal_state"} | ({"walking/state"} if self.config.use_walking_state else set())
+                 | ({"estop/status"} if self.config.use_estop_status else set()))
         self.gate = TickGate(kinds, trigger="centroidal_state")
         self.hot_loop = HotLoop(self, on_batch=self._on_batch)
         self.hot_loop.subscribe(CentroidalState, "centroidal_state", lambda m: self._offer("centroidal_state", m))
@@ -141,6 +143,10 @@ class FtbMonitorNode(Node):
             from humfall_interfaces.msg import WalkingState
 
             self.hot_loop.subscribe(WalkingState, "walking/state", lambda m: self._offer("walking/state", m))
+        if self.config.use_estop_status:
+            from humfall_interfaces.msg import EstopStatus
+
+            self.hot_loop.subscribe(EstopStatus, "estop/status", lambda m: self._offer("estop/status", m))
         self.create_service(Trigger, "ftb/reset", self._on_reset)
         self.msg = FtbStatus()
         self.msg.header.frame_id = "odom"
@@ -170,6 +176,8 @@ class FtbMonitorNode(Node):
             inputs = {}
             if "walking/state" in tick.inputs:
                 inputs["walking/state"] = GaitFromMsg(tick.inputs["walking/state"])
+            if "estop/status" in tick.inputs:  # core.stop_reference reads the message's fields as they are
+                inputs["estop/status"] = tick.inputs["estop/status"]
             obs = Observation(tick.stamp_ns, np.zeros(0), np.zeros(0), centroidal_from_msg(cs), "", inputs)
             st = self.monitor.step(obs)
             status_to_msg(st, self.msg)

@@ -116,7 +116,7 @@ class Locomotion(ControllerNode):
     def after_step(self, observation: Observation, targets: JointTargets | None) -> None:
         msg = walking_state_to_msg(self.controller.state)
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(observation.stamp_ns), 1_000_000_000)
-        self.state_pub.publish(msg)
+        self.publish_tick(self.state_pub, msg)
         log = self.controller.messages
         for line in log[self._logged:]:
             (self.get_logger().warning if ("refused" in line or "clamped" in line or "ignored" in line)

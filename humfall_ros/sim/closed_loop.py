@@ -105,10 +105,9 @@ class SameTickInputs:
 
 def runs_estop(sc: dict) -> bool:
     """``humfall up`` starts the e-stop when the scenario walks or schedules a trigger."""
-    from humfall_ros.estop.config import trigger_params
-    from humfall_ros.scenario import walks
+    from humfall_ros.scenario import runs_estop as _runs_estop
 
-    return walks(sc) or bool(trigger_params(sc["estop"]))
+    return _runs_estop(sc)
 
 
 def suite(sc: dict, model) -> tuple[list[Controller], list[Monitor]]:
@@ -137,6 +136,13 @@ def suite(sc: dict, model) -> tuple[list[Controller], list[Monitor]]:
         p.update(trigger_params(sc["estop"]))
         estop = EstopController(model, EstopConfig.from_params(p), 1.0 / sc["sim"]["control_rate"])
         controllers.append(SameTickInputs(estop, {"walking/state": lambda: loco.state}))
+        if monitors and getattr(monitors[0], "config", None) is not None and monitors[0].config.use_estop_status:
+            from humfall_ros.fall.runs import GaitFedFtb
+
+            ftb = monitors[0]
+            if not isinstance(ftb, GaitFedFtb):
+                ftb = monitors[0] = GaitFedFtb(ftb)
+            ftb.estop = estop  # the stop's reference while it plays (the node waits for estop/status)
     return controllers, monitors
 
 
