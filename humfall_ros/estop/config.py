@@ -102,12 +102,7 @@ class EstopConfig:
     def from_params(d: dict) -> EstopConfig:
         """From a dict of parameter names (e.g. ``params.defaults("estop_planner")``); unknown keys are refused
         (the node's own keys, :data:`NODE_KEYS`, are ignored)."""
-        names = {f.name for f in dataclasses.fields(EstopConfig)}
-        d = {k: v for k, v in d.items() if k not in NODE_KEYS}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"EstopConfig: unknown keys {sorted(unknown)}")
-        return EstopConfig(**d)
+        return params.config_from(EstopConfig, d, "estop_planner", ignore=tuple(NODE_KEYS))
 
     @staticmethod
     def defaults(**overrides) -> EstopConfig:

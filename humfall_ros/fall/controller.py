@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.dynamics.toppling import FallOutcome, time_to_lean
 from humfall_ros.fall import step_search as ss
@@ -100,10 +101,7 @@ class SafeFallConfig:
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> SafeFallConfig:
         """From a ``params.defaults("safe_fall_controller")``-shaped dict; unknown keys are refused."""
-        unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
-        if unknown:
-            raise ValueError(f"safe_fall_controller: unknown parameters {sorted(unknown)}")
-        return cls(**d)
+        return params.config_from(cls, d, "safe_fall_controller")
 
     @property
     def search(self) -> ss.SearchConfig:

@@ -41,6 +41,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from humfall_ros import params
 from humfall_ros.control.contract import CentroidalObservation, Observation
 from humfall_ros.dynamics.pendulum import GRAVITY
 from humfall_ros.dynamics.toppling import FallOutcome, edge_pendulum, time_to_lean
@@ -109,14 +110,10 @@ class FtbConfig:
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> FtbConfig:
         """From ``params.defaults("ftb_monitor")``-shaped dict; unknown keys are refused."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"ftb_monitor: unknown parameters {sorted(unknown)}")
         kw = dict(d)
         if "mode" in kw:
             kw["mode"] = TriggerMode(kw["mode"])
-        return cls(**kw)
+        return params.config_from(cls, kw, "ftb_monitor")
 
 
 @runtime_checkable

@@ -40,6 +40,7 @@ import time
 import casadi as ca
 import numpy as np
 
+from humfall_ros import params
 from humfall_ros.multicontact import contacts as C
 from humfall_ros.multicontact.landing import LandingLimits
 from humfall_ros.multicontact.model import EXTREMITIES, FEET, PlanarModel
@@ -135,11 +136,7 @@ class OptConfig:
     def from_params(d: dict) -> OptConfig:
         """From a dict of OptConfig field names (e.g. split out of the node's
         declaration by ``planner.configs_from_params``); unknown keys are refused."""
-        names = {f.name for f in dataclasses.fields(OptConfig)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"OptConfig: unknown keys {sorted(unknown)}")
-        return OptConfig(**d)
+        return params.config_from(OptConfig, d)
 
     def t_min_of(self, change: str) -> float:
         """T_min of a segment of this kind (s)."""

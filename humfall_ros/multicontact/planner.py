@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 
+from humfall_ros import params
 from humfall_ros.multicontact import contacts as C
 from humfall_ros.multicontact.collocation import OptConfig, TrajectoryOptimizer
 from humfall_ros.multicontact.initial_state import (
@@ -58,11 +59,7 @@ class PlannerConfig:
     @staticmethod
     def from_params(d: dict) -> PlannerConfig:
         """From a dict of PlannerConfig field names; unknown keys are refused."""
-        names = {f.name for f in dataclasses.fields(PlannerConfig)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"PlannerConfig: unknown keys {sorted(unknown)}")
-        return PlannerConfig(**d)
+        return params.config_from(PlannerConfig, d)
 
 
 # parameters of config/multicontact_planner.yaml that only the node uses
@@ -220,7 +217,6 @@ class FallPlanner:
     def from_params(values: dict | None = None, **overrides) -> FallPlanner:
         """A planner built from the node's declaration (config/multicontact_planner.yaml),
         ``overrides`` by parameter name on top (the way tests and benchmarks build it)."""
-        from humfall_ros import params
         vals = params.defaults("multicontact_planner") if values is None else dict(values)
         unknown = set(overrides) - set(vals)
         if unknown:

@@ -75,13 +75,7 @@ class LocomotionConfig:
         values = params.defaults("locomotion")
         if d:
             values.update(params.check_overrides("locomotion", d))
-        for k in NODE_ONLY:
-            values.pop(k, None)
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(values) - names
-        if unknown:
-            raise params.ParamError(f"locomotion: parameters without a LocomotionConfig field: {sorted(unknown)}")
-        cfg = cls(**values)
+        cfg = params.config_from(cls, values, "locomotion", ignore=tuple(NODE_ONLY))
         if cfg.double_support >= cfg.step_period:
             raise params.ParamError("locomotion: double_support must be shorter than step_period")
         if 0 < cfg.fast_step_period <= cfg.double_support:
