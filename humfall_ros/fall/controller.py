@@ -80,7 +80,7 @@ class SafeFallConfig:
     ik_velocity_fraction: float = 0.95
     stance_leg_weight: float = 10.0
     replan_s: float = 0.0
-    replan_single_support_s: float = 0.1
+    replan_single_support_s: float = 0.05
     replan_capture_away: bool = False
     shaping_lean_deg: float = 20.0
     shaping_gain: float = 0.02
