@@ -159,7 +159,7 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[NodeSpec]:
     trigger = trigger_params(sc["estop"])
     if scenario_mod.runs_estop(sc):
         # the e-stop listens on `estop` whenever the robot walks (humfall estop), and a scenario
-        # trigger acts on exactly its tick (the same rule as closed_loop.runs_estop)
+        # trigger acts on exactly its tick (scenario.runs_estop: the same rule in process)
         nodes.append(NodeSpec("estop_planner", "humfall_ros.nodes.estop_planner", dict(trigger), "estop",
                               builtin.get("estop")))
     for ci, c in enumerate(sc.get("controllers") or []):

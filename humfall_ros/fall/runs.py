@@ -95,8 +95,8 @@ def controllers_for(sc: dict, kind: str, model=None):
     model = model or load_model()
     ftb = FtbMonitor(FtbConfig.from_params(node_params(sc, "ftb_monitor")))
     ctrls = [locomotion_controller(sc, model)]  # the locomotion node's own controller
-    if ftb.config.use_walking_state:
-        ftb = GaitFedFtb(ftb, ctrls[0])
+    if ftb.config.use_walking_state or ftb.config.use_estop_status:  # the e-stop is set by sim.closed_loop.suite
+        ftb = GaitFedFtb(ftb, ctrls[0] if ftb.config.use_walking_state else None)
     if kind != "none":
         p = node_params(sc, "safe_fall_controller")
         p.update(CONTROLLER_PARAMS.get(kind, {}).get("safe_fall_controller", {}))

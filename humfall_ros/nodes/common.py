@@ -13,7 +13,7 @@ import os
 import threading
 import sys
 import time
-from typing import Any, Callable
+from typing import Any, Callable, NoReturn
 
 from humfall_ros import params as params_mod
 
@@ -162,10 +162,19 @@ def _exit_past_worker_threads(code: int) -> int:
     busy = [t for t in threading.enumerate() if t is not threading.main_thread() and t.is_alive()
             and not t.name.startswith(("pydevd", "Dummy"))]
     if busy:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code)
+        leave_now(code)
     return code
+
+
+def leave_now(code: int) -> NoReturn:
+    """End the process with ``code`` without the interpreter's finalisation (streams flushed first).
+
+    For a node whose rclpy is shut down and files closed: nothing is lost, and tearing down what a
+    C++ library still holds (a busy worker thread, casadi's NLP structures) is skipped.
+    """
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 # Our per-tick topics need no QoS event callbacks; each one would be another

@@ -1,9 +1,8 @@
 """ftb_monitor: the fall trigger boundary (paper 1 §II-B) as a per-tick node (not a command source).
 
-Gathers the tick's ``centroidal_state`` (and ``walking/state`` with ``use_walking_state``, ``estop/status`` with
-``use_estop_status``) in
-its own tick gate, runs ``fall.ftb.FtbMonitor`` (the same object the in-process loop runs as
-a monitor) and publishes
+Gathers the tick's ``centroidal_state`` (and ``walking/state`` with ``use_walking_state``,
+``estop/status`` with ``use_estop_status``) in its own tick gate, runs ``fall.ftb.FtbMonitor``
+(the same object the in-process loop runs as a monitor) and publishes
 
 * ``ftb/status`` (``humfall_interfaces/FtbStatus``) every tick, stamped like the tick; from
   the trigger on it carries the latched fall event, so ``safe_fall_controller`` acts on the

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import sys
 import threading
 import time
 
@@ -25,7 +23,7 @@ from rclpy.node import Node
 from humfall_ros.multicontact import contacts as C
 from humfall_ros.multicontact.modes import Environment, mode_label
 from humfall_ros.multicontact.planner import FallPlanner, configs_from_params
-from humfall_ros.nodes.common import Params, run_node
+from humfall_ros.nodes.common import Params, leave_now, run_node
 
 NAME = "multicontact_planner"
 
@@ -155,9 +153,7 @@ def main(args=None) -> int:
     # rclpy is shut down and the node holds no files; what is left is the interpreter freeing the
     # warm-up's casadi NLP structures, measured at 1.65 s of the 1.7 s a SIGINT took with 9 of
     # them (the 2 s stop goal of issue 9), so leave without it
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(code)
+    leave_now(code)
 
 
 if __name__ == "__main__":

@@ -103,13 +103,6 @@ class SameTickInputs:
         return self.inner.step(dataclasses.replace(observation, inputs={**observation.inputs, **extra}))
 
 
-def runs_estop(sc: dict) -> bool:
-    """``humfall up`` starts the e-stop when the scenario walks or schedules a trigger."""
-    from humfall_ros.scenario import runs_estop as _runs_estop
-
-    return _runs_estop(sc)
-
-
 def suite(sc: dict, model) -> tuple[list[Controller], list[Monitor]]:
     """The controllers and monitors ``humfall up`` starts for ``sc``, as in-process objects.
 
@@ -128,6 +121,8 @@ def suite(sc: dict, model) -> tuple[list[Controller], list[Monitor]]:
     else:
         loco = locomotion_controller(sc, model)
         controllers = [loco]
+    from humfall_ros.scenario import runs_estop
+
     if runs_estop(sc):
         from humfall_ros.estop.config import EstopConfig, trigger_params
         from humfall_ros.estop.controller import EstopController
@@ -136,13 +131,9 @@ def suite(sc: dict, model) -> tuple[list[Controller], list[Monitor]]:
         p.update(trigger_params(sc["estop"]))
         estop = EstopController(model, EstopConfig.from_params(p), 1.0 / sc["sim"]["control_rate"])
         controllers.append(SameTickInputs(estop, {"walking/state": lambda: loco.state}))
-        if monitors and getattr(monitors[0], "config", None) is not None and monitors[0].config.use_estop_status:
-            from humfall_ros.fall.runs import GaitFedFtb
-
-            ftb = monitors[0]
-            if not isinstance(ftb, GaitFedFtb):
-                ftb = monitors[0] = GaitFedFtb(ftb)
-            ftb.estop = estop  # the stop's reference while it plays (the node waits for estop/status)
+        for m in monitors:
+            if getattr(m, "config", None) is not None and m.config.use_estop_status and hasattr(m, "estop"):
+                m.estop = estop  # the FTB's stop reference while it plays (the node waits for estop/status)
     return controllers, monitors
 
 

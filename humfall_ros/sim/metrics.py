@@ -178,8 +178,9 @@ class FallMetrics:
         if self.decision is not None:
             stepped = td is not None and d["case"].startswith("step")
             out["captured"] = bool(stepped and not self.fell)
-        if td is not None and self._step_cops(side):
-            p2 = np.mean(self._step_cops(side), axis=0)
+        cops = self._step_cops(side) if td is not None else []
+        if cops:
+            p2 = np.mean(cops, axis=0)
             out["measured_p2"] = [float(x) for x in p2]
             if self.fell and land is not None and self.target_xy is not None:
                 out["avoidance_angle_p2_deg"] = avoidance_angle_deg(p2, land, self.target_xy)
