@@ -200,8 +200,14 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
          "crouch_height_m": s.crouch_height}
     if plan is not None:
         start = float(s.start_time)
+        # result.json's section as the run measures it (estimator CoG / CoP, the stop frame on the measured
+        # feet from the status), and the same section from the pattern's frame (the old figures) for comparison
         m.update(estop_result(plan, trace["t"], trace["com"], trace["cop"], trace["margin"], start, fell,
-                              estop.cfg.settle_speed))
+                              estop.cfg.settle_speed, frame=estop.feet_frame, polygon=estop.feet_polygon))
+        m.update({f"{k}_pattern_frame": v for k, v in estop_result(
+            plan, trace["t"], trace["com"], trace["cop"], trace["margin"], start, fell,
+            estop.cfg.settle_speed).items() if k.startswith(("final_cog", "max_cop", "min_cop"))})
+        m["result_feet_yaw_off_pattern_deg"] = math.degrees(s.feet_yaw_off_pattern)
         m.update(acceptance(plan, s, trace, start))
         truth = dict(trace, cop=trace["cop_truth"], margin=truth_margins(trace, plan, start))
         m.update({f"{k}_tick_avg": v for k, v in acceptance(plan, s, truth, start).items()
@@ -211,6 +217,11 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
         # the same on the robot's feet (ground truth): the plan's frame carried from the pattern's feet onto
         # the measured soles at the start (the robot may have yawed / drifted off its pattern's world frame)
         m.update(feet_figures(plan, trace, start))
+        m["final_cog_major_truth_m"] = m["final_cog_vs_n3_m_feet"] + float(plan.major.n3)
+        mo = feet_motion(plan, trace, start)
+        m["stop_time_truth_s"] = estop_result(plan, trace["t"], trace["com_truth"], trace["cop_truth"],
+                                              trace["margin"], start, fell, estop.cfg.settle_speed,
+                                              frame=plan.frame.moved(mo))["stop_time_s"]
         m.update(walking_touchdowns(trace, start))
     else:
         m.update({"feasible": None, "fell": fell})
@@ -528,6 +539,21 @@ FEET_COLUMNS = (("speed_kmh", "km/h"), ("step", "step"), ("phase", "phase"), ("w
                 ("sole_slide_m", "sole slide m"))
 
 
+# result.json's estop section (estimator, stop frame on the measured feet) beside the ground truth on the feet
+RESULT_COLUMNS = (("speed_kmh", "km/h"), ("phase", "phase"),
+                  ("result_feet_yaw_off_pattern_deg", "feet yaw off pattern deg"), ("n3_m", "n3 m"),
+                  ("final_cog_major_m_pattern_frame", "result (pattern frame, before): final CoG Major m"),
+                  ("final_cog_major_m", "result: final CoG Major m"),
+                  ("final_cog_major_truth_m", "truth: final CoG Major m"),
+                  ("final_cog_minor_m_pattern_frame", "result (before): final CoG Minor m"),
+                  ("final_cog_minor_m", "result: final CoG Minor m"), ("final_cog_minor_m_feet", "truth: Minor m"),
+                  ("max_cop_minor_m", "result: max CoP Minor m"), ("max_cop_minor_m_feet", "truth: max CoP Minor m"),
+                  ("min_cop_margin_m", "result: min CoP margin m"),
+                  ("min_cop_margin_from_start_m_feet", "truth: min CoP margin m"),
+                  ("stop_time_s", "result: stop time s"), ("stop_time_estimator_v_s", "trials: stop time s"),
+                  ("stop_time_truth_s", "truth: stop time s"))
+
+
 def markdown_table(rows: list[dict], columns=COLUMNS) -> str:
     """The trial table (docs/estop.md), tick-averaged CoP figures; signed Major values as measured."""
     def f(v):
@@ -557,6 +583,8 @@ def main(argv=None) -> int:
     ap.add_argument("--markdown", nargs="*", default=None, help="print the table of these --json files and exit")
     ap.add_argument("--pattern-frame", action="store_true",
                     help="with --markdown: the old table in the pattern's frame (default: on the measured feet)")
+    ap.add_argument("--result-vs-truth", action="store_true",
+                    help="with --markdown: result.json's section (estimator, feet frame) beside the ground truth")
     ap.add_argument("--push", type=float, nargs="*", default=None, metavar="FX [FY]",
                     help="push during the stop (0.1 s on the chest, --push-delay after its start) with safe_fall")
     ap.add_argument("--push-delay", type=float, default=0.5)
@@ -574,7 +602,8 @@ def main(argv=None) -> int:
     if a.markdown:
         rows = [figures_from_npz(path) if path.endswith(".npz") else r for path in a.markdown
                 for r in ([None] if path.endswith(".npz") else json.load(open(path)))]
-        print(markdown_table(rows, COLUMNS if a.pattern_frame else FEET_COLUMNS))
+        print(markdown_table(rows, RESULT_COLUMNS if a.result_vs_truth else COLUMNS if a.pattern_frame
+                             else FEET_COLUMNS))
         return 0
     rows = []
     over = {"fallback": a.fallback} if a.fallback else {}

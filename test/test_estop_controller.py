@@ -252,3 +252,67 @@ def test_feet_are_held_where_the_applied_targets_put_them():
     # the front foot is not moved to the pattern's (0.15 m ahead): the applied legs' geometry is kept
     pitch = [M.joint_index(f"{s}_ankle_pitch") for s in "lr"]
     assert out.positions[pitch[0]] - out.positions[pitch[1]] == pytest.approx(0.03, abs=3e-3)
+
+
+def test_a_yawed_robot_result_is_measured_in_the_stop_frame_on_its_measured_feet():
+    """The robot stands 15 deg yawed and 0.3 m off its pattern (the estimator's world vs walking's): the status
+    carries the stop frame carried onto the measured feet (IMU yaw, measured joints, estimated feet centre), and
+    result.json's section measured in it reads the stop as planned; in the pattern's frame it is 5+ cm off."""
+    import math
+
+    import pinocchio as pin
+
+    from humfall_ros.estop.controller import measured_sole_centers
+    from humfall_ros.estop.metrics import estop_result
+    from humfall_ros.model.humanoid import point_in_polygon_margin
+
+    yaw, shift = math.radians(15.0), np.array([0.3, -0.1])
+    Rz = np.array([[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
+    joints = M.joint_vector(STANDING_POSTURE)
+    d = M.model.createData()
+    pin.framesForwardKinematics(M.model, d, M.configuration([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], joints))
+    soles = {s: d.oMf[M.frame_ids[M.sole_frame[s]]].translation.copy() for s in "lr"}
+    ankles = {s: d.oMf[M.frame_ids[M.foot_link[s]]].translation.copy() for s in "lr"}
+    pattern = Pattern(left_foot=(soles["l"][0], soles["l"][1], 0.0, 0.0),
+                      right_foot=(soles["r"][0], soles["r"][1], 0.0, 0.0),
+                      com_ref=np.array([0.5 * (soles["l"][0] + soles["r"][0]), 0.0, 0.74]),
+                      zmp_ref=np.array([soles["r"][0], soles["r"][1] + 0.03, 0.0]))
+    imu = Rz @ d.oMf[M.frame_ids[M.imu_frame]].rotation
+    q = pin.Quaternion(imu).coeffs()                                 # x, y, z, w
+    mid = 0.5 * (ankles["l"] + ankles["r"])
+    feet_center = Rz @ mid + np.array([*shift, 0.0])
+    meas = measured_sole_centers(M, joints, feet_center, q)
+    from humfall_ros.estop.frame import FootPose
+
+    for s in "lr":                                                  # the soles turned and shifted with the robot
+        c = FootPose(ankles[s], d.oMf[M.frame_ids[M.foot_link[s]]].rotation).sole_center(M, s)
+        np.testing.assert_allclose(meas[s][:2], (Rz @ (c - mid))[:2] + feet_center[:2], atol=1e-6)
+    ctl = EstopController(M, EstopConfig.defaults(trigger_time=0.0), DT)
+    o = obs(0.0, **{"walking/state": pattern, "imu": (q, np.zeros(3))})
+    o = dataclasses.replace(o, state=dataclasses.replace(o.state, feet_center=feet_center))
+    assert ctl.step(o) is not None and ctl.state == EstopState.STOPPING, ctl.messages
+    s, plan = ctl.status, ctl.plan
+    assert s.feet_yaw_off_pattern == pytest.approx(yaw, abs=1e-6)
+    np.testing.assert_allclose(s.feet_major_axis, Rz[:2, :2] @ plan.frame.major, atol=1e-6)
+    moved_origin = Rz[:2, :2] @ (plan.frame.origin - mid[:2]) + feet_center[:2]
+    np.testing.assert_allclose(s.feet_frame_origin, moved_origin, atol=1e-6)
+    assert len(s.feet_support_polygon) == len(plan.support_polygon)
+    # the robot plays the plan exactly, in its own (yawed, shifted) world
+    t = np.arange(0.0, plan.end_time + 0.5, DT)
+    refs = [plan.sample(x) for x in t]
+
+    def carried(p):
+        return np.array([*(Rz[:2, :2] @ (np.asarray(p)[:2] - mid[:2]) + feet_center[:2]), 0.0])
+
+    com = np.array([[*carried(r.com)[:2], r.com[2]] for r in refs])
+    cop = np.array([carried(r.zmp) for r in refs])
+    poly = np.asarray(s.feet_support_polygon)
+    margin = np.array([point_in_polygon_margin(p, poly) for p in cop])
+    res = estop_result(plan, t, com, cop, margin, 0.0, False, frame=ctl.feet_frame, polygon=ctl.feet_polygon)
+    assert res["final_cog_major_m"] == pytest.approx(plan.major.n3, abs=1e-6)
+    assert res["final_cog_minor_m"] == pytest.approx(0.0, abs=1e-6)
+    assert res["max_cop_minor_m"] == pytest.approx(abs(plan.minor.max_zmp), abs=2e-3)
+    assert res["min_cop_margin_m"] >= plan.min_zmp_margin - 2e-3
+    assert res["stop_time_s"] == pytest.approx(plan.stop_time, abs=0.02)
+    old = estop_result(plan, t, com, cop, margin, 0.0, False)          # the pattern's frame: wrong
+    assert math.hypot(old["final_cog_major_m"] - plan.major.n3, old["final_cog_minor_m"]) > 0.05

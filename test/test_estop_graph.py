@@ -143,8 +143,11 @@ def test_the_status_message_carries_every_status_field_and_walking_state_convert
 
     s = EstopStatus(state="stopping", active=True, n_major=(0.0, -0.1, 0.1), gains_minor=(1.0, 2.0, 3.0),
                     final_com=(0.1, 0.2, 0.7), frame_origin=(0.3, 0.4), major_axis=(0.0, 1.0), feasible=True,
-                    com_ref=(1.0, 2.0, 3.0), reason="x")
+                    com_ref=(1.0, 2.0, 3.0), reason="x", feet_frame_origin=(0.5, 0.6), feet_major_axis=(0.6, 0.8),
+                    feet_support_polygon=((0.0, 0.0), (0.1, 0.0), (0.1, 0.2)), feet_yaw_off_pattern=0.2)
     m = status_to_msg(s)
+    assert (m.feet_frame_origin.y, m.feet_major_axis.x, m.feet_yaw_off_pattern) == (0.6, 0.6, 0.2)
+    assert [(p.x, p.y) for p in m.feet_support_polygon] == [(0.0, 0.0), (0.1, 0.0), (0.1, 0.2)]
     assert m.state == "stopping" and m.active and m.feasible and m.reason == "x"
     assert list(m.n_major) == [0.0, -0.1, 0.1] and list(m.gains_minor) == [1.0, 2.0, 3.0]
     assert (m.final_com.x, m.final_com.y, m.final_com.z) == (0.1, 0.2, 0.7)

@@ -60,7 +60,7 @@ import pinocchio as pin
 
 from humfall_ros.control.contract import JointTargets, Observation, stamp_ns_of
 from humfall_ros.estop.config import EstopConfig, TriggerPhase
-from humfall_ros.estop.frame import FootPose
+from humfall_ros.estop.frame import FootPose, PlanarMotion
 from humfall_ros.estop.planner import EstopInputError, EstopPlanner, PatternState, StopPlan
 from humfall_ros.estop.posture import configuration_from_feet
 from humfall_ros.estop.statespace import return_home, stop_duration_within_limits
@@ -124,6 +124,11 @@ class EstopStatus:
         final_com: the planned final CoG [m] (3,), world.
         reason: why infeasible / refused / yielded, or "".
         frame_origin: world xy of the stop frame's origin [m] (2,); major_axis: its unit Major axis (2,).
+        feet_frame_origin, feet_major_axis: the same frame carried onto the measured feet at the stop's start
+            (:func:`measured_sole_centers`, ``StopFrame.moved`` by ``PlanarMotion.between_feet``): the frame the
+            result's figures are measured in (the robot may have yawed / drifted off its pattern).
+        feet_support_polygon: the stop's double-support polygon carried the same way [m] ((k, 2) as a tuple).
+        feet_yaw_off_pattern: that motion's yaw [rad] (measured feet minus the pattern's).
         com_ref, com_velocity_ref, zmp_ref: this tick's references of the stop [m, m/s, m] (3,), world
             (NaN when not playing a plan): what plan-vs-measured plots read from a bag.
     """
@@ -162,6 +167,10 @@ class EstopStatus:
     reason: str = ""
     frame_origin: tuple = (math.nan,) * 2
     major_axis: tuple = (math.nan,) * 2
+    feet_frame_origin: tuple = (math.nan,) * 2
+    feet_major_axis: tuple = (math.nan,) * 2
+    feet_support_polygon: tuple = ()
+    feet_yaw_off_pattern: float = math.nan
     com_ref: tuple = (math.nan,) * 3
     com_velocity_ref: tuple = (math.nan,) * 3
     zmp_ref: tuple = (math.nan,) * 3
@@ -240,6 +249,32 @@ def feet_from_joints(model: HumanoidModel, joints, feet_center_xy, heading: floa
         soles_flat[s] = (float(feet_center_xy[0] + rel[0]), float(feet_center_xy[1] + rel[1]), 0.0,
                          yaw[s] + heading - mean_yaw)
     return feet_from_soles(model, soles_flat)
+
+
+def measured_sole_centers(model: HumanoidModel, joints, feet_center, imu_orientation=None,
+                          q_fallback: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Sole centres [m] (3,) per side in the estimator's world, as ``centroidal_state`` measures the feet.
+
+    The estimator's own construction (humfall_ros.model.estimation): the measured joints, the base orientation
+    from the IMU through the waist kinematics (``imu_orientation`` xyzw; without it, that of ``q_fallback``, or
+    identity), and the ankles' mid-point placed at the estimated ``feet_center`` (leg odometry: the feet drift with
+    the CoG estimate, so figures relative to them do not)."""
+    d = model.model.createData()
+    q = model.configuration([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], np.asarray(joints, float))
+    pin.framesForwardKinematics(model.model, d, q)
+    if imu_orientation is not None:
+        R = quat_matrix(np.asarray(imu_orientation, float)) @ d.oMf[model.frame_ids[model.imu_frame]].rotation.T
+    elif q_fallback is not None:
+        R = _base_rotation(q_fallback)
+    else:
+        R = np.eye(3)
+    ankles = [R @ d.oMf[model.frame_ids[model.foot_link[s]]].translation for s in SIDES]
+    shift = np.asarray(feet_center, float) - 0.5 * (ankles[0] + ankles[1])
+    out = {}
+    for s in SIDES:
+        M = d.oMf[model.frame_ids[model.foot_link[s]]]
+        out[s] = FootPose(R @ M.translation + shift, R @ M.rotation).sole_center(model, s)
+    return out
 
 
 def pattern_state_from_walking(model: HumanoidModel, ws, offsets: dict | None = None) -> PatternState:
@@ -324,6 +359,8 @@ class EstopController:
         self._t_b = 0.0
         self._prev_ws = None
         self.now = 0.0
+        self.feet_frame = None          # the stop frame on the measured feet (set at the stop's start)
+        self.feet_polygon = None
 
     def run_metrics(self) -> dict:
         """The run's e-stop outcome for the in-process loop's metrics (``estop_*`` keys; campaigns)."""
@@ -517,7 +554,30 @@ class EstopController:
                                                 self.cfg.joint_stop_time)
         if not plan.feasible:
             self._log(f"estop: predicted infeasible: {plan.reason}")
-        self._set(EstopState.STOPPING, observation.stamp_ns, start_time=observation.time, **status_from_plan(plan))
+        self._set(EstopState.STOPPING, observation.stamp_ns, start_time=observation.time, **status_from_plan(plan),
+                  **self._feet_frame_fields(observation, plan, q_seed))
+
+    def _feet_frame_fields(self, observation: Observation, plan: StopPlan, q_seed: np.ndarray) -> dict:
+        """The stop frame and polygon carried from the pattern's feet onto the measured ones (status fields)."""
+        st = observation.state
+        imu = observation.inputs.get("imu")
+        try:
+            meas = measured_sole_centers(self.m, observation.joint_position, st.feet_center,
+                                         None if imu is None else imu[0], q_seed)
+            pat = {s: plan.state.feet[s].sole_center(self.m, s) for s in SIDES}
+            mo = PlanarMotion.between_feet(pat["l"], pat["r"], meas["l"], meas["r"])
+        except (ValueError, TypeError, AttributeError) as e:        # no usable measurement: the pattern's frame
+            self._log(f"estop: measured feet unknown ({e}); the result uses the pattern's frame")
+            mo = PlanarMotion(np.eye(2), np.zeros(2))
+        if not (np.all(np.isfinite(mo.rotation)) and np.all(np.isfinite(mo.translation))):
+            mo = PlanarMotion(np.eye(2), np.zeros(2))
+        fr = plan.frame.moved(mo)
+        self.feet_frame = fr
+        self.feet_polygon = mo.apply(plan.support_polygon)
+        return {"feet_frame_origin": tuple(float(c) for c in fr.origin),
+                "feet_major_axis": tuple(float(c) for c in fr.major),
+                "feet_support_polygon": tuple(tuple(float(c) for c in p) for p in self.feet_polygon),
+                "feet_yaw_off_pattern": mo.yaw}
 
     # ------------------------------------------------------------------ execution
     def _feet_of(self, q: np.ndarray) -> dict[str, pin.SE3]:
@@ -612,6 +672,7 @@ __all__ = [
     "TopicEvent",
     "feet_from_joints",
     "feet_from_soles",
+    "measured_sole_centers",
     "pattern_state_from_walking",
     "status_from_plan",
 ]

@@ -5,12 +5,14 @@ import math
 
 import numpy as np
 
+from humfall_ros.estop.frame import StopFrame
 from humfall_ros.estop.planner import StopPlan
+from humfall_ros.model.humanoid import point_in_polygon_margin
 
 
 def estop_result(plan: StopPlan | None, t, com, cop, cop_margin, start_time: float, fell: bool,
-                 settle_speed: float = 0.01) -> dict:
-    """Summary of an executed stop.
+                 settle_speed: float = 0.01, frame: StopFrame | None = None, polygon=None) -> dict:
+    """Summary of an executed stop, measured in the stop frame on the measured feet.
 
     Args:
         plan: the plan that ran (None: no stop was planned).
@@ -19,6 +21,12 @@ def estop_result(plan: StopPlan | None, t, com, cop, cop_margin, start_time: flo
         start_time: the stop's start [s] (after a single-support wait).
         fell: the run's fall verdict.
         settle_speed: CoG speed that counts as stopped [m/s].
+        frame: the stop frame the figures are measured in: the plan's carried onto the measured feet at the start
+            (``EstopStatus.feet_frame_origin`` / ``feet_major_axis``; ``EstopController.feet_frame``); None: the
+            plan's own (the pattern's world; wrong by 0.1-0.2 m when the robot has yawed off its pattern).
+        polygon: the stop's double-support polygon on the measured feet (k, 2) [m]
+            (``EstopStatus.feet_support_polygon``): given, ``min_cop_margin_m`` is the CoP's distance inside it
+            (ticks whose ``cop_margin`` is -inf, no contact, stay -inf); None: ``cop_margin`` as given.
     Returns:
         ``feasible``, ``n3_m`` (Major), ``final_cog_major_m``, ``final_cog_minor_m`` (in the stop frame),
         ``max_cop_minor_m`` (largest |Minor| CoP displacement after the start), ``min_cop_margin_m``,
@@ -32,8 +40,15 @@ def estop_result(plan: StopPlan | None, t, com, cop, cop_margin, start_time: flo
     com = np.asarray(com, float)
     cop = np.asarray(cop, float)
     after = t >= start_time
-    local_com = plan.frame.to_local(com[:, :2])
-    local_cop = plan.frame.to_local(cop[after, :2])
+    frame = plan.frame if frame is None else frame
+    local_com = frame.to_local(com[:, :2])
+    local_cop = frame.to_local(cop[after, :2])
+    cop_margin = np.asarray(cop_margin, float)
+    if polygon is not None and len(cop_margin):
+        poly = np.asarray(polygon, float).reshape(-1, 2)
+        cop_margin = np.array([-math.inf if (m == -math.inf or not np.isfinite(c[:2]).all())
+                               else point_in_polygon_margin(np.array([c[0], c[1], 0.0]), poly)
+                               for m, c in zip(cop_margin, cop)])
     dt = np.gradient(t)
     speed = np.hypot(*(np.gradient(com[:, :2], axis=0) / dt[:, None]).T)
     moving = np.nonzero(after & (speed >= settle_speed))[0]
@@ -46,19 +61,20 @@ def estop_result(plan: StopPlan | None, t, com, cop, cop_margin, start_time: flo
     return {"feasible": bool(plan.feasible), "n3_m": float(plan.major.n3),
             "final_cog_major_m": float(local_com[-1, 1]), "final_cog_minor_m": float(local_com[-1, 0]),
             "max_cop_minor_m": float(np.max(np.abs(local_cop[:, 0]))) if len(local_cop) else math.nan,
-            "min_cop_margin_m": float(np.min(np.asarray(cop_margin, float)[after])) if after.any() else math.nan,
+            "min_cop_margin_m": float(np.min(cop_margin[after])) if after.any() else math.nan,
             "stop_time_s": stop, "fell": bool(fell)}
 
 
 def estop_result_from_bag(bag, fell: bool, settle_speed: float = 0.01) -> dict:
-    """The same section from a run's bag (what ``humfall up`` can add to result.json): the measured CoG / CoP
-    and polygon margins from ``/centroidal_state``, the plan's frame, n3, feasibility and start from the last
-    ``/estop/status`` that started a stop (humfall_ros.estop.plots.run_from_bag). No stop: the empty section."""
+    """The same section from a run's bag (what ``humfall up`` adds to result.json): the measured CoG / CoP
+    and contact (no contact polygon: margin -inf) from ``/centroidal_state``; n3, feasibility, start and the stop
+    frame and polygon on the measured feet (``feet_frame_origin``, ``feet_major_axis``, ``feet_support_polygon``)
+    from the last ``/estop/status`` that started a stop (humfall_ros.estop.plots.run_from_bag); a bag without
+    those fields (older message): the plan's frame and the measured support polygons. No stop: the empty
+    section."""
     import types
 
-    from humfall_ros.estop.frame import StopFrame
     from humfall_ros.estop.plots import run_from_bag
-    from humfall_ros.model.humanoid import point_in_polygon_margin
     from humfall_ros.recording.reader import read_messages, resolve_bag
 
     try:
@@ -67,20 +83,27 @@ def estop_result_from_bag(bag, fell: bool, settle_speed: float = 0.01) -> dict:
         return estop_result(None, [], [], [], [], math.nan, fell, settle_speed)
     feasible = False
     margins = {}
+    feet = None
     for raw, m in read_messages(resolve_bag(bag), ["/estop/status", "/centroidal_state"]):
         k = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
         if raw.topic == "/estop/status":
             if math.isfinite(m.start_time):
                 feasible = bool(m.feasible)
+                if hasattr(m, "feet_frame_origin") and math.isfinite(m.feet_frame_origin.x):
+                    feet = (np.array([m.feet_frame_origin.x, m.feet_frame_origin.y]),
+                            np.array([m.feet_major_axis.x, m.feet_major_axis.y]),
+                            np.array([(p.x, p.y) for p in m.feet_support_polygon], float).reshape(-1, 2))
         else:
             poly = np.array([(q.x, q.y) for q in m.support_polygon], float).reshape(-1, 2)
             margins[k] = point_in_polygon_margin(np.array([m.cop.x, m.cop.y, 0.0]), poly) if len(poly) >= 3 \
                 else -math.inf
-    major = run.frame_major / np.linalg.norm(run.frame_major)
-    frame = StopFrame(run.frame_origin, major, np.array([major[1], -major[0]]))
+    origin, major, polygon = (run.frame_origin, run.frame_major, None) if feet is None else feet
+    major = major / np.linalg.norm(major)
+    frame = StopFrame(origin, major, np.array([major[1], -major[0]]))
     plan = types.SimpleNamespace(frame=frame, feasible=feasible, major=types.SimpleNamespace(n3=run.n3))
     cop_margin = [margins.get(int(round(t * 1e9)), -math.inf) for t in run.t]
-    return estop_result(plan, run.t, run.com, run.cop, cop_margin, run.start, fell, settle_speed)
+    return estop_result(plan, run.t, run.com, run.cop, cop_margin, run.start, fell, settle_speed,
+                        polygon=polygon if polygon is not None and len(polygon) >= 3 else None)
 
 
 __all__ = ["estop_result", "estop_result_from_bag"]

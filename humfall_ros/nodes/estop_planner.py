@@ -107,7 +107,8 @@ def status_to_msg(s: EstopStatus) -> EstopStatusMsg:
     for name in ("state", "active", "phase_at_trigger", "step_at_trigger", "phase_fraction_at_trigger",
                  "trigger_time", "start_time", "omega_c", "alpha", "beta", "omega_f", "max_zmp_minor",
                  "max_zmp_major", "max_lipm_zmp_minor", "max_lipm_zmp_major", "n3_lower_bound", "min_zmp_margin",
-                 "predicted_stop_time", "crouch", "crouch_height", "feasible", "fallback", "reason"):
+                 "predicted_stop_time", "crouch", "crouch_height", "feasible", "fallback", "reason",
+                 "feet_yaw_off_pattern"):
         v = getattr(s, name)
         setattr(m, name, type(getattr(m, name))(v))
     for name in ("gains_minor", "gains_major", "poles_minor_re", "poles_minor_im", "n_major", "n_minor_re",
@@ -116,6 +117,9 @@ def status_to_msg(s: EstopStatus) -> EstopStatusMsg:
     m.final_com = Point(x=float(s.final_com[0]), y=float(s.final_com[1]), z=float(s.final_com[2]))
     m.frame_origin = Point(x=float(s.frame_origin[0]), y=float(s.frame_origin[1]), z=0.0)
     m.major_axis = Vector3(x=float(s.major_axis[0]), y=float(s.major_axis[1]), z=0.0)
+    m.feet_frame_origin = Point(x=float(s.feet_frame_origin[0]), y=float(s.feet_frame_origin[1]), z=0.0)
+    m.feet_major_axis = Vector3(x=float(s.feet_major_axis[0]), y=float(s.feet_major_axis[1]), z=0.0)
+    m.feet_support_polygon = [Point(x=float(p[0]), y=float(p[1]), z=0.0) for p in s.feet_support_polygon]
     m.com_ref = Point(x=float(s.com_ref[0]), y=float(s.com_ref[1]), z=float(s.com_ref[2]))
     m.com_velocity_ref = Vector3(x=float(s.com_velocity_ref[0]), y=float(s.com_velocity_ref[1]),
                                  z=float(s.com_velocity_ref[2]))
