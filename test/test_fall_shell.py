@@ -43,7 +43,75 @@ def test_monitor_latches_the_event_from_the_trigger_on():
     assert len(fired) == 1                                  # once, on the edge
     assert st.fall_event is fired[0] and mon.latched == {"fall_event": fired[0]}   # carried on every later tick
     mon.reset()
-    assert mon.latched == {} and mon.state is core.FtbState.BALANCED
+    assert mon.latched == {"fall_event": None} and mon.state is core.FtbState.BALANCED   # reset clears it
+    assert core.FtbMonitor().latched == {}                  # nothing to clear before any event
+
+
+def _fire(mon, t0=0.0):
+    fast = _state(com=(0.12, 0.0, 0.75), vel=(0.9, 0.0, 0.0))  # well past the crest of the toe edge
+    st = None
+    for k in range(1, 8):
+        st = mon.step(_obs(t0 + 0.002 * k, fast))
+    assert st.state is core.FtbState.FALLING and st.fall_event is not None
+    return st.fall_event, t0 + 0.014
+
+
+def test_recovery_clears_the_event_once_and_a_new_trigger_is_a_new_event():
+    mon = core.FtbMonitor(core.FtbConfig(debounce_ms=4.0, recover_s=0.1))
+    mon.step(_obs(0.0, _state()))
+    ev, t = _fire(mon)
+    assert mon.latched == {"fall_event": ev}
+    cleared = []
+    for k in range(1, 100):
+        st = mon.step(_obs(t + 0.002 * k, _state()))   # still, upright, inside the boundary
+        if st.cleared is not None:
+            cleared.append((k, st))
+    assert len(cleared) == 1                              # once, on the edge
+    k, st = cleared[0]
+    assert st.cleared is ev and st.state is core.FtbState.BALANCED and st.fall_event is None
+    assert "recovered" in st.reason and k * 0.002 >= 0.1 - 1e-9    # after recover_s
+    assert mon.latched == {"fall_event": None}            # the loop drops the latched input
+    ev2, _ = _fire(mon, t + 0.2)
+    assert ev2 is not ev and mon.latched == {"fall_event": ev2}
+
+
+def test_recovery_from_fallen_by_timeout_but_not_lying_or_moving():
+    import dataclasses
+
+    cfg = core.FtbConfig(debounce_ms=4.0, recover_s=0.1, falling_timeout_s=0.1)
+    rocking = dataclasses.replace(_state(), lean_angle=math.radians(12.0))   # above recover_lean_deg
+    for final, recovers in ((_state(), True), (_state(com=(0.05, 0.0, 0.3)), False),
+                            (_state(vel=(0.0, 0.2, 0.0)), False)):
+        mon = core.FtbMonitor(cfg)
+        mon.step(_obs(0.0, _state()))
+        _, t = _fire(mon)
+        for k in range(1, 80):
+            st = mon.step(_obs(t + 0.002 * k, rocking))
+        assert st.state is core.FtbState.FALLEN and st.fall_event is not None   # the timeout
+        t += 0.16
+        for k in range(1, 100):
+            st = mon.step(_obs(t + 0.002 * k, final))
+        assert (st.state is core.FtbState.BALANCED) is recovers
+        assert (st.fall_event is None) is recovers
+    # recover_from_fallen off: fallen stays fallen
+    mon = core.FtbMonitor(dataclasses.replace(cfg, recover_from_fallen=False))
+    mon.step(_obs(0.0, _state()))
+    _, t = _fire(mon)
+    for k in range(1, 200):
+        st = mon.step(_obs(t + 0.002 * k, rocking if k < 80 else _state()))
+    assert st.state is core.FtbState.FALLEN
+
+
+def test_cleared_fall_event_message_reads_as_no_event():
+    pytest.importorskip("humfall_interfaces")
+    from humfall_ros.nodes.ftb_monitor import cleared_msg, event_to_msg, fall_event_input
+
+    ev = _event()
+    assert fall_event_input(event_to_msg(ev)) is True
+    m = cleared_msg(ev, int(4.5e9), "recovered")
+    assert m.cleared and fall_event_input(m) is None
+    assert m.header.stamp.sec == 4 and m.header.stamp.nanosec == 500_000_000 and m.reason == "recovered"
+    assert not event_to_msg(ev, m).cleared                 # a reused message is a fall event again
 
 
 def test_controller_acts_on_the_status_of_the_tick_not_on_the_latched_topic():

@@ -8,6 +8,8 @@ are the FTB's and the safe-fall controller's business.
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from humfall_ros.control.contract import JointTargets, Observation
@@ -70,15 +72,27 @@ class StandingController:
         kp, kd, max_offset: ankle balance gains (see StandingBalance) [rad/m, rad s/m, rad].
         resume_time: blend time back to the standing posture after regaining control [s].
         source: mux source name.
+        resume_target: optional ``observation -> (posture (njoints,), CoM reference relative to the
+            feet centre (2,) or None)``, called once, on the first tick this controller drives again:
+            the posture to blend to (and then keep) instead of ``posture``, e.g. a standing posture
+            where the feet are (the locomotion controller's ``stance_posture``). The CoM reference
+            blends with the posture. None (or a None posture): the standard ``posture``.
+        resume_from_targets: while another source drives, track the joint targets the servos tracked
+            (``observation.joint_targets``, when known) rather than the measured joints: position
+            servos sag under load, so taking over at the measured joints relaxes every loaded joint.
     """
 
     def __init__(self, model: HumanoidModel, posture: dict, kp: float, kd: float, max_offset: float,
-                 resume_time: float = 1.0, source: str = "locomotion"):
+                 resume_time: float = 1.0, source: str = "locomotion",
+                 resume_target: Callable[[Observation], tuple] | None = None, resume_from_targets: bool = False):
         self.source = source
         self.model = model
         self.balance = StandingBalance(model, posture, kp, kd, max_offset)
         self.standing = self.balance.nominal.copy()
         self.resume_time = float(resume_time)
+        self.resume_target = resume_target
+        self.resume_from_targets = bool(resume_from_targets)
+        self.resume_info: dict | None = None   # what resume_target gave (time, posture, reference), for reports
         self.reset()
 
     def reset(self) -> None:
@@ -92,17 +106,31 @@ class StandingController:
         s = observation.state
         active = observation.active_source
         if active not in ("", "none", self.source):
-            # someone else drives: follow the measured posture, so a hand-back is bumpless
+            # someone else drives: follow the measured posture (or the servos' targets), so a hand-back is bumpless
             self._tracking = True
-            self._resume_from = np.asarray(observation.joint_position, float).copy()
+            src = observation.joint_targets if self.resume_from_targets and observation.joint_targets is not None \
+                and len(observation.joint_targets) == len(self.standing) else observation.joint_position
+            self._resume_from = np.asarray(src, float).copy()
             self.balance.nominal = self._resume_from.copy()
             self.balance.reset()
         elif self._tracking and self._resume_from is not None:
             if self._resume_start is None:
                 self._resume_start = observation.time
+                self._ref_from = self._ref_to = None
+                if self.resume_target is not None:
+                    posture, ref = self.resume_target(observation)
+                    if posture is not None:
+                        self.standing = np.asarray(posture, float).copy()   # kept after the blend: this stance
+                        if ref is not None:
+                            com = np.asarray(s.com, float)[:2] - np.asarray(s.feet_center, float)[:2]
+                            self._ref_from, self._ref_to = com, np.asarray(ref, float)[:2].copy()
+                    self.resume_info = {"time": observation.time, "posture": self.standing.copy(),
+                                        "reference": None if self._ref_to is None else self._ref_to.copy()}
             a = min(1.0, (observation.time - self._resume_start) / max(self.resume_time, 1e-9))
             w = 0.5 - 0.5 * np.cos(np.pi * a)
             self.balance.nominal = (1.0 - w) * self._resume_from + w * self.standing
+            if self._ref_to is not None:
+                self.balance.reference = (1.0 - w) * self._ref_from + w * self._ref_to
             if a >= 1.0:
                 self._tracking, self._resume_from, self._resume_start = False, None, None
         q = self.balance.command(s.com, s.com_velocity, s.support_polygon, s.feet_center)

@@ -1,14 +1,21 @@
 """The safe-fall controller of paper 1: optimal protective step, then inertia shaping (controller contract).
 
 ``SafeFallController.step`` releases (returns None) until ``observation.inputs["fall_event"]``
-arrives; then it takes over and never releases:
+arrives; then it takes over until the robot is balanced again (the hand-back, below):
 
 1. the decision (one tick): the edge pendulum's control duration (``dynamics.toppling``),
    the touchdown time (the control duration clipped to [min_swing_s, max_swing_s]), the
    stepping zones (``fall.stepping_zone``), the search of eq. 4 (``fall.step_search``), then the
    eq.-9 IK check of the chosen landing at the predicted landed stance foot;
 2. the swing (``fall.step_control``, eq. 9-10) to the landing pose, foot flat;
-3. from touchdown, inertia shaping (``fall.inertia_shaping``, eq. 11-14) when enabled.
+3. from touchdown, inertia shaping (``fall.inertia_shaping``, eq. 11-14) when enabled; after a captured
+   step the capture balance (settle posture + ankle balance, ours);
+4. the **hand-back** (ours; ``handback``): once the robot balances (phase ``landed`` past ``settle_s``, or
+   ``hold``) and the FTB has said balanced with its fall event cleared (the ``recovered`` transition) for
+   ``handback_delay_s``, ``step`` returns None (a release: contract.py) and the mux hands the robot to
+   locomotion, which stands from the measured posture where the feet are. The delay lets the cleared
+   ``fall_event`` reach locomotion on the graph before the release (in process it sees it on the
+   recovery's tick), so both start standing on the same tick. A later fall event is a new take-over.
 
 Inputs (``observation.inputs``): ``ftb/status`` (``fall.ftb.FtbStatus``: the event it carries; without
 a status, the latched ``fall_event``), ``obstacles`` (a list
@@ -97,6 +104,8 @@ class SafeFallConfig:
     balance_kd: float = 0.05
     balance_max_offset: float = 0.12
     settle_s: float = 0.5
+    handback: bool = True
+    handback_delay_s: float = 0.02
 
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> SafeFallConfig:
@@ -273,6 +282,8 @@ class SafeFallController:
         self.single_support: str | None = None
         self.balancer = None
         self.shape_allowed = self.config.inertia_shaping   # set at touchdown (a target, not a lift)
+        self.recovered_since: float | None = None
+        self.handbacks: list[dict] = []   # one per hand-back: time [s], CoM [m], CoM speed [m/s], feet (x, y, yaw)
 
     # ------------------------------------------------------------------ contract
     def step(self, obs: Observation) -> JointTargets | None:
@@ -297,12 +308,59 @@ class SafeFallController:
                 self.reasons.append(f"decision failed ({type(exc).__name__}: {exc}); holding the posture")
                 self._note_failure()
         try:
+            if self._hand_back(obs):
+                return None
             return self._tick(obs)
         except Exception as exc:  # noqa: BLE001
             self.phase = "hold"
             self.reasons.append(f"tick failed ({type(exc).__name__}: {exc}); holding the last command")
             self._note_failure()
             return JointTargets(self.last_command.copy())
+
+    def _hand_back(self, obs: Observation) -> bool:
+        """True on the tick the controller lets go (the module docstring's step 4); the take-over is then over."""
+        c = self.config
+        balancing = self.phase == "hold" or (self.phase == "landed" and self.balancer is not None
+                                             and obs.time - self.balance_start >= c.settle_s - 1e-9)
+        st = obs.inputs.get("ftb/status")
+        balanced = fall_event_of(obs) is None and (st is None or getattr(st, "state", None) is FtbState.BALANCED)
+        if not (c.handback and balancing and balanced):
+            self.recovered_since = None
+            return False
+        if self.recovered_since is None:
+            self.recovered_since = obs.time
+        if obs.time - self.recovered_since < c.handback_delay_s - 1e-9:
+            return False
+        s = obs.state
+        feet = {}
+        quat = _imu_quat(obs.inputs.get("imu"))
+        if quat is not None:
+            q = configuration_from_sensors(self.m, obs.joint_position, quat, s.com)
+            self.m.forward(q)
+            for sd in SIDES:
+                M = self.m.frame_placement(self.m.sole_frame[sd])
+                feet[sd] = [float(M.translation[0]), float(M.translation[1]),
+                            math.atan2(M.rotation[1, 0], M.rotation[0, 0])]
+        since = None if self.touchdown_at is None else obs.time - self.touchdown_at
+        self.handbacks.append({"time_s": obs.time, "since_touchdown_s": since, "phase": self.phase,
+                               "com": np.asarray(s.com, float).tolist(),
+                               "com_speed": float(np.linalg.norm(np.asarray(s.com_velocity, float))), "feet": feet})
+        self.reasons.append(f"hand-back at {obs.time:.3f} s ("
+                            + (f"{since:.3f} s after touchdown" if since is not None else "no touchdown")
+                            + f"): the FTB balanced, fall event cleared, for {c.handback_delay_s:.3f} s; released")
+        if self.decision is not None:
+            self.decision.reason = "; ".join(self.reasons)
+        # the take-over is over (the decision, the reasons and the touchdown stay for the run's metrics)
+        self.taken_over = False
+        self.phase = "released"
+        self.hold = self.last_command = None
+        self.balancer = None
+        self.gait = None
+        self.single_support = None
+        self.recovered_since = None
+        self.shaping_config = c.shaping
+        self.shape_allowed = c.inertia_shaping
+        return True
 
     def _note_failure(self) -> None:
         self._traceback = traceback.format_exc()

@@ -29,8 +29,14 @@ being built, the reference fields are the contract).
 The state machine is data (:data:`TRANSITIONS`): BALANCED -> FALLING (the trigger, with
 the :class:`FallEvent` published once, on the edge) -> FALLEN (lean beyond
 ``fallen_lean_deg`` or ``falling_timeout_s`` in FALLING, or the CoM below
-``fallen_com_height_fraction`` of its first height); FALLEN and FALLING leave only
-through :meth:`FtbMonitor.reset` (``ftb/reset``) or sim time going back.
+``fallen_com_height_fraction`` of its first height). FALLING and FALLEN go back to BALANCED
+when the robot has **recovered** (inside the boundary, still, upright for ``recover_s``: a step
+captured the fall; FALLEN is reached that way too, by ``falling_timeout_s`` while a captured robot
+rocks to a stand) or through :meth:`FtbMonitor.reset` (``ftb/reset``, sim time going back).
+Either **clears** the fall event: ``FtbStatus.fall_event`` is None again, ``FtbStatus.cleared``
+carries the cleared event on that tick (the node publishes it on ``fall_event`` with
+``cleared = true``), and the monitor's ``latched`` maps ``fall_event`` to None (the in-process
+loop then drops that input, as a node drops a cleared latched event). A later trigger is a new event.
 """
 from __future__ import annotations
 
@@ -76,10 +82,13 @@ TRANSITIONS: tuple[Transition, ...] = (
     Transition(FtbState.FALLING, FtbState.FALLEN, "fallen", "lean beyond fallen_lean_deg"),
     Transition(FtbState.FALLING, FtbState.FALLEN, "falling_timeout", "falling_timeout_s spent in FALLING"),
     Transition(FtbState.FALLING, FtbState.BALANCED, "recovered",
-               "inside the boundary, lean below recover_lean_deg and CoM slower than recover_speed for recover_s "
-               "(a step captured the fall); the latched event stays"),
-    Transition(FtbState.FALLING, FtbState.BALANCED, "reset", "ftb/reset or sim time went back"),
-    Transition(FtbState.FALLEN, FtbState.BALANCED, "reset", "ftb/reset or sim time went back"),
+               "inside the boundary, lean below recover_lean_deg, CoM slower than recover_speed and above "
+               "recover_com_height_fraction of its first height for recover_s (a step captured the fall); the "
+               "fall event is cleared"),
+    Transition(FtbState.FALLEN, FtbState.BALANCED, "recovered",
+               "as from falling (fallen by falling_timeout_s while a captured robot rocked to a stand); cleared"),
+    Transition(FtbState.FALLING, FtbState.BALANCED, "reset", "ftb/reset or sim time went back; cleared"),
+    Transition(FtbState.FALLEN, FtbState.BALANCED, "reset", "ftb/reset or sim time went back; cleared"),
 )
 
 
@@ -106,6 +115,8 @@ class FtbConfig:
     recover_s: float = 0.5
     recover_speed: float = 0.05
     recover_lean_deg: float = 10.0
+    recover_com_height_fraction: float = 0.9
+    recover_from_fallen: bool = True
 
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> FtbConfig:
@@ -323,8 +334,10 @@ class FtbStatus:
 
     Attributes:
         event: the fall event on the tick it fires (the edge), else None.
-        fall_event: the latched event on every tick from the trigger on (until ``reset``): a
-            per-tick consumer acts on the status of tick k, never on when ``fall_event`` arrives.
+        fall_event: the latched event on every tick from the trigger on (until it is cleared: the
+            ``recovered`` transition or ``reset``): a per-tick consumer acts on the status of tick k,
+            never on when ``fall_event`` arrives.
+        cleared: the event cleared on this tick (the recovery's edge), else None.
     """
 
     stamp_ns: int
@@ -335,6 +348,7 @@ class FtbStatus:
     reason: str = ""
     event: FallEvent | None = None
     fall_event: FallEvent | None = None
+    cleared: FallEvent | None = None
 
 
 def polygon_width(poly) -> float:
@@ -486,12 +500,18 @@ class FtbMonitor:
         self.reset()
 
     @property
-    def latched(self) -> dict[str, FallEvent]:
-        """``{"fall_event": event}`` once it fired (the transient-local topic's last message)."""
-        return {} if self.event is None else {"fall_event": self.event}
+    def latched(self) -> dict[str, FallEvent | None]:
+        """``{"fall_event": event}`` once it fired (the transient-local topic's last message);
+        ``{"fall_event": None}`` once it was cleared (recovered or reset: the topic's "cleared" message),
+        ``{}`` before any event."""
+        if self.event is not None:
+            return {"fall_event": self.event}
+        return {"fall_event": None} if self.had_event else {}
 
     def reset(self) -> None:
         """Back to BALANCED, timers and the latched event cleared (``ftb/reset``)."""
+        self.had_event = getattr(self, "had_event", False) or getattr(self, "event", None) is not None
+        self.cleared_event: FallEvent | None = getattr(self, "event", None) or getattr(self, "cleared_event", None)
         self.state = FtbState.BALANCED
         self.state_since: float | None = None
         self.outside_since: float | None = None
@@ -555,6 +575,7 @@ class FtbMonitor:
             f.valid = False
         reason = ""
         event = None
+        cleared = None
         if self.com_height is None and math.isfinite(float(s.com[2])):
             self.com_height = float(s.com[2])
         # fallen: a loaded lean beyond the limit (an unloaded CoP is a fallback, its lean means
@@ -576,24 +597,40 @@ class FtbMonitor:
             if event is None and fallen:
                 self._enter(FtbState.FALLEN, t)
                 reason = "fallen without a trigger"
-        elif self.state is FtbState.FALLING:
-            still = f.valid and f.lean_angle < math.radians(c.recover_lean_deg) and not self._outside(obs, f) \
-                and float(np.linalg.norm(np.asarray(s.com_velocity, float))) < c.recover_speed
+        else:
+            from_fallen = self.state is FtbState.FALLEN
+            still = self._still(obs, f) if (not from_fallen or c.recover_from_fallen) else False
             if still:
                 self.inside_since = t if self.inside_since is None else self.inside_since
             else:
                 self.inside_since = None
-            if fallen:
+            if fallen and not from_fallen:
                 self._enter(FtbState.FALLEN, t)
                 reason = f"lean beyond {c.fallen_lean_deg:.0f} deg"
             elif still and t - self.inside_since >= c.recover_s - 1e-9:
+                cleared = self.event
+                reason = (f"recovered{' from fallen' if from_fallen else ''}: inside the boundary, upright and "
+                          f"still for {c.recover_s:.2f} s" + ("; fall event cleared" if cleared is not None else ""))
                 self._enter(FtbState.BALANCED, t)
                 self.outside_since = self.inside_since = None
-                reason = f"recovered: inside the boundary and still for {c.recover_s:.2f} s"
-            elif t - self.state_since >= c.falling_timeout_s:
+                self.cleared_event = cleared
+                self.event = None
+            elif not from_fallen and t - self.state_since >= c.falling_timeout_s:
                 self._enter(FtbState.FALLEN, t)
                 reason = f"{c.falling_timeout_s:.1f} s in falling"
-        return FtbStatus(obs.stamp_ns, self.state, c.mode.value, f, t - self.state_since, reason, event, self.event)
+        return FtbStatus(obs.stamp_ns, self.state, c.mode.value, f, t - self.state_since, reason, event, self.event,
+                         cleared)
+
+    def _still(self, obs: Observation, f: FtbFeatures) -> bool:
+        """Recovered this tick: inside the boundary, the P->G lean under ``recover_lean_deg``, the CoM slower
+        than ``recover_speed`` and higher than ``recover_com_height_fraction`` of its first height (upright:
+        a robot lying still is not recovered)."""
+        c = self.config
+        s = obs.state
+        upright = self.com_height is None or float(s.com[2]) >= c.recover_com_height_fraction * self.com_height
+        return bool(f.valid and upright and f.lean_angle < math.radians(c.recover_lean_deg)
+                    and float(np.linalg.norm(np.asarray(s.com_velocity, float))) < c.recover_speed
+                    and not self._outside(obs, f))
 
     def _enter(self, state: FtbState, t: float) -> None:
         self.state = state
@@ -611,6 +648,7 @@ class FtbMonitor:
         start = np.append(f.edge_start, 0.0) if f.valid else np.asarray(s.cop, float).copy()
         end = np.append(f.edge_end, 0.0) if f.valid else np.asarray(s.cop, float).copy()
         direction = math.atan2(f.edge_normal[1], f.edge_normal[0]) if f.valid else float(s.lean_direction)
+        self.had_event = True
         self.event = FallEvent(
             obs.stamp_ns, c.mode.value, reason, start, end, bool(f.on_corner), np.asarray(s.cop, float).copy(),
             np.asarray(s.capture_point, float).copy(), direction, float(duration), theta_thr,

@@ -153,6 +153,88 @@ def run(sc: dict, kind: str | None = None, noise=None, duration: float | None = 
                    [] if safe is None else list(safe.reasons), None if safe is None else safe.search_result)
 
 
+def handback_run(sc: dict, kind: str = "stepping", duration: float | None = None,
+                 walk_at: float | None = None, walk_speed: float = 1.0 / 3.6) -> dict:
+    """One run through the hand-back (docs/safe_fall.md "The hand-back"), its figures as a JSON-ready dict.
+
+    Ground truth (the world, not the estimator's odometry frame): the CoM and the soles (x, y, yaw) at the
+    hand-back (the first tick locomotion drives after safe_fall), the middle of the two soles' corners then and
+    at the end, the CoM speed over the last 0.5 s, the largest joint-target jump at the hand-back tick [rad],
+    the trunk tilt at the end; times: the touchdown, the FTB's recovery (the event cleared), the hand-back.
+    ``walk_at`` [s]: a walk command (``walk_speed`` [m/s], 2 steps) is given then (the stance test).
+    """
+    from humfall_ros.model.humanoid import SIDES
+    from humfall_ros.sim.closed_loop import ClosedLoop
+
+    ctrls, monitors = controllers_for(sc, kind)
+    given = []
+    cmd = (walk_speed, 0.0, 2)   # one object from walk_at on, as a latched topic's last message (acted on once)
+
+    def walk(loop, obs):
+        if walk_at is not None and obs.time >= walk_at - 1e-9:
+            obs.inputs["cmd_walk"] = cmd
+            if not given:
+                given.append(obs.time)
+    loop = ClosedLoop(sc, ctrls, monitors, inputs=walk)
+    ftb, loco = monitors[0], ctrls[0]
+    safe = ctrls[1].inner if len(ctrls) > 1 else None
+    m = loop.model
+    coms, targets, soles, recovered = [], [], [], None
+    try:
+        ticks = int(round((duration or sc["duration"]) * sc["sim"]["control_rate"]))
+        for _ in range(ticks):
+            obs = loop.step()
+            st = loop.outputs[ftb.name][-1]
+            if st.cleared is not None and recovered is None:
+                recovered = obs.time
+            w = loop.world
+            q = w.pinocchio_configuration()
+            coms.append(m.com(q))
+            m.forward(q)
+            feet = {}
+            for sd in SIDES:
+                M = m.frame_placement(m.sole_frame[sd])
+                feet[sd] = [float(M.translation[0]), float(M.translation[1]),
+                            math.atan2(M.rotation[1, 0], M.rotation[0, 0])]
+            soles.append(feet)
+            soles[-1]["mid"] = np.vstack([m.sole_corners(sd)[:, :2] for sd in SIDES]).mean(axis=0).tolist()
+            targets.append(np.array(w.targets, float))
+        res = loop.metrics()
+        tilt = math.degrees(loop.world.trunk_tilt())
+    finally:
+        loop.close()
+    act = loop.active_sources   # [k]: the source that drove the tick ending at observation k
+    dt = 1.0 / sc["sim"]["control_rate"]
+    hb = [k for k in range(1, len(act)) if act[k - 1] == "safe_fall" and act[k] == "locomotion"]
+    C = np.array(coms)
+    last = max(1, int(round(0.5 / dt)))
+    out = {"kind": kind, "duration_s": round(len(act) * dt, 3), "fell": res.get("fell"),
+           "min_target_distance_m": res.get("min_target_distance_m"),
+           "fall_event_time_s": res.get("fall_event_time_s"),
+           "touchdown_time_s": None if safe is None else safe.touchdown_at, "recovered_time_s": recovered,
+           "handback_ticks": len(hb), "active_end": act[-1], "trunk_tilt_end_deg": round(tilt, 3),
+           "com_speed_last_0.5s_max_m_s": float(np.max(np.linalg.norm(np.diff(C[-last:], axis=0), axis=1)) / dt),
+           "com_end": C[-1].round(4).tolist(), "soles_end": soles[-1],
+           "loco_messages": list(loco.messages), "walk_given_s": given[0] if given else None}
+    if hb:
+        k = hb[0]
+        # the command of tick k-1 drove the world during tick k-1 -> k: targets[k-1] (applied at step k-1) is the
+        # first locomotion command, targets[k-2] safe_fall's last one
+        t_hb = (k - 1) * dt
+        out.update({"handback_time_s": round(t_hb, 4),
+                    "handback_after_touchdown_s": None if safe.touchdown_at is None
+                    else round(t_hb - safe.touchdown_at, 4),
+                    "handback_after_recovery_s": None if recovered is None else round(t_hb - recovered, 4),
+                    "com_at_handback": C[k - 1].round(4).tolist(), "soles_at_handback": soles[k - 1],
+                    "target_jump_at_handback_rad": float(np.max(np.abs(targets[k - 1] - targets[k - 2]))),
+                    "com_move_after_handback_m": float(np.max(np.linalg.norm(C[k - 1:] - C[k - 1], axis=1))),
+                    "com_over_soles_mid_end_m": float(np.hypot(*(C[-1][:2] - np.array(soles[-1]["mid"]))))})
+    if safe is not None:
+        out["handbacks"] = safe.handbacks
+        out["reasons"] = list(safe.reasons)
+    return out
+
+
 def summary(r: FallRun) -> dict:
     """The acceptance figures of one run (JSON-ready)."""
     m = r.metrics
@@ -174,4 +256,20 @@ def summary(r: FallRun) -> dict:
     return out
 
 
-__all__ = ["CONTROLLERS", "FallRun", "GaitFedFtb", "controllers_for", "run", "summary"]
+__all__ = ["CONTROLLERS", "FallRun", "GaitFedFtb", "controllers_for", "handback_run", "run", "summary"]
+
+
+if __name__ == "__main__":  # python -m humfall_ros.fall.runs handback SCENARIO KIND DURATION [walk_at=S] [KEY=VALUE ..]
+    import json
+    import sys
+
+    from humfall_ros import scenario
+
+    if len(sys.argv) < 5 or sys.argv[1] != "handback":
+        raise SystemExit("usage: python -m humfall_ros.fall.runs handback SCENARIO KIND DURATION [walk_at=S] "
+                         "[KEY=VALUE ..]")
+    extra = sys.argv[5:]
+    walk_at = next((float(a.split("=", 1)[1]) for a in extra if a.startswith("walk_at=")), None)
+    ov = [a for a in extra if not a.startswith("walk_at=")]
+    sc_ = scenario.load(sys.argv[2], ov + [f"duration={sys.argv[4]}"])
+    print(json.dumps(handback_run(sc_, sys.argv[3], walk_at=walk_at), default=float))

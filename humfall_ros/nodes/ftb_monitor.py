@@ -7,9 +7,13 @@ Gathers the tick's ``centroidal_state`` (and ``walking/state`` with ``use_walkin
 * ``ftb/status`` (``humfall_interfaces/FtbStatus``) every tick, stamped like the tick; from
   the trigger on it carries the latched fall event, so ``safe_fall_controller`` acts on the
   status of tick k (lockstep-repeatable) rather than on when ``fall_event`` arrives;
-* ``fall_event`` (``humfall_interfaces/FallEvent``, transient-local) once, on the edge.
+* ``fall_event`` (``humfall_interfaces/FallEvent``, transient-local) once, on the edge; and once
+  more with ``cleared = true`` when the FTB recovers (falling/fallen -> balanced: a step captured the
+  fall) or is reset: stamped with that tick, the cleared event's fields. Every reader of the topic
+  treats a cleared message as "no fall event" (:func:`fall_event_input`): locomotion takes the robot
+  back once the safe-fall controller releases it.
 
-Service ``ftb/reset`` (std_srvs/Trigger): back to balanced, the event forgotten. A
+Service ``ftb/reset`` (std_srvs/Trigger): back to balanced, the event cleared (published). A
 retransmitted tick is answered with the last status; time going back resets the monitor.
 The message converters here are also what the fall controller's node uses to read them.
 """
@@ -47,9 +51,24 @@ def _stamp_of(ns: int, header) -> None:
     header.stamp.sec, header.stamp.nanosec = divmod(int(ns), 1_000_000_000)
 
 
+def fall_event_input(msg: FallEvent):
+    """What a node's latched ``fall_event`` input holds: True for a fall event, None for a cleared one."""
+    return None if msg.cleared else True
+
+
+def cleared_msg(ev: core.FallEvent, stamp_ns: int, reason: str) -> FallEvent:
+    """The "cleared" message: ``ev``'s fields, ``cleared = true``, stamped ``stamp_ns`` (the recovery's tick)."""
+    msg = event_to_msg(ev)
+    _stamp_of(stamp_ns, msg.header)
+    msg.reason = reason
+    msg.cleared = True
+    return msg
+
+
 def event_to_msg(ev: core.FallEvent, msg: FallEvent | None = None) -> FallEvent:
     msg = msg or FallEvent()
     _stamp_of(ev.stamp_ns, msg.header)
+    msg.cleared = False
     msg.header.frame_id = "odom"
     msg.reason = ev.reason
     msg.lean_angle = float(ev.lean_angle)
@@ -193,12 +212,19 @@ class FtbMonitorNode(Node):
             d = st.event.control_duration
             self.get_logger().info(f"fall event at {st.event.time:.3f} s: {st.event.reason}; control duration "
                                    f"{d:.3f} s" if math.isfinite(d) else "fall event: never reaches the threshold")
+        if st is not None and st.cleared is not None:
+            self.pub_event.publish(cleared_msg(st.cleared, tick.stamp_ns, st.reason))  # latched: the event is over
+            self.get_logger().info(f"fall event of {st.cleared.time:.3f} s cleared at {tick.stamp_ns * 1e-9:.3f} s: "
+                                   f"{st.reason}")
         self.pub_status.publish(self.msg)
         self.last = self.msg
 
     def _on_reset(self, request, response):
         before = self.monitor.state.value
+        ev, last = self.monitor.event, self.monitor.last_stamp
         self.monitor.reset()
+        if ev is not None:
+            self.pub_event.publish(cleared_msg(ev, last if last is not None else ev.stamp_ns, "ftb/reset"))
         response.success = True
         response.message = f"FTB reset ({before} -> balanced)"
         self.get_logger().info(response.message)

@@ -15,7 +15,8 @@ Inputs besides the tick's:
   [m/s], ``angular.z`` yaw rate [rad/s]; starts a walk, changes its speed or turn, zero ends it with
   a planned stop. A non-finite command is refused and logged; clamps and refusals of the
   controller (speed, turn rate, kinematics, while released) are logged too;
-* ``fall_event`` (``humfall_interfaces/FallEvent``, latched): release;
+* ``fall_event`` (``humfall_interfaces/FallEvent``, latched): release; a ``cleared`` one (the FTB
+  recovered) ends the release: standing resumes where the feet are once the safe-fall controller lets go;
 * the e-stop is not an input: walking gives way when ``mux/state`` shows another source drives;
 
 Output besides the command: ``walking/state`` (``humfall_interfaces/WalkingState``) every tick,
@@ -35,6 +36,7 @@ from humfall_ros import params as params_mod
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, run_node
 from humfall_ros.nodes.controller_node import IMU, ControllerNode, Input
+from humfall_ros.nodes.ftb_monitor import fall_event_input
 from humfall_ros.walking.controller import LocomotionController, WalkingState, from_scenario
 from humfall_ros.walking.footsteps import WalkCommand
 from humfall_ros.walking.scenario import walking_config
@@ -103,7 +105,7 @@ def node_inputs() -> list[Input]:
     # the IMU per tick, as every in-process observation has it (heading steering); no estop/status: its
     # arrival is not tied to the tick, and walking gives way to the e-stop through mux/state already
     return [Input("cmd_walk", Twist, "cmd_walk", walk_command_from_twist, qos=QOS_RELIABLE),
-            Input("fall_event", FallEvent, "fall_event", lambda _msg: True), IMU]
+            Input("fall_event", FallEvent, "fall_event", fall_event_input), IMU]
 
 
 class Locomotion(ControllerNode):

@@ -13,7 +13,8 @@ A *monitor* (e.g. the FTB) is a per-tick stage that is not a command source:
 controllers' ``observation.inputs[name]`` of the same tick, as its per-tick topic
 would. A monitor may also keep a dict ``latched`` (e.g. ``{"fall_event": ...}``):
 its entries are in every later observation's inputs, as a transient-local topic's
-last message would be.
+last message would be; an entry whose value is None removes that input from this tick on
+(the topic's "cleared" message, e.g. the FTB's recovery clearing ``fall_event``).
 
 Every observation's inputs also hold ``"imu"``: ``(orientation xyzw, gyro in the IMU
 frame)`` as numpy arrays (what a node gets from the per-tick ``imu`` topic), and
@@ -236,8 +237,12 @@ class ClosedLoop:
             self.outputs[m.name].append(value)
             latched = getattr(m, "latched", None)
             if latched:
-                self.latched.update(latched)
-                obs.inputs.update(latched)
+                for key, v in latched.items():  # None: cleared (the input is gone from this tick on)
+                    if v is None:
+                        self.latched.pop(key, None)
+                        obs.inputs.pop(key, None)
+                    else:
+                        self.latched[key] = obs.inputs[key] = v
         if self.inputs is not None:
             self.inputs(self, obs)
         t = stamp * 1e-9

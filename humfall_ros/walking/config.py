@@ -20,6 +20,9 @@ class LocomotionConfig:
     ankle_kd: float = 0.05                # rad s/m
     ankle_max_offset: float = 0.12        # rad
     resume_time: float = 1.0              # s, standing: blend back from the measured posture
+    resume_stance: str = "feet"           # "feet": stand where the feet are (IK); "standard": the standing posture
+    resume_from_targets: bool = True      # resume from the servos' targets (mux), not the measured joints
+    walk_stance_tolerance: float = 0.05   # m, a walk starts only from a stance this close to the standard one
     step_period: float = 0.8              # s
     fast_step_period: float = 0.7         # s, above fast_step_speed_kmh (0: step_period at every speed)
     fast_step_speed_kmh: float = 1.35     # km/h
@@ -76,6 +79,9 @@ class LocomotionConfig:
         if d:
             values.update(params.check_overrides("locomotion", d))
         cfg = params.config_from(cls, values, "locomotion", ignore=tuple(NODE_ONLY))
+        if cfg.resume_stance not in ("feet", "standard"):
+            raise params.ParamError(f"locomotion: resume_stance must be 'feet' or 'standard', "
+                                    f"got {cfg.resume_stance!r}")
         if cfg.double_support >= cfg.step_period:
             raise params.ParamError("locomotion: double_support must be shorter than step_period")
         if 0 < cfg.fast_step_period <= cfg.double_support:

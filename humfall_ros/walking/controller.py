@@ -243,11 +243,86 @@ class LocomotionController:
         self.stabilizer.reset()
 
     def _resume_standing(self, observation: Observation) -> None:
+        """Control comes back (a fall event cleared, an e-stop released): stand from the measured posture.
+
+        ``resume_stance`` "feet" (default): on the first tick this controller drives again, the standing
+        posture becomes :meth:`stance_posture` of that tick's measurement (where the feet are) and the
+        command blends into it over ``resume_time``, then keeps that stance; "standard": blends joint-wise to
+        the standard standing posture (with a staggered stance that drags the feet: 0.35 m apart after a
+        captured step). Until it drives, it tracks the servos' targets (``resume_from_targets``) or the
+        measured joints, so the hand-back is bumpless."""
         c = self.cfg
+        target = self.stance_posture if c.resume_stance == "feet" else None
         self.standing = StandingController(self.m, self.m.standing_posture, c.ankle_kp, c.ankle_kd,
-                                           c.ankle_max_offset, c.resume_time, self.source)
+                                           c.ankle_max_offset, c.resume_time, self.source, resume_target=target,
+                                           resume_from_targets=c.resume_from_targets)
         # as if another source had driven: it starts from the measured posture and blends back
         self.standing.step(dataclasses.replace(observation, active_source="other"))
+
+    def world_heading(self, observation: Observation) -> float:
+        """The soles' mean yaw in the world [rad]: from the IMU and the joints (the observation has no yaw), else
+        the controller's ``heading``."""
+        imu = observation.inputs.get("imu")
+        quat = None if imu is None else np.asarray(imu[0] if isinstance(imu, (tuple, list)) else imu, float)
+        if quat is None or quat.shape != (4,) or not np.all(np.isfinite(quat)) or np.linalg.norm(quat) < 0.5:
+            return self.heading
+        m = self.m
+        q = m.configuration([0, 0, 0], [0, 0, 0, 1], observation.joint_position)
+        m.forward(q)
+        R_wb = quat_matrix(quat / np.linalg.norm(quat)) @ m.frame_placement(m.imu_frame).rotation.T
+        yaws = [yaw_of(R_wb @ m.frame_placement(m.sole_frame[s]).rotation) for s in SIDES]
+        return math.atan2(sum(map(math.sin, yaws)), sum(map(math.cos, yaws)))
+
+    def stance_posture(self, observation: Observation):
+        """A standing posture where the feet are (the shared IK, ``model.ik``) and its CoM reference.
+
+        The measured joints with the soles flat on the ground (their relative placement is the joints'),
+        at the world heading (:meth:`world_heading`) and the measured ankles' mid-point; then the IK to
+        convergence: both soles hard where they are (x, y, yaw, flat, z = 0), the CoM over the middle of the
+        two soles (the mean of their eight corners) at its present height, the trunk upright with the soles'
+        mean yaw, the measured joints as the posture (a small weight). Returns (joints (njoints,), CoM reference
+        relative to the ankles' mid-point (2,), world axes, what ``StandingBalance`` holds), or (None, None)
+        (logged) when the IK does not get there: the standard posture is then used."""
+        m = self.m
+        heading = self.world_heading(observation)
+        joints = np.asarray(observation.joint_position, float)
+        q = self.reference_configuration(joints, heading, np.asarray(observation.state.feet_center, float)[:2])
+        m.forward(q)
+        tasks = []
+        for sd in SIDES:
+            M = m.frame_placement(m.sole_frame[sd])
+            tasks.append(FrameTask(m.sole_frame[sd], pin.SE3(rot_z(yaw_of(M.rotation)),
+                                                             np.array([M.translation[0], M.translation[1], 0.0])),
+                                   hard=True))
+        mid = np.vstack([m.sole_corners(sd)[:, :2] for sd in SIDES]).mean(axis=0)
+        com = m.com(q)
+        tasks += [ComTask(np.array([mid[0], mid[1], com[2]]), weight=10.0),
+                  OrientationTask(m.trunk_link, rot_z(heading), weight=1.0),
+                  PostureTask(joints, weight=1e-3)]
+        r = self.ik.solve_to_convergence(q, tasks, dt=0.05, max_iterations=100, tolerance=1e-3)
+        if not r.converged and max(r.errors[:3]) > 0.01:
+            self._log(f"resume: no standing posture where the feet are (IK errors {np.round(r.errors, 4).tolist()}):"
+                      " the standard standing posture")
+            return None, None
+        m.forward(r.q)
+        ankles = 0.5 * (m.frame_position(m.foot_link["l"]) + m.frame_position(m.foot_link["r"]))
+        ref = m.com(r.q)[:2] - ankles[:2]
+        self.heading = heading
+        self._log(f"resume: standing where the feet are (soles {np.round(mid, 3).tolist()} mid, heading "
+                  f"{math.degrees(heading):.1f} deg), CoM over their middle")
+        return np.clip(r.q[7:], m.limits.lower, m.limits.upper), ref
+
+    def stance_offset(self, joints) -> float:
+        """How far the feet stand from the standard stance [m]: the other sole's placement in the left sole's
+        frame against the standard posture's (x, y, and yaw counted 0.2 m per rad), the largest of the three."""
+        m = self.m
+
+        def rel(j):
+            m.forward(m.configuration([0, 0, 0], [0, 0, 0, 1], j))
+            M = m.frame_placement(m.sole_frame["l"]).inverse() * m.frame_placement(m.sole_frame["r"])
+            return np.array([M.translation[0], M.translation[1], 0.2 * yaw_of(M.rotation)])
+
+        return float(np.max(np.abs(rel(np.asarray(joints, float)) - rel(self.standing_posture))))
 
     def reference_configuration(self, joints, heading: float, feet_center_xy) -> np.ndarray:
         """Full configuration (nq,) for measured ``joints`` with the soles flat on z = 0, their mean
@@ -280,6 +355,12 @@ class LocomotionController:
         return out
 
     def _start_walk(self, observation: Observation, cmd: WalkCommand) -> None:
+        off = self.stance_offset(observation.joint_position)
+        if off > self.cfg.walk_stance_tolerance:
+            self._log(f"walk command refused: the feet stand {off:.3f} m off the standard stance (tolerance "
+                      f"{self.cfg.walk_stance_tolerance:.3f} m; e.g. after a captured protective step): the pattern's "
+                      "first steps assume it, and stepping back to it is not built")
+            return
         q = self.reference_configuration(observation.joint_position, self.heading, observation.state.feet_center)
         feet = self._feet_of(q)
         com = self.m.com(q)
