@@ -66,3 +66,36 @@ def test_stepping_inertia_standing_push_over_ros_equals_in_process(run_up):
     assert mine.fall_event.stamp_ns == t_ev
     # the target is not touched (ground truth, the bridge's metrics)
     assert r["metrics"]["min_target_distance_m"] >= 0.05
+
+
+HANDBACK_DURATION = 5.0  # s: trigger 0.60 s, touchdown 1.02 s, FTB recovered 4.45 s, hand-back 4.47 s
+
+
+def test_captured_push_handed_back_to_locomotion_over_ros_equals_in_process(run_up):
+    """standing_push with stepping: captured; the FTB's recovery publishes a cleared fall_event, the safe-fall
+    controller releases and locomotion stands where the feet are, on the same tick as in process."""
+    ov = [f"duration={HANDBACK_DURATION}"]
+    status, r = run_up("standing_push", "stepping", *ov)
+    assert status == 0, r
+    bag = r["bag"]
+    events = bag_messages(bag, "/fall_event")
+    assert [e.cleared for e in events] == [False, True]       # the event, then its clearing (latched)
+    t_ev = events[0].header.stamp.sec * 10**9 + events[0].header.stamp.nanosec
+    t_clear = events[1].header.stamp.sec * 10**9 + events[1].header.stamp.nanosec
+    assert t_clear > t_ev and "recovered" in events[1].reason
+    active = sorted((m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, m.active)
+                    for m in bag_messages(bag, "/mux/state"))
+    active = [(k, a) for k, a in active if k > 0]   # the first tick: "none" (nothing commanded yet)
+    switches = [(k, a) for (k0, a0), (k, a) in zip(active, active[1:]) if a != a0]
+    assert active[0][1] == "locomotion" and [a for _, a in switches] == ["safe_fall", "locomotion"]
+    t_hb = switches[1][0]
+    assert t_hb > t_clear
+    sc = scenario.load("standing_push", ov + ["controller=stepping"])
+    mine = runs.run(sc, stop_after_landing_s=None)
+    ros = np.array([p for _, _, p in joint_states_from_bag(bag)])[:len(mine.joint_positions)]
+    assert ros.shape == mine.joint_positions.shape
+    assert np.array_equal(ros, mine.joint_positions)
+    k_hb = next(k for k in range(1, len(mine.active_sources)) if mine.active_sources[k - 1] == "safe_fall"
+                and mine.active_sources[k] == "locomotion")
+    assert round(k_hb * 2e6) == t_hb                            # the same hand-back tick (500 Hz)
+    assert not r["metrics"]["fell"]
