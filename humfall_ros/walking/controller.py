@@ -137,9 +137,7 @@ class LocomotionController:
 
     # ------------------------------------------------------------------ contract
     def reset(self) -> None:
-        c = self.cfg
-        self.standing = StandingController(self.m, self.m.standing_posture, c.ankle_kp, c.ankle_kd,
-                                           c.ankle_max_offset, c.resume_time, self.source)
+        self.standing = self._new_standing(self.m.standing_posture)
         self.pattern: WalkingPattern | None = None
         self.correction: MultiBodyCorrection | None = None
         self.momentum_zmp = MomentumZmp(self.m, self.dt)
@@ -251,13 +249,17 @@ class LocomotionController:
         the standard standing posture (with a staggered stance that drags the feet: 0.35 m apart after a
         captured step). Until it drives, it tracks the servos' targets (``resume_from_targets``) or the
         measured joints, so the hand-back is bumpless."""
-        c = self.cfg
-        target = self.stance_posture if c.resume_stance == "feet" else None
-        self.standing = StandingController(self.m, self.m.standing_posture, c.ankle_kp, c.ankle_kd,
-                                           c.ankle_max_offset, c.resume_time, self.source, resume_target=target,
-                                           resume_from_targets=c.resume_from_targets)
+        self.standing = self._new_standing(self.m.standing_posture)
         # as if another source had driven: it starts from the measured posture and blends back
         self.standing.step(dataclasses.replace(observation, active_source="other"))
+
+    def _new_standing(self, posture: dict) -> StandingController:
+        """The standing balance about ``posture``; when another source has driven, it resumes where the feet are
+        (``resume_stance`` "feet": :meth:`stance_posture`) from the servos' targets (``resume_from_targets``)."""
+        c = self.cfg
+        return StandingController(self.m, posture, c.ankle_kp, c.ankle_kd, c.ankle_max_offset, c.resume_time,
+                                  self.source, resume_target=self.stance_posture if c.resume_stance == "feet" else None,
+                                  resume_from_targets=c.resume_from_targets)
 
     def world_heading(self, observation: Observation) -> float:
         """The soles' mean yaw in the world [rad]: from the IMU and the joints (the observation has no yaw), else
@@ -548,10 +550,8 @@ class LocomotionController:
         """The stop has settled: stand in the posture the walk ended in (bumpless)."""
         feet = self.sample.feet
         self.heading = 0.5 * (feet["l"].yaw + feet["r"].yaw)
-        c = self.cfg
         posture = dict(zip(self.m.joint_names, q_final[7:]))
-        self.standing = StandingController(self.m, posture, c.ankle_kp, c.ankle_kd, c.ankle_max_offset,
-                                           c.resume_time, self.source)
+        self.standing = self._new_standing(posture)
         self._log(f"walk finished after {self.pattern.step_count} steps")
         self.pattern = None
         self.correction = None
