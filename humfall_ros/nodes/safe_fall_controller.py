@@ -9,8 +9,9 @@ on the arrival of the latched ``fall_event``: lockstep runs stay repeatable) and
 until it is balanced again: after a captured step, once ``ftb/status`` says balanced with the
 event cleared (the FTB's ``recovered`` transition) for ``handback_delay_s``, it releases (an
 empty command) and the mux hands the robot back to locomotion, which has seen the cleared
-``fall_event`` by then and stands where the feet are. Targets come from the latched ``obstacles`` topic. The decision is published once
-on ``safe_fall/decision`` (``humfall_interfaces/SafeFallDecision``, transient-local).
+``fall_event`` by then and stands where the feet are. Targets come from the latched ``obstacles``
+topic. The decision is published once (per take-over) on ``safe_fall/decision``
+(``humfall_interfaces/SafeFallDecision``, transient-local).
 Parameters: ``config/safe_fall_controller.yaml`` (``inertia_shaping`` is set by the launcher
 from ``--controller stepping|stepping_inertia``).
 """
