@@ -79,3 +79,36 @@ def test_latched_none_clears_a_loop_input():
     finally:
         loop.close()
     assert ctl.seen == [None, "set", "set", None, None, None]
+
+
+def test_standing_resumes_from_the_targets_into_the_resume_target_once():
+    from humfall_ros.control.contract import CentroidalObservation, Observation
+    from humfall_ros.control.standing import StandingController
+    from humfall_ros.model.humanoid import load_model
+
+    m = load_model()
+    calls = []
+    stance = m.joint_vector(m.standing_posture) + 0.02
+
+    def target(obs):
+        calls.append(obs.time)
+        return stance, np.array([0.03, 0.0])
+
+    c = StandingController(m, m.standing_posture, 0.3, 0.05, 0.12, resume_time=0.1, resume_target=target,
+                           resume_from_targets=True)
+    st = CentroidalObservation(np.array([0.03, 0.0, 0.74]), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3),
+                               np.zeros((0, 2)), np.zeros(3), 0.0, 0.0, 570.0, True, True, False)
+    measured, servo = m.joint_vector(m.standing_posture) - 0.01, m.joint_vector(m.standing_posture) + 0.01
+
+    def obs(t, active):
+        return Observation(round(t * 1e9), measured, np.zeros(m.njoints), st, active, {}, joint_targets=servo)
+
+    out = c.step(obs(0.0, "safe_fall"))          # another source drives: follow the servos' targets
+    assert np.allclose(out.positions, np.clip(servo, m.limits.lower, m.limits.upper)) and not calls
+    first = c.step(obs(0.002, "locomotion"))      # drives again: the target is asked for once, the blend starts
+    assert calls == [0.002] and np.max(np.abs(first.positions - servo)) < 1e-6
+    for k in range(2, 80):
+        out = c.step(obs(0.002 * k, "locomotion"))
+    assert calls == [0.002]
+    assert np.allclose(out.positions, np.clip(stance, m.limits.lower, m.limits.upper))   # kept after the blend
+    assert np.allclose(c.balance.reference, [0.03, 0.0])
