@@ -114,10 +114,12 @@ def estop_config(sc: dict, **overrides) -> EstopConfig:
     return EstopConfig.from_params(p)
 
 
-def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: float = 4.0,
+def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: float | None = None,
               overrides: list[str] | None = None, on_tick=None, **estop_overrides) -> Trial:
-    """One trial (module docstring). ``after`` [s]: how long to run past the stop's start; ``on_tick(loop,
-    obs, estop)`` is called after each tick (extra measurements)."""
+    """One trial (module docstring). ``after`` [s]: how long to run past the stop's start (default 4 s, 10 s
+    with the feet step of the return home, ``align_feet``); ``on_tick(loop, obs, estop)`` is called after each
+    tick (extra measurements). The stop's figures end where the feet step starts (``align_start_time``); the
+    step's own are ``align_*`` (:func:`align_figures`)."""
     sc = scenario.load("walking_estop", [f"walk.speed_kmh={speed_kmh}", f"estop.at.step={step}",
                                          f"estop.at.phase={phase}", *(overrides or [])])
     loop = ClosedLoop(sc, controllers=[])
@@ -125,6 +127,8 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
     dt = 1.0 / sc["sim"]["control_rate"]
     walk = LocomotionController(model, walking_config(sc), dt)
     estop = EstopController(model, estop_config(sc, **estop_overrides), dt)
+    if after is None:
+        after = 10.0 if estop.cfg.align_feet else 4.0
     from humfall_ros.control.mux import CommandMux, mux_order
 
     loop.controllers = [walk, WithInputs(estop, {"walking/state": lambda: walk.state})]
@@ -143,10 +147,11 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
     tick_cop = average_cop_per_tick(loop.world)
     tr = {k: [] for k in ("t", "com", "com_velocity", "cop", "margin", "zmp_ref", "com_ref", "support", "state",
                           "estop_com_ref", "estop_zmp_ref", "active", "cop_truth", "walking",
-                          "angular_momentum", "com_truth", "sole_truth")}
+                          "angular_momentum", "com_truth", "sole_truth", "corners_truth", "yaw_truth",
+                          "contacts")}
     data = model.model.createData()
     walk_refused = None
-    fell, fell_at = False, None
+    fell, fell_at, t_fell = False, None, math.inf
     t_end = sc["duration"]
     wall0 = time.perf_counter()
     try:
@@ -176,23 +181,31 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
             q_true = loop.world.pinocchio_configuration()
             tr["com_truth"].append(pin.centerOfMass(model.model, data, q_true).copy())
             pin.updateFramePlacements(model.model, data)
-            tr["sole_truth"].append(np.array([FootPose(data.oMf[model.frame_ids[model.foot_link[f]]].translation.copy(),
-                                                       data.oMf[model.frame_ids[model.foot_link[f]]].rotation.copy())
-                                              .sole_center(model, f)[:2] for f in ("l", "r")]))
+            fp = {f: FootPose(data.oMf[model.frame_ids[model.foot_link[f]]].translation.copy(),
+                              data.oMf[model.frame_ids[model.foot_link[f]]].rotation.copy()) for f in ("l", "r")}
+            tr["sole_truth"].append(np.array([fp[f].sole_center(model, f)[:2] for f in ("l", "r")]))
+            tr["corners_truth"].append(np.array([fp[f].sole_corners(model, f) for f in ("l", "r")]))
+            tr["yaw_truth"].append(np.array([math.atan2(fp[f].rotation[1, 0], fp[f].rotation[0, 0])
+                                             for f in ("l", "r")]))
+            tr["contacts"].append(np.array([bool(st.left_contact), bool(st.right_contact)]))
             if walk_refused is None and any("refused" in m for m in walk.messages):
                 walk_refused = next(m for m in walk.messages if "refused" in m)
                 break
             if not fell and loop.ground_truth.metrics.result()["fell"]:
                 fell, fell_at = True, obs.time
-                t_end = min(t_end, loop.world.time + 0.2)
-            if math.isfinite(estop.status.start_time):
-                t_end = min(t_end, estop.status.start_time + after)
+                t_fell = loop.world.time + 0.2
+            if math.isfinite(estop.status.start_time):      # past the scenario's duration if need be
+                t_end = estop.status.start_time + after
+            if fell:
+                t_end = min(t_end, t_fell)
     finally:
         metrics_gt = loop.ground_truth.metrics.result()
         loop.close()
     wall = time.perf_counter() - wall0
-    trace = {k: np.array(v) for k, v in tr.items()}
+    full = {k: np.array(v) for k, v in tr.items()}
     fell = fell or bool(metrics_gt["fell"])
+    a0 = float(estop.status.align_start_time)
+    trace = full if not math.isfinite(a0) else {k: v[full["t"] < a0] for k, v in full.items()}
     plan = estop.plan
     s = estop.status
     m = {"speed_kmh": speed_kmh, "phase": phase, "walk_refused": walk_refused, "wall_s": round(wall, 1),
@@ -202,8 +215,9 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
         start = float(s.start_time)
         # result.json's section as the run measures it (estimator CoG / CoP, the stop frame on the measured
         # feet from the status), and the same section from the pattern's frame (the old figures) for comparison
-        m.update(estop_result(plan, trace["t"], trace["com"], trace["cop"], trace["margin"], start, fell,
-                              estop.cfg.settle_speed, frame=estop.feet_frame, polygon=estop.feet_polygon))
+        m.update(estop_result(plan, full["t"], full["com"], full["cop"], full["margin"], start, fell,
+                              estop.cfg.settle_speed, frame=estop.feet_frame, polygon=estop.feet_polygon,
+                              end_time=s.align_start_time))
         m.update({f"{k}_pattern_frame": v for k, v in estop_result(
             plan, trace["t"], trace["com"], trace["cop"], trace["margin"], start, fell,
             estop.cfg.settle_speed).items() if k.startswith(("final_cog", "max_cop", "min_cop"))})
@@ -223,13 +237,86 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
                                               trace["margin"], start, fell, estop.cfg.settle_speed,
                                               frame=plan.frame.moved(mo))["stop_time_s"]
         m.update(walking_touchdowns(trace, start))
+        m.update(align_figures(estop, full, fell))
     else:
         m.update({"feasible": None, "fell": fell})
     m["trigger_time_s"] = s.trigger_time
     m["step"] = step
     m["fell_at_s"] = fell_at
     m["wait_s"] = (s.start_time - s.trigger_time) if plan is not None else math.nan
-    return Trial(speed_kmh, phase, m, trace, plan, list(estop.messages) + list(walk.messages))
+    return Trial(speed_kmh, phase, m, full, plan, list(estop.messages) + list(walk.messages))
+
+
+def align_figures(estop, trace: dict, fell: bool) -> dict:
+    """The feet step of the return home (§V step 3), ground truth: the final foot offset of the stepping sole
+    from side by side along the feet's heading and across it (lateral distance minus the planned width), the
+    final yaw difference, the tick-averaged CoP's smallest margin inside the support during the step (the hull
+    of the true sole corners of the feet in contact, by the measured ankle forces; ``_planned_support``: of the
+    planned support, both soles in double support and the stance sole in single support; the time the CoP is
+    nearer than 5 mm to the contact support's edge), the
+    time taken (start to end of the plan; and to the CoG slower than 0.01 m/s), and whether the robot stands
+    (no fall, both feet in contact at the end)."""
+    s = estop.status
+    a = estop.align
+    out = {"align_state": s.state, "align_swing": s.align_swing or None}
+    if a is None or not math.isfinite(s.align_start_time):
+        return out
+    t = trace["t"]
+    t0 = s.align_start_time
+    idx = np.nonzero(t >= t0)[0]
+    if not len(idx):
+        return out
+    from humfall_ros.model.humanoid import support_polygon
+
+    margins, planned = [], []
+    for i in idx:
+        c = trace["cop_truth"][i]
+        sup = a.sample(t[i] - t0).support
+        corners = trace["corners_truth"][i][:, :, :2]
+        poly = support_polygon(corners[0 if a.stance == "l" else 1] if sup != "double" else corners.reshape(-1, 2))
+        planned.append(point_in_polygon_margin(c, poly) if np.isfinite(c).all() else -math.inf)
+        touching = [corners[j] for j in (0, 1) if trace["contacts"][i][j]]
+        margins.append(point_in_polygon_margin(c, support_polygon(np.vstack(touching)))
+                       if touching and np.isfinite(c).all() else -math.inf)
+    margins, planned = np.array(margins), np.array(planned)
+    edge = np.nonzero(margins < 0.005)[0]
+    k = {"l": 0, "r": 1}
+    st_i, sw_i = k[a.stance], k[a.swing]
+    yaw = trace["yaw_truth"][-1]
+    h = math.atan2(math.sin(yaw[0]) + math.sin(yaw[1]), math.cos(yaw[0]) + math.cos(yaw[1]))
+    d = trace["sole_truth"][-1][sw_i] - trace["sole_truth"][-1][st_i]
+    hv = np.array([math.cos(h), math.sin(h)])
+    d0 = trace["sole_truth"][idx[0]][sw_i] - trace["sole_truth"][idx[0]][st_i]
+    speed = np.hypot(*trace["com_velocity"][idx, :2].T)
+    moving = np.nonzero(speed >= 0.01)[0]
+    settle = float(t[idx][moving[-1] + 1] - t0) if len(moving) and moving[-1] + 1 < len(idx) else math.nan
+    ss = np.array([a.sample(x - t0).support != "double" for x in t[idx]])
+    rel = trace["com_truth"][-1, :2] - 0.5 * (trace["sole_truth"][-1][0] + trace["sole_truth"][-1][1])
+    out.update({
+        "align_offset_before_m": float(d0 @ hv),
+        "align_final_offset_along_m": float(d @ hv),
+        "align_final_lateral_error_m": float(abs(d @ np.array([-hv[1], hv[0]])) - a.width),
+        "align_final_yaw_diff_deg": math.degrees(math.remainder(yaw[sw_i] - yaw[st_i], math.tau)),
+        "align_min_cop_margin_m": float(np.min(margins)),
+        "align_min_cop_margin_planned_support_m": float(np.min(planned)),
+        "align_cop_near_edge_s": float(len(edge) * np.median(np.diff(t))),
+        "align_cop_near_edge_first_s": float(t[idx][edge[0]] - t0) if len(edge) else None,
+        "align_min_cop_margin_single_m": float(np.min(margins[ss])) if ss.any() else math.nan,
+        "align_min_cop_margin_single_after_0.2s_m": float(np.min(margins[ss & (t[idx] >= t0 + a.t_lift + 0.2)]))
+        if (ss & (t[idx] >= t0 + a.t_lift + 0.2)).any() else math.nan,
+        "align_min_cop_margin_double_m": float(np.min(margins[~ss])) if (~ss).any() else math.nan,
+        "align_duration_s": float(a.duration),
+        "align_done_s": (s.align_end_time - t0) if math.isfinite(s.align_end_time) else math.nan,
+        "align_settle_s": settle,
+        "align_final_cog_from_feet_mid_m": float(np.linalg.norm(rel)),
+        "align_both_feet_in_contact_end": bool(trace["contacts"][-1].all()),
+        "align_stands": bool(not fell and trace["contacts"][-1].all()),
+        "align_swing_slide_before_lift_m": float(np.linalg.norm(
+            trace["sole_truth"][np.searchsorted(t, t0 + a.t_lift) - 1][sw_i] - trace["sole_truth"][idx[0]][sw_i])),
+        "align_stance_slide_m": float(np.max(np.linalg.norm(trace["sole_truth"][idx][:, st_i]
+                                                            - trace["sole_truth"][idx[0]][st_i], axis=1))),
+    })
+    return out
 
 
 class ArmedAtStop:
@@ -610,7 +697,8 @@ def main(argv=None) -> int:
     for kv in a.set:
         k, v = kv.split("=", 1)
         try:
-            over[k] = int(v) if v.lstrip("-").isdigit() else float(v)
+            over[k] = {"true": True, "false": False}[v.lower()] if v.lower() in ("true", "false") else (
+                int(v) if v.lstrip("-").isdigit() else float(v))
         except ValueError:
             over[k] = v
     for v in a.speeds:

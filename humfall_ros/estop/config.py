@@ -78,6 +78,13 @@ class EstopConfig:
     com_integral_max: float = 0.03
     joint_stop_time: float = 0.3
     home_duration: float = 1.5
+    align_feet: bool = True
+    align_shift_time: float = 0.8
+    align_swing_time: float = 0.8
+    align_apex: float = 0.04
+    align_width_offset: float = 0.0
+    align_min_offset: float = 0.01
+    align_max_speed: float = 0.05
     trigger_time: float = -1.0
     trigger_step: int = -1
     trigger_phase: str = "ds_start"

@@ -20,11 +20,16 @@ States (:class:`EstopState`; the transition rules are :data:`TRANSITIONS`, print
   (``ankle_kp``, ``ankle_kd`` on the measured CoG's error to the reference, relative to the feet)
   as the stabiliser that makes the executed ZMP follow (eq. 2's lag).
 * ``stopped`` -- the plan has reached its final point (velocity exactly 0): the upper body moves
-  home (``home_duration``), then ``holding``.
+  home (``home_duration``), then ``aligning`` (``align_feet``, the feet a step apart, the measured CoG
+  slower than ``align_max_speed``) or ``holding``.
+* ``aligning`` -- return home, step 3 (paper 3 §V; humfall_ros/estop/align.py): the rear foot steps beside
+  the other at the standard step width (walking's preview control moves the CoG over the stance sole in
+  double support, walking's swing trajectory, the CoG back to the middle), starting from the held posture's
+  CoG target at rest (bumpless); then ``holding`` with the feet side by side.
 * ``holding`` -- holds the final posture until a release (``inputs["estop_release"]``: a new
   :class:`TopicEvent`, acted on once, or a truthy level)
   when the measured CoG is slower than ``settle_speed``; then ``idle`` (walking takes the robot
-  back from the measured posture; aligning the feet by stepping is walking's, §V step 3).
+  back from the measured posture).
 * ``refused`` -- the state was outside the model's validity (CoG height, speed, non-finite,
   omega_f vs omega_c): nothing was taken over, the robot stays with walking, the reason is in the
   status; a new trigger (edge) is tried again.
@@ -59,6 +64,7 @@ import numpy as np
 import pinocchio as pin
 
 from humfall_ros.control.contract import JointTargets, Observation, stamp_ns_of
+from humfall_ros.estop.align import AlignPlan, AlignSettings, plan_alignment
 from humfall_ros.estop.config import EstopConfig, TriggerPhase
 from humfall_ros.estop.frame import FootPose, PlanarMotion
 from humfall_ros.estop.planner import EstopInputError, EstopPlanner, PatternState, StopPlan
@@ -75,6 +81,7 @@ class EstopState(str, enum.Enum):
     WAITING = "waiting"
     STOPPING = "stopping"
     STOPPED = "stopped"
+    ALIGNING = "aligning"
     HOLDING = "holding"
     REFUSED = "refused"
     YIELDED = "yielded"
@@ -90,7 +97,11 @@ TRANSITIONS: dict[EstopState, tuple[tuple[str, EstopState], ...]] = {
                          ("fall event", EstopState.YIELDED)),
     EstopState.STOPPING: (("plan reaches its end (velocity 0)", EstopState.STOPPED),
                           ("fall event", EstopState.YIELDED)),
-    EstopState.STOPPED: (("upper body home", EstopState.HOLDING), ("fall event", EstopState.YIELDED)),
+    EstopState.STOPPED: (("upper body home, feet side by side or align_feet off", EstopState.HOLDING),
+                         ("upper body home, feet a step apart, CoG at rest, align_feet", EstopState.ALIGNING),
+                         ("fall event", EstopState.YIELDED)),
+    EstopState.ALIGNING: (("step done, CoG back in the middle", EstopState.HOLDING),
+                          ("fall event", EstopState.YIELDED)),
     EstopState.HOLDING: (("release, CoG at rest", EstopState.IDLE), ("fall event", EstopState.YIELDED)),
     EstopState.REFUSED: (("new trigger", EstopState.STOPPING), ("release", EstopState.IDLE)),
     EstopState.YIELDED: (("release, not taken over", EstopState.IDLE),),
@@ -129,6 +140,9 @@ class EstopStatus:
             result's figures are measured in (the robot may have yawed / drifted off its pattern).
         feet_support_polygon: the stop's double-support polygon carried the same way [m] ((k, 2) as a tuple).
         feet_yaw_off_pattern: that motion's yaw [rad] (measured feet minus the pattern's).
+        align_start_time, align_end_time: sim time the alignment step started / ended [s] (NaN: none).
+        align_swing: the side that steps ("" none); align_offset: its planned offset from side by side along the
+            feet's heading at the start [m] (signed, behind < 0).
         com_ref, com_velocity_ref, zmp_ref: this tick's references of the stop [m, m/s, m] (3,), world
             (NaN when not playing a plan): what plan-vs-measured plots read from a bag.
     """
@@ -171,6 +185,10 @@ class EstopStatus:
     feet_major_axis: tuple = (math.nan,) * 2
     feet_support_polygon: tuple = ()
     feet_yaw_off_pattern: float = math.nan
+    align_start_time: float = math.nan
+    align_end_time: float = math.nan
+    align_swing: str = ""
+    align_offset: float = math.nan
     com_ref: tuple = (math.nan,) * 3
     com_velocity_ref: tuple = (math.nan,) * 3
     zmp_ref: tuple = (math.nan,) * 3
@@ -321,6 +339,7 @@ class EstopController:
         self.planner = EstopPlanner(model, self.cfg)
         self.ik = WholeBodyIK(model)
         self._offsets = _sole_to_ankle(model)
+        self._sole_ankle = self._offsets                 # sole frame -> ankle frame per side
         names = model.joint_names
         self._legs = np.array([n[:2] in ("l_", "r_") and any(k in n for k in ("hip", "knee", "ankle"))
                                for n in names])
@@ -359,8 +378,13 @@ class EstopController:
         self._t_b = 0.0
         self._prev_ws = None
         self.now = 0.0
+        self._obs_state = None
+        self._rest_com = None
         self.feet_frame = None          # the stop frame on the measured feet (set at the stop's start)
         self.feet_polygon = None
+        self.align: AlignPlan | None = None
+        self._t_align = math.nan
+        self._align_wait_logged = False
 
     def run_metrics(self) -> dict:
         """The run's e-stop outcome for the in-process loop's metrics (``estop_*`` keys; campaigns)."""
@@ -422,7 +446,7 @@ class EstopController:
             self._log(f"estop: trigger ignored: already {self.state.value}")
         if self.state == EstopState.WAITING and ws is not None and ws.support == "double":
             self._start(observation, ws)
-        if self.state in (EstopState.STOPPING, EstopState.STOPPED, EstopState.HOLDING):
+        if self.state in (EstopState.STOPPING, EstopState.STOPPED, EstopState.ALIGNING, EstopState.HOLDING):
             out = self._play(observation)
             if release:
                 speed = float(np.hypot(*observation.state.com_velocity[:2]))
@@ -536,6 +560,8 @@ class EstopController:
             self._set(EstopState.REFUSED, observation.stamp_ns, reason=f"refused: {e}")
             return
         self.plan = plan
+        self.align = None
+        self._align_wait_logged = False
         self.taken_over = True
         self._t_start = observation.time
         self.q_ik = q_seed
@@ -599,34 +625,86 @@ class EstopController:
     def _upper_targets(self, t: float) -> np.ndarray:
         """Upper-body joints: eq. 23 stop over T_b, then (when stopped) a smooth move home."""
         pos, _ = return_home(self._upper0, self._upper_v0, self._t_b, t)
-        if self.state in (EstopState.STOPPED, EstopState.HOLDING) and self._home is not None:
+        if self.state in (EstopState.STOPPED, EstopState.ALIGNING, EstopState.HOLDING) and self._home is not None:
             s = min(max((self.now - self._t_stopped) / self.cfg.home_duration, 0.0), 1.0)
             blend = 10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5
             pos = pos + blend * (self._home[~self._legs] - pos)
             if s >= 1.0 and self.state == EstopState.STOPPED:
-                self._set(EstopState.HOLDING, self.status.stamp_ns, reason=self.status.reason)
+                self._home_reached()
         elif self.state == EstopState.STOPPED:
-            self._set(EstopState.HOLDING, self.status.stamp_ns, reason=self.status.reason)
+            self._home_reached()
         return pos
+
+    def _home_reached(self) -> None:
+        """Upper body home: align the feet by a step (§V step 3) when asked and needed, else hold."""
+        c = self.cfg
+        if not c.align_feet or self.align is not None:
+            self._set(EstopState.HOLDING, self.status.stamp_ns, reason=self.status.reason)
+            return
+        speed = float(np.hypot(*self._obs_state.com_velocity[:2])) if self._obs_state is not None else 0.0
+        if speed >= c.align_max_speed:
+            if not self._align_wait_logged:
+                self._align_wait_logged = True
+                self._log(f"estop: the feet step waits: CoG speed {speed:.3f} m/s >= {c.align_max_speed} m/s")
+            return
+        d = self.m.model.createData()
+        pin.framesForwardKinematics(self.m.model, d, self.q_ik)
+        soles = {s: d.oMf[self.m.frame_ids[self.m.sole_frame[s]]].copy() for s in SIDES}
+        ankles = {s: d.oMf[self.m.frame_ids[self.m.foot_link[s]]] for s in SIDES}
+        centers = {s: FootPose(ankles[s].translation.copy(), ankles[s].rotation.copy()).sole_center(self.m, s)
+                   for s in SIDES}
+        settings = AlignSettings(shift_time=c.align_shift_time, swing_time=c.align_swing_time, apex=c.align_apex,
+                                 width_offset=c.align_width_offset, min_offset=c.align_min_offset)
+        try:
+            plan = plan_alignment(self.m, soles, centers, self._rest_com, self.dt, settings)
+        except ValueError as e:
+            self._log(f"estop: no feet step: {e}")
+            plan = None
+        if plan is None:
+            self._set(EstopState.HOLDING, self.status.stamp_ns, reason=self.status.reason)
+            return
+        self.align = plan
+        self._t_align = self.now
+        self._align_stance_ankle = ankles[plan.stance].copy()
+        self._log(f"estop: feet step: {plan.swing} foot {plan.offset_before:+.3f} m along, "
+                  f"{plan.lateral_before:+.3f} m across from beside the {plan.stance} foot")
+        self._set(EstopState.ALIGNING, self.status.stamp_ns, reason=self.status.reason, align_start_time=self.now,
+                  align_swing=plan.swing, align_offset=plan.offset_before)
 
     def _play(self, observation: Observation) -> JointTargets:
         plan = self.plan
         self.now = observation.time
+        self._obs_state = observation.state
         t = observation.time - self._t_start
         ref = plan.sample(t)
-        self.status = dataclasses.replace(self.status, com_ref=tuple(map(float, ref.com)),
-                                          com_velocity_ref=tuple(map(float, ref.com_velocity)),
-                                          zmp_ref=tuple(map(float, ref.zmp)))
+        self._rest_com = ref.com.copy()
         if ref.done and self.state == EstopState.STOPPING:
             self._t_stopped = observation.time
             self._set(EstopState.STOPPED, observation.stamp_ns, reason=self.status.reason)
         blend = max(0.0, 1.0 - t / BLEND_TIME)
-        target = ref.com + blend * self._offset0 + self._com_integral
         posture = self.q_ik[7:].copy()
-        posture[~self._legs] = self._upper_targets(t)
+        posture[~self._legs] = self._upper_targets(t)      # may start the feet step (home reached)
         feet = plan.state.feet
         yaw = math.atan2(*(sum(feet[s].rotation[:2, 0] for s in SIDES)[::-1]))
         tasks = [FrameTask(self.m.foot_link[s], self._hold_feet[s], hard=True) for s in SIDES]
+        ankle_weight = {s: 1.0 for s in SIDES}
+        ref_mid = 0.5 * (feet["l"].position + feet["r"].position)
+        if self.align is not None:              # return home, step 3: the feet step (estop/align.py)
+            a = self.align.sample(observation.time - self._t_align)
+            ref = dataclasses.replace(ref, com=a.com, com_velocity=a.com_velocity, zmp=a.zmp_ref, done=a.done)
+            sw = self.align.swing
+            tasks = [FrameTask(self.m.foot_link[self.align.stance], self._align_stance_ankle, hard=True),
+                     FrameTask(self.m.sole_frame[sw], a.swing, hard=True)]
+            ankle_weight = {self.align.stance: 1.0, sw: self.align.swing_ankle_weight(observation.time - self._t_align)}
+            swing_ankle = a.swing * self._sole_ankle[sw]
+            ref_mid = 0.5 * (self._align_stance_ankle.translation + swing_ankle.translation)
+            if a.done and self.state == EstopState.ALIGNING:
+                self._set(EstopState.HOLDING, observation.stamp_ns, reason=self.status.reason,
+                          align_end_time=observation.time)
+        self.status = dataclasses.replace(self.status, com_ref=tuple(map(float, ref.com)),
+                                          com_velocity_ref=tuple(map(float, ref.com_velocity)),
+                                          zmp_ref=tuple(map(float, ref.zmp)))
+        target = ref.com + blend * self._offset0 + self._com_integral
         upright = _yaw_matrix(yaw)        # the trunk goes upright from where it was, over BLEND_TIME too
         trunk = self._trunk0 @ pin.exp3((1.0 - blend) * pin.log3(self._trunk0.T @ upright))
         tasks += [ComTask(target, weight=1000.0, velocity=None if ref.done else ref.com_velocity),
@@ -638,7 +716,7 @@ class EstopController:
         # ankle strategy on the measured CoG relative to the feet (the stabiliser of the executed stop)
         c = self.cfg
         st = observation.state
-        mid = 0.5 * (feet["l"].position + feet["r"].position)
+        mid = ref_mid
         # the measured vectors are in the estimator's world, the reference in the pattern's: turn the measured
         # ones by the robot's yaw off its kinematic model (IMU yaw - the IK's IMU yaw; at 1.8 km/h the robot has
         # yawed 11-17 deg off its pattern, which read the CoG 0.2 m from the feet centre as 4-6 cm of error)
@@ -652,13 +730,14 @@ class EstopController:
                                c.ankle_max_offset))
         # from the predicted stop time on: the integral of the horizontal CoG error relative to the feet moves the
         # IK's CoG target against it (the servos sag under the crouched load; a P-only ankle strategy leaves it)
-        if t >= plan.stop_time and c.com_integral_gain > 0:
+        if t >= plan.stop_time and c.com_integral_gain > 0 and self.align is None:
             self._com_integral[:2] -= c.com_integral_gain * self.dt * err[:2]
             n = float(np.hypot(*self._com_integral[:2]))
             if n > c.com_integral_max:
                 self._com_integral[:2] *= c.com_integral_max / n
-        q[self._pitch] += d_pitch
-        q[self._roll] += d_roll
+        for i, s in enumerate(SIDES):            # in the feet step's single support: the stance ankle only
+            q[self._pitch[i]] += ankle_weight[s] * d_pitch
+            q[self._roll[i]] += ankle_weight[s] * d_roll
         q = np.clip(q, self.m.limits.lower, self.m.limits.upper)
         return JointTargets(q, r.v[6:].copy())
 

@@ -11,7 +11,8 @@ from humfall_ros.model.humanoid import point_in_polygon_margin
 
 
 def estop_result(plan: StopPlan | None, t, com, cop, cop_margin, start_time: float, fell: bool,
-                 settle_speed: float = 0.01, frame: StopFrame | None = None, polygon=None) -> dict:
+                 settle_speed: float = 0.01, frame: StopFrame | None = None, polygon=None,
+                 end_time: float | None = None) -> dict:
     """Summary of an executed stop, measured in the stop frame on the measured feet.
 
     Args:
@@ -27,6 +28,8 @@ def estop_result(plan: StopPlan | None, t, com, cop, cop_margin, start_time: flo
         polygon: the stop's double-support polygon on the measured feet (k, 2) [m]
             (``EstopStatus.feet_support_polygon``): given, ``min_cop_margin_m`` is the CoP's distance inside it
             (ticks whose ``cop_margin`` is -inf, no contact, stay -inf); None: ``cop_margin`` as given.
+        end_time: the stop's figures end here [s] (the feet step of the return home starts, §V step 3:
+            ``EstopStatus.align_start_time``); None / NaN: the run's end.
     Returns:
         ``feasible``, ``n3_m`` (Major), ``final_cog_major_m``, ``final_cog_minor_m`` (in the stop frame),
         ``max_cop_minor_m`` (largest |Minor| CoP displacement after the start), ``min_cop_margin_m``,
@@ -39,11 +42,14 @@ def estop_result(plan: StopPlan | None, t, com, cop, cop_margin, start_time: flo
     t = np.asarray(t, float)
     com = np.asarray(com, float)
     cop = np.asarray(cop, float)
+    cop_margin = np.asarray(cop_margin, float)
+    if end_time is not None and math.isfinite(end_time) and len(t):
+        keep = t < end_time
+        t, com, cop, cop_margin = t[keep], com[keep], cop[keep], cop_margin[keep]
     after = t >= start_time
     frame = plan.frame if frame is None else frame
     local_com = frame.to_local(com[:, :2])
     local_cop = frame.to_local(cop[after, :2])
-    cop_margin = np.asarray(cop_margin, float)
     if polygon is not None and len(cop_margin):
         poly = np.asarray(polygon, float).reshape(-1, 2)
         cop_margin = np.array([-math.inf if (m == -math.inf or not np.isfinite(c[:2]).all())
@@ -84,11 +90,13 @@ def estop_result_from_bag(bag, fell: bool, settle_speed: float = 0.01) -> dict:
     feasible = False
     margins = {}
     feet = None
+    align_start = math.nan
     for raw, m in read_messages(resolve_bag(bag), ["/estop/status", "/centroidal_state"]):
         k = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
         if raw.topic == "/estop/status":
             if math.isfinite(m.start_time):
                 feasible = bool(m.feasible)
+                align_start = float(getattr(m, "align_start_time", math.nan))
                 if hasattr(m, "feet_frame_origin") and math.isfinite(m.feet_frame_origin.x):
                     feet = (np.array([m.feet_frame_origin.x, m.feet_frame_origin.y]),
                             np.array([m.feet_major_axis.x, m.feet_major_axis.y]),
@@ -103,7 +111,7 @@ def estop_result_from_bag(bag, fell: bool, settle_speed: float = 0.01) -> dict:
     plan = types.SimpleNamespace(frame=frame, feasible=feasible, major=types.SimpleNamespace(n3=run.n3))
     cop_margin = [margins.get(int(round(t * 1e9)), -math.inf) for t in run.t]
     return estop_result(plan, run.t, run.com, run.cop, cop_margin, run.start, fell, settle_speed,
-                        polygon=polygon if polygon is not None and len(polygon) >= 3 else None)
+                        polygon=polygon if polygon is not None and len(polygon) >= 3 else None, end_time=align_start)
 
 
 __all__ = ["estop_result", "estop_result_from_bag"]

@@ -108,7 +108,7 @@ def status_to_msg(s: EstopStatus) -> EstopStatusMsg:
                  "trigger_time", "start_time", "omega_c", "alpha", "beta", "omega_f", "max_zmp_minor",
                  "max_zmp_major", "max_lipm_zmp_minor", "max_lipm_zmp_major", "n3_lower_bound", "min_zmp_margin",
                  "predicted_stop_time", "crouch", "crouch_height", "feasible", "fallback", "reason",
-                 "feet_yaw_off_pattern"):
+                 "feet_yaw_off_pattern", "align_start_time", "align_end_time", "align_swing", "align_offset"):
         v = getattr(s, name)
         setattr(m, name, type(getattr(m, name))(v))
     for name in ("gains_minor", "gains_major", "poles_minor_re", "poles_minor_im", "n_major", "n_minor_re",
