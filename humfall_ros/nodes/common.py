@@ -196,24 +196,31 @@ class HotLoop:
     what this expects, it falls back to plain ``executor.spin()``.
     """
 
-    def __init__(self, node: Node, service_period: float = 0.05, on_batch: Callable[[], None] | None = None):
+    def __init__(self, node: Node, service_period: float = 0.05, on_batch: Callable[[], None] | None = None,
+                 pace: float = 0.0):
         self.node = node
         self.service_period = service_period
+        # s to sleep before each wait, so that the messages of a tick gather and one wait takes them
+        # all (the recorder: a dozen topics per tick; latency does not matter to it)
+        self.pace = pace
         # called after each batch of taken messages: a node that fell behind (free-run on a
         # busy machine) can then answer only the newest tick instead of every stale one
         self.on_batch = on_batch
         self.batching = False  # True while spin() runs its own loop (and so calls on_batch)
-        self.subs: list[tuple[Any, type, Callable]] = []
+        self.subs: list[tuple[Any, type, Callable, bool]] = []
         self.composition = Composition.current
         if self.composition is not None:
             self.composition.loops.append(self)
 
-    def subscribe(self, msg_type, topic: str, callback: Callable, qos=None):
-        if self.composition is not None:  # several nodes in this process: one subscription per topic
+    def subscribe(self, msg_type, topic: str, callback: Callable, qos=None, raw: bool = False,
+                  with_info: bool = False):
+        """A per-tick subscription: ``callback(msg)``, or ``callback(msg, info)`` with ``with_info``
+        (the executor passes the same two to a two-argument callback); ``raw`` takes serialized bytes."""
+        if self.composition is not None and not (raw or with_info):  # composed: one subscription per topic
             return self.composition.subscribe(self.node, msg_type, topic, callback, qos)
         sub = self.node.create_subscription(msg_type, topic, callback, qos or QOS_RELIABLE,
-                                            event_callbacks=NO_SUB_EVENTS)
-        self.subs.append((sub, msg_type, callback))
+                                            event_callbacks=NO_SUB_EVENTS, raw=raw)
+        self.subs.append((sub, msg_type, callback, with_info))
         return sub
 
     def take_all(self) -> int:
@@ -222,13 +229,16 @@ class HotLoop:
         progress = True
         while progress:
             progress = False
-            for sub, msg_type, callback in self.subs:
+            for sub, msg_type, callback, with_info in self.subs:
                 with sub.handle:
                     taken = sub.handle.take_message(msg_type, sub.raw)
                 if taken is not None:
                     progress = True
                     n += 1
-                    callback(taken[0])
+                    if with_info:
+                        callback(taken[0], taken[1])
+                    else:
+                        callback(taken[0])
         return n
 
     def spin(self, executor) -> None:
@@ -243,15 +253,21 @@ class HotLoop:
         timeout_ns = int(self.service_period * 1e9)
         try:
             while ctx.ok():
-                with contextlib.ExitStack() as stack:
-                    for sub, _, _ in self.subs:
-                        stack.enter_context(sub.handle)
-                    stack.enter_context(ctx.handle)
-                    wait_set = _rclpy.WaitSet(len(self.subs), 0, 0, 0, 0, 0, ctx.handle)
-                    wait_set.clear_entities()
-                    for sub, _, _ in self.subs:
-                        wait_set.add_subscription(sub.handle)
-                    wait_set.wait(timeout_ns)
+                if self.pace > 0:
+                    time.sleep(self.pace)
+                subs = list(self.subs)  # a callback may add one (the recorder's discovery)
+                if not subs:  # rcl refuses to wait on an empty wait set
+                    time.sleep(self.service_period)
+                else:
+                    with contextlib.ExitStack() as stack:
+                        for sub, *_ in subs:
+                            stack.enter_context(sub.handle)
+                        stack.enter_context(ctx.handle)
+                        wait_set = _rclpy.WaitSet(len(subs), 0, 0, 0, 0, 0, ctx.handle)
+                        wait_set.clear_entities()
+                        for sub, *_ in subs:
+                            wait_set.add_subscription(sub.handle)
+                        wait_set.wait(timeout_ns)
                 taken = self.take_all()
                 now = time.monotonic()
                 if now >= next_service:
@@ -284,7 +300,7 @@ class Composition:
     def __init__(self):
         self.loops: list[HotLoop] = []
         self.fanout: dict[tuple[str, type], list[Callable]] = {}
-        self.subs: list[tuple[Any, type, Callable]] = []
+        self.subs: list[tuple[Any, type, Callable, bool]] = []
 
     def subscribe(self, node: Node, msg_type, topic: str, callback: Callable, qos=None):
         key = (node.resolve_topic_name(topic), msg_type)
@@ -298,7 +314,7 @@ class Composition:
                 cb(msg)
 
         sub = node.create_subscription(msg_type, topic, fan, qos or QOS_RELIABLE, event_callbacks=NO_SUB_EVENTS)
-        self.subs.append((sub, msg_type, fan))
+        self.subs.append((sub, msg_type, fan, False))
         return sub
 
     def spin(self, executor, service_period: float = 0.05) -> None:
@@ -308,6 +324,7 @@ class Composition:
         combined = HotLoop.__new__(HotLoop)
         combined.node = self.loops[0].node
         combined.service_period = service_period
+        combined.pace = 0.0
         combined.subs = self.subs
         combined.composition = None
         members = list(self.loops)

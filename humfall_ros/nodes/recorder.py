@@ -54,14 +54,12 @@ import struct
 import time
 from typing import Any
 
-import rclpy
-import rclpy.executors
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from humfall_ros.nodes.common import Params, run_node
+from humfall_ros.nodes.common import HotLoop, Params, run_node
 from humfall_ros.recording.schema import SchemaError, split_type_name
 from humfall_ros.recording.writer import BAG_FILE, STATS_FILE, BagWriter
 
@@ -134,6 +132,9 @@ class Recorder(Node):
         self._warned_types: set[str] = set()
         self._last_error_log = 0.0
         self._closed = False
+        # the recorded topics are waited on alone (HotLoop): rclpy's executor rebuilt a wait set of
+        # every entity of the node per wait; timers, discovery and parameters are served every 50 ms
+        self.hot_loop = HotLoop(self, pace=self.batch_period)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         # Both timers on the steady clock: they must run even when sim time stands still.
         self.create_timer(self.flush_period, self._flush, clock=steady)
@@ -187,7 +188,7 @@ class Recorder(Node):
             self._drain(topic, cid)
 
         try:
-            self._subs[topic] = self.create_subscription(cls, topic, on_message, qos, raw=True)
+            self._subs[topic] = self.hot_loop.subscribe(cls, topic, on_message, qos, raw=True, with_info=True)
         except Exception as exc:  # noqa: BLE001 - bad topic name, rmw error
             self._skip(topic, f"cannot subscribe: {exc}")
             return
@@ -277,32 +278,9 @@ class Recorder(Node):
                   f"{len(self.writer.channels)} topics; stats in {p}", flush=True)
 
 
-class PacedExecutor(rclpy.executors.SingleThreadedExecutor):
-    """A single-threaded executor that waits at most once per ``batch_period``.
-
-    Every executor wait costs ~0.3 ms of Python here (wait-set rebuild over all the
-    node's entities) whatever it returns; recording one message costs ~0.03 ms. At
-    lockstep rates (a dozen topics at 500 Hz) one wait per message would eat a core
-    of a 2-core machine. Sleeping ``batch_period`` before each wait lets messages
-    gather in the DDS reader queues (deep, reliable: nothing is lost, they only
-    arrive a few ms later), then one wait serves all of them (with ``_drain``).
-    """
-
-    pace = 0.0
-
-    def add_node(self, node) -> bool:
-        self.pace = float(getattr(node, "batch_period", 0.0))
-        return super().add_node(node)
-
-    def _wait_for_ready_callbacks(self, *args, **kwargs):
-        if self.pace > 0:
-            time.sleep(self.pace)
-        yield from super()._wait_for_ready_callbacks(*args, **kwargs)
-
-
 def main(args=None) -> int:
     # use_sim_time is set by the node from its `clock` parameter, not forced by run_node.
-    return run_node(Recorder, args=args, use_sim_time=False, executor_factory=PacedExecutor)
+    return run_node(Recorder, args=args, use_sim_time=False)
 
 
 if __name__ == "__main__":
