@@ -117,3 +117,77 @@ def test_after_a_walking_stop_the_feet_end_side_by_side_and_the_robot_stands():
     # the mux never handed the robot back to walking, and the stop's own figures end where the step starts
     assert (tr.trace["active"][tr.trace["t"] >= m["trigger_time_s"]] == "estop").all()
     assert abs(m["final_cog_vs_n3_m"]) <= 0.02
+
+
+def test_the_controller_steps_after_home_refuses_a_release_while_stepping_then_holds_the_feet_side_by_side():
+    """EstopController on synthetic observations (CoG at rest): stopped -> (home) aligning -> holding; the IK's
+    feet end side by side at the step width; a release while aligning is refused; with align_feet off: holding."""
+    import dataclasses as dc
+
+    from humfall_ros.control.contract import CentroidalObservation, Observation, stamp_ns_of
+    from humfall_ros.estop.config import EstopConfig
+    from humfall_ros.estop.controller import EstopController, EstopState
+    from humfall_ros.sim.world import STANDING_POSTURE
+
+    @dc.dataclass
+    class Pattern:
+        walking: bool = True
+        support: str = "double"
+        phase_fraction: float = 0.0
+        step_index: int = 5
+        com_ref: np.ndarray = dc.field(default_factory=lambda: np.array([0.06, -0.02, 0.742]))
+        com_velocity_ref: np.ndarray = dc.field(default_factory=lambda: np.array([0.1, 0.02, 0.0]))
+        zmp_ref: np.ndarray = dc.field(default_factory=lambda: np.array([0.0, -0.09, 0.0]))
+        left_foot: tuple = (0.15, 0.09, 0.0, 0.0)
+        right_foot: tuple = (0.0, -0.09, 0.0, 0.0)
+
+    # joints with the feet a stride apart (as a walking stop leaves them): the IK onto the pattern's feet
+    from humfall_ros.estop.controller import feet_from_soles
+    from humfall_ros.estop.posture import configuration_from_feet
+    from humfall_ros.model.ik import ComTask, FrameTask, PostureTask, WholeBodyIK
+
+    pat = Pattern()
+    feet = feet_from_soles(M, {"l": pat.left_foot, "r": pat.right_foot})
+    q = configuration_from_feet(M, M.joint_vector(STANDING_POSTURE), feet, "r")
+    ik = WholeBodyIK(M)
+    for _ in range(300):
+        q = ik.solve(q, [*(FrameTask(M.foot_link[x], pin.SE3(feet[x].rotation, feet[x].position), hard=True)
+                           for x in "lr"), ComTask(np.array([0.075, 0.0, 0.72]), weight=100.0),
+                         PostureTask(q[7:].copy(), weight=1e-3)], 0.01).q
+    stride_joints = q[7:].copy()
+
+    def obs(t, **inputs):
+        joints = stride_joints.copy()
+        st = CentroidalObservation(
+            com=np.array([0.06, -0.02, 0.742]), com_velocity=np.zeros(3), cop=np.array([0.02, -0.09, 0.0]),
+            capture_point=np.zeros(3), angular_momentum=np.zeros(3), support_polygon=np.zeros((0, 2)),
+            feet_center=np.array([0.075, 0.0, 0.105]), lean_angle=0.0, lean_direction=0.0, normal_force=569.0,
+            left_contact=True, right_contact=True, cop_on_edge=False)
+        return Observation(stamp_ns_of(t), joints, np.zeros_like(joints), st, "locomotion", dict(inputs))
+
+    off = EstopController(M, EstopConfig.defaults(trigger_time=0.0, home_duration=0.1, align_feet=False), DT)
+    ctl = EstopController(M, EstopConfig.defaults(trigger_time=0.0, home_duration=0.1), DT)
+    seen, refused, k = [], False, 0
+    while ctl.state != EstopState.HOLDING or off.state != EstopState.HOLDING:
+        o = obs(k * DT, **{"walking/state": Pattern()})
+        off.step(o)
+        if ctl.state == EstopState.ALIGNING and not refused:
+            o.inputs["estop_release"] = True
+            refused = True
+        assert ctl.step(o) is not None
+        seen.append(ctl.state)
+        k += 1
+        assert k * DT < 12.0, ctl.messages[-3:]
+    assert EstopState.ALIGNING in seen, ctl.messages
+    assert seen.index(EstopState.ALIGNING) > seen.index(EstopState.STOPPED)
+    assert any("release refused: aligning" in m for m in ctl.messages)
+    assert EstopState.ALIGNING not in {off.state} and off.align is None
+    s = ctl.status
+    assert s.align_swing == "r" and s.align_offset == pytest.approx(-0.15, abs=0.01)
+    assert s.align_end_time - s.align_start_time == pytest.approx(ctl.align.duration, abs=2 * DT)
+    d = M.model.createData()
+    pin.framesForwardKinematics(M.model, d, ctl.q_ik)
+    soles = {x: d.oMf[M.frame_ids[M.sole_frame[x]]] for x in "lr"}
+    along, lateral = side_by_side_offsets(soles, 0.0, ctl.align.width, "l")
+    assert abs(along) < 2e-3 and abs(lateral) < 2e-3
+    assert abs(soles["r"].translation[2] - soles["l"].translation[2]) < 1e-3
