@@ -339,6 +339,12 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
         curve += [[off + float(tt), float(e)] for tt, e in zip(s.time, s.ke)]
         off += float(s.time[-1])
     out["plan"]["ke_curve"] = curve
+    # the paper's objective prices the kinetic energy at the end of a transition only (eq. 9): what the
+    # motion carries before it (the arms swung fast, then braked) is free, and an early touchdown meets it
+    curve_t = np.array([c[0] for c in curve])
+    curve_ke = np.array([c[1] for c in curve])
+    out["plan"]["ke_max"] = float(curve_ke.max())
+    out["plan"]["ke_max_time"] = float(curve_t[int(np.argmax(curve_ke))])
     out["switches"] = [{"segment": i, "plan_time": float(tp), "why": why} for i, tp, why in executor.switches]
     out["sources_after_take_over"] = sorted(set(active[k0 + 1:]))
     mirror = executor.mirrored_hand
@@ -358,6 +364,12 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
         want = ev.change == "add"
         k = _first(touching[ev.extremity] == want, k0)
         row["executed_time"] = None if k is None else float(t[k] - t0)
+        if k is not None and want:
+            # how hard the executed touchdown is against the plan's: the 3-D energy on the tick before it,
+            # the plan's at that (executed) time, and the plan's at its own landing
+            row["executed_ke_before"] = float(ke[max(k - 1, 0)])
+            row["planned_ke_at_executed_time"] = float(np.interp(t[k] - t0, curve_t, curve_ke))
+            row["planned_ke_before"] = float(np.interp(ev.time - 1e-9, curve_t, curve_ke))
         if k is not None and want and probe.limb_point[ev.extremity][k] is not None:
             p = probe.limb_point[ev.extremity][k]
             row["executed_x"], row["executed_y"], row["executed_z"] = (float(p[0]), float(p[1]), float(p[2]))
