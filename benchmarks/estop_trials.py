@@ -300,6 +300,7 @@ def align_figures(estop, trace: dict, fell: bool) -> dict:
         "align_min_cop_margin_m": float(np.min(margins)),
         "align_min_cop_margin_planned_support_m": float(np.min(planned)),
         "align_cop_near_edge_s": float(len(edge) * np.median(np.diff(t))),
+        "align_no_contact_ticks": int(np.sum(margins == -math.inf)),
         "align_cop_near_edge_first_s": float(t[idx][edge[0]] - t0) if len(edge) else None,
         "align_min_cop_margin_single_m": float(np.min(margins[ss])) if ss.any() else math.nan,
         "align_min_cop_margin_single_after_0.2s_m": float(np.min(margins[ss & (t[idx] >= t0 + a.t_lift + 0.2)]))
