@@ -9,7 +9,7 @@ import pinocchio as pin
 import pytest
 
 from humfall_ros.multicontact import contacts as C
-from humfall_ros.multicontact.collocation import OptConfig, TrajectoryOptimizer, hermite_mid
+from humfall_ros.multicontact.collocation import OptConfig, StructureKey, TrajectoryOptimizer, hermite_mid
 from humfall_ros.multicontact.initial_state import nominal_configuration, velocity_for_energy
 from humfall_ros.multicontact.model import load_model
 from humfall_ros.multicontact.modes import Environment, adjacent_modes, parse_mode
@@ -199,3 +199,28 @@ def test_validation_rejects_bad_configurations(model):
     assert ok.env.wall_x == 0.8 and ok.mode == ("LF", "RF")
     assert model.kinetic_energy(ok.q, ok.v) == pytest.approx(20.0)
     assert math.isfinite(ok.time_budget) and ok.time_budget == cfg.time_budget
+
+
+def test_transition_ke_cap_bounds_the_inner_knots_of_a_landing_only_when_asked(model):
+    """transition_ke_cap_ratio (departure): rows KE(q_k, v_k) at the inner knots of a contact-adding
+    transition, bounded above by ratio x the start energy; absent when 0 (the paper's NLP unchanged)."""
+    q0 = nominal_configuration(model)
+    env = Environment()
+    v0 = velocity_for_energy(model, q0, ("LF", "RF"), 20.0, 1.0, env)
+    ke0 = model.kinetic_energy(q0, v0)
+    key = StructureKey("add", ("LF", "RF"), "LH", False, OptConfig().n_knots)
+    off = TrajectoryOptimizer(model, OptConfig()).nlp(key)
+    assert "ke_path" not in off._block_idx
+    opt = TrajectoryOptimizer(model, OptConfig(transition_ke_cap_ratio=2.0))
+    nlp, (t, q, v, a, u, lam), _ = opt.seed(q0, v0, ("LF", "RF"), "add", "LH", env, 0.8)
+    idx = nlp._block_idx["ke_path"]
+    assert len(idx) == nlp.key.n_knots - 2
+    lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env)
+    np.testing.assert_allclose(ubg[idx], 2.0 * ke0)
+    assert np.all(np.isneginf(lbg[idx]))
+    # the rows are the energies of the inner knots of a candidate
+    g = np.array(nlp.f_g(nlp.pack(t[-1], q, v, a, u, lam))).ravel()
+    np.testing.assert_allclose(g[idx], [model.kinetic_energy(q[k], v[k]) for k in range(1, nlp.key.n_knots - 1)],
+                               rtol=1e-9, atol=1e-9)
+    # a release has no landing to soften
+    assert "ke_path" not in opt.nlp(StructureKey("remove", ("LF", "RF"), "LF", False, nlp.key.n_knots))._block_idx

@@ -123,6 +123,10 @@ class OptConfig:
     # paper's impact map sticks whatever friction that needs (departure, off by default)
     impact_friction_cone: bool = False
     step_capture_margin: float = 0.0
+    # kinetic energy at every inner knot of a contact-adding transition <= this many times the energy it
+    # starts with (departure, 0 = off, the paper): eq. 9 prices only the end, so a plan may swing up to 6x
+    # its start energy and brake just before the touchdown, which an early contact turns into a hard impact
+    transition_ke_cap_ratio: float = 0.0
     landing_limits: LandingLimits = dataclasses.field(default_factory=LandingLimits)
 
     def __post_init__(self):
@@ -352,6 +356,9 @@ class SegmentNLP:
             for (pt, surf) in self.clear_pts:            # eq. 3, non-contact clearance
                 p = model.f_point[pt](qk)
                 add("clear", k, p[1] if surf == "ground" else p[0])
+        if key.change == "add" and cfg.transition_ke_cap_ratio > 0:
+            for k in range(1, N - 1):   # bounded in ``bounds`` (the start energy is known per solve)
+                add("ke_path", k, model.f_ke(knots[k]["q"], knots[k]["v"]))
         qN, vN = knots[-1]["q"], knots[-1]["v"]
         ke = model.f_ke(qN, vN)   # eq. 9
         self.ke_pre = ke
@@ -553,6 +560,9 @@ class SegmentNLP:
         if len(idx):   # normal velocity (surface normal points out of it): > -v_max, i.e. approach < v_max
             vlim = cfg.landing_limits.speed_max(key.extremity) if cfg.touchdown_speed_constraint else np.inf
             lbg[idx], ubg[idx] = -vlim, np.inf
+        idx = self._block_idx.get("ke_path", np.array([], int))
+        if len(idx):
+            lbg[idx], ubg[idx] = -np.inf, cfg.transition_ke_cap_ratio * model.kinetic_energy(q0, v0)
         return lbx, ubx, lbg, ubg
 
     def _clearance_bounds(self, q0, env: Environment):
