@@ -229,12 +229,19 @@ def test_paper_objective_lands_the_hand_with_less_energy_than_the_departure(plan
     assert reps["paper"].normal_speed < reps["departure"].normal_speed
 
 
-def test_library_replan_reuses_a_stored_plan_warm(plan10, tmp_path):
+def test_library_replan_reuses_a_stored_plan_warm(tmp_path):
     """Online use (paper 2, Sec. V: a database of plans): the 10 J plan stored, saved
     and loaded; a 12 J push re-planned from it with one warm-started NLP per segment
-    ends at rest with the stored sequence; no entry for a backward push."""
+    ends at rest with the stored sequence; no entry for a backward push.
+
+    The stored plan is made without a wall-time cut: the module's ``plan10`` may come from
+    another seed on a loaded machine (a seed cut at 10 s), and a re-plan from the plan of
+    the 1.2 s seed ends at 1.26 J (measured), which is the library's answer to fall back on,
+    not a fault of the re-plan."""
     from humfall_ros.multicontact.library import LibraryEntry, PlanLibrary
     planner = FallPlanner.from_params(nlp_max_wall_time=120.0)   # the machine may be shared: no wall-time cut
+    plan10 = planner.plan({"kinetic_energy": 10.0, "direction": 1.0, "time_budget": 600.0})
+    assert plan10["success"], plan10["reason"]
     lib = PlanLibrary([LibraryEntry(10.0, 1.0, 0.0, plan10["contact_sequence"], plan10["segments"])])
     lib.save(tmp_path / "lib.json")
     lib = PlanLibrary.load(tmp_path / "lib.json")

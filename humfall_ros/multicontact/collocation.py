@@ -892,10 +892,29 @@ class TrajectoryOptimizer:
         with nlp.lock:
             sol = nlp.solver(x0=w0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
             stats = dict(nlp.solver.stats())
+        iters = int(stats.get("iter_count", 0))
         w = np.array(sol["x"]).ravel()
         viol = nlp.violation(w, lbx, ubx, lbg, ubg)
         ok = stats["return_status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level") \
             and viol <= self.cfg.feasibility_tol
+        restarts = 0
+        # a warm start that stopped short (iteration cap, or IPOPT's "acceptable" exit
+        # with constraints still violated: seen in CI on a 12 J re-plan of the 10 J plan)
+        # is restarted from its last iterate and multipliers, as _optimize does; at least
+        # once, since a re-plan has no other seed to try
+        while not ok and restarts < max(1, self.cfg.warm_restarts) and stats["return_status"] in (
+                "Maximum_Iterations_Exceeded", "Solved_To_Acceptable_Level"):
+            restarts += 1
+            with nlp.lock:
+                sol = nlp.solver(x0=sol["x"], lam_x0=sol["lam_x"], lam_g0=sol["lam_g"],
+                                 lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
+                stats = dict(nlp.solver.stats())
+            iters += int(stats.get("iter_count", 0))
+            w = np.array(sol["x"]).ravel()
+            viol = nlp.violation(w, lbx, ubx, lbg, ubg)
+            ok = stats["return_status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level") \
+                and viol <= self.cfg.feasibility_tol
+        stats["iter_count"] = iters
         seg = self._segment(nlp, w, guess.mode, guess.target_mode, guess.change, guess.extremity, ok, stats,
                             float(guess.time[-1]), viol)
         seg.objective = float(nlp.f_ke_end(w))
@@ -903,7 +922,7 @@ class TrajectoryOptimizer:
         seg.attempt_log = [{"seed_T": "warm", "status": seg.status, "iterations": seg.iterations,
                             "time": round(seg.nlp_time, 3), "objective": round(seg.objective, 4),
                             "final_ke": round(seg.final_ke, 4), "T": round(float(seg.time[-1]), 4),
-                            "violation": viol, "success": bool(ok), "warm_restarts": 0}]
+                            "violation": viol, "success": bool(ok), "warm_restarts": restarts}]
         return seg
 
     def _segment(self, nlp, w, mode, target, change, ext, ok, stats, T_seed, viol) -> Segment:
