@@ -57,7 +57,9 @@ def centroidal_from_msg(msg: CentroidalState) -> CentroidalObservation:
         com=v(msg.com), com_velocity=v(msg.com_velocity), cop=v(msg.cop), capture_point=v(msg.capture_point),
         angular_momentum=v(msg.angular_momentum), support_polygon=poly, feet_center=v(msg.feet_center),
         lean_angle=msg.lean_angle, lean_direction=msg.lean_direction, normal_force=msg.normal_force,
-        left_contact=msg.left_contact, right_contact=msg.right_contact, cop_on_edge=msg.cop_on_edge)
+        left_contact=msg.left_contact, right_contact=msg.right_contact, cop_on_edge=msg.cop_on_edge,
+        left_normal_force=msg.left_normal_force, right_normal_force=msg.right_normal_force, left_cop=v(msg.left_cop),
+        right_cop=v(msg.right_cop))
 
 
 def obstacles_from_msg(msg: ObstacleArray) -> list[Obstacle]:
@@ -173,6 +175,8 @@ class ControllerNode(Node):
             cmd = self._command(targets)
             self.after_step(obs, targets)
         except Exception as e:  # noqa: BLE001 - never die on a bad tick; never leave a taken-over robot
+            if not self.context.ok():
+                return  # shutting down (a signal arrived mid-tick): nothing to answer, nothing failed
             self.failures += 1
             self.get_logger().error(f"tick {tick.stamp_ns * 1e-9:.3f} s failed: {e!r}; "
                                     + ("repeating the last targets" if self.engaged else "releasing"),

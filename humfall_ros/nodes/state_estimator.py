@@ -69,6 +69,9 @@ class StateEstimator(Node):
             sensors.subscribe(WrenchStamped, topic, lambda m, s=s: self._add(s, m))
         if self.use_ground_truth:
             sensors.subscribe(Odometry, "ground_truth/odom", lambda m: self._add("odom", m))
+        # a start-up line, as the other nodes give (launchers and tests wait for one)
+        self.get_logger().info(f"estimating from {'ground truth' if self.use_ground_truth else 'the sensors'}; "
+                               f"tick inputs {sorted(self.gate.required)}")
 
     def _add(self, kind: str, msg) -> None:
         action = self.gate.offer(kind, stamp_key(msg.header.stamp), msg)
@@ -144,6 +147,10 @@ class StateEstimator(Node):
         msg.normal_force = float(e.normal_force)
         msg.left_contact, msg.right_contact = bool(e.contacts["l"]), bool(e.contacts["r"])
         msg.cop_on_edge = e.cop_on_edge
+        msg.left_normal_force = float(e.foot_normal_force["l"])
+        msg.right_normal_force = float(e.foot_normal_force["r"])
+        fill_xyz(msg.left_cop, e.foot_cop["l"])
+        fill_xyz(msg.right_cop, e.foot_cop["r"])
         self.pub.publish(msg)
         self.last_msg = msg
         if t - self.last_viz >= self.viz_period - 1e-9:
