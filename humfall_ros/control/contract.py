@@ -45,6 +45,9 @@ class CentroidalObservation:
         normal_force: total vertical ground reaction [N].
         left_contact, right_contact: foot loaded.
         cop_on_edge: P on the support polygon boundary.
+        left_normal_force, right_normal_force: vertical ground reaction under each foot [N] (its own ankle
+            wrench).
+        left_cop, right_cop: each foot's own centre of pressure [m], (3,), z = 0 (below its ankle when unloaded).
     """
 
     com: np.ndarray
@@ -60,10 +63,24 @@ class CentroidalObservation:
     left_contact: bool
     right_contact: bool
     cop_on_edge: bool
+    left_normal_force: float = 0.0
+    right_normal_force: float = 0.0
+    left_cop: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    right_cop: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
 
     @property
     def contacts(self) -> dict[str, bool]:
         return {"l": self.left_contact, "r": self.right_contact}
+
+    @property
+    def foot_normal_forces(self) -> dict[str, float]:
+        """side -> vertical ground reaction under that foot [N]."""
+        return {"l": self.left_normal_force, "r": self.right_normal_force}
+
+    @property
+    def foot_cops(self) -> dict[str, np.ndarray]:
+        """side -> that foot's own centre of pressure [m] (3,)."""
+        return {"l": self.left_cop, "r": self.right_cop}
 
 
 def centroidal_from_estimate(e) -> CentroidalObservation:
@@ -79,7 +96,9 @@ def centroidal_from_estimate(e) -> CentroidalObservation:
         feet_center=np.asarray(e.feet_center, float).copy(), lean_angle=float(e.lean_angle),
         lean_direction=float(e.lean_direction), normal_force=float(e.normal_force),
         left_contact=bool(e.contacts["l"]), right_contact=bool(e.contacts["r"]),
-        cop_on_edge=bool(e.cop_on_edge))
+        cop_on_edge=bool(e.cop_on_edge),
+        left_normal_force=float(e.foot_normal_force["l"]), right_normal_force=float(e.foot_normal_force["r"]),
+        left_cop=np.asarray(e.foot_cop["l"], float).copy(), right_cop=np.asarray(e.foot_cop["r"], float).copy())
 
 
 @dataclasses.dataclass

@@ -35,6 +35,9 @@ class CentroidalEstimate:
     contacts: dict                    # side -> bool
     cop_on_edge: bool
     feet_center: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))  # mid-point of the ankles
+    # per foot, from that ankle's wrench alone (foot force difference control, walking/stabilizer.py loop 4):
+    foot_normal_force: dict = dataclasses.field(default_factory=lambda: {s: 0.0 for s in SIDES})  # side -> N
+    foot_cop: dict = dataclasses.field(default_factory=lambda: {s: np.zeros(3) for s in SIDES})   # side -> m, z = 0
 
 
 class CentroidalEstimator:
@@ -85,12 +88,17 @@ class CentroidalEstimator:
         ang_mom = d.hg.angular.copy()
         world_wrenches = []
         feet_center = np.zeros(3)
+        foot_fz, foot_cop = {}, {}
         for s in SIDES:
             M = d.oMf[self.m.frame_ids[self.m.foot_link[s]]]
             feet_center += M.translation / len(SIDES)
             f, tq = wrenches[s]
             R = M.rotation
-            world_wrenches.append((M.translation, R @ np.asarray(f, float), R @ np.asarray(tq, float)))
+            w = (M.translation, R @ np.asarray(f, float), R @ np.asarray(tq, float))
+            world_wrenches.append(w)
+            # the foot's own CoP and normal force (the same formula on its wrench alone); unloaded: below its ankle
+            p_s, foot_fz[s] = cop_from_wrenches([w])
+            foot_cop[s] = p_s if p_s is not None else np.array([M.translation[0], M.translation[1], 0.0])
         cop, fz = cop_from_wrenches(world_wrenches)
         touching = self._touching({n: d.oMf[fid].translation for n, fid in self._candidates(contacts)})
         poly = support_polygon(list(touching.values())) if touching else np.zeros((0, 2))
@@ -100,7 +108,7 @@ class CentroidalEstimator:
         lean, heading = lean_angle(com, cop)
         on_edge = len(poly) > 0 and point_in_polygon_margin(cop, poly) < self.edge_margin
         est = CentroidalEstimate(t, q, v, com, com_vel, ang_mom, cop, cp, poly, lean, heading, fz, contacts,
-                                 bool(on_edge), feet_center)
+                                 bool(on_edge), feet_center, foot_fz, foot_cop)
         self.last = est
         return est
 

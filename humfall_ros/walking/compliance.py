@@ -20,6 +20,7 @@ ground at the height the load split wants.
 """
 from __future__ import annotations
 
+import dataclasses
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -41,16 +42,41 @@ def sole_contact(model: HumanoidModel) -> tuple[float, float]:
     return n * k, n * (float(d.get("value")) if d is not None else 0.0)
 
 
-def planned_loads(zmp, sole_centres: dict, stance: str | None, weight: float) -> dict:
-    """Normal load of each sole [N] for the reference ZMP ``zmp`` [m] (xy): ``stance`` carries ``weight`` in single
-    support; in double support the split of the module docstring. ``sole_centres``: side -> (x, y) [m]."""
+@dataclasses.dataclass(frozen=True)
+class FootShare:
+    """One sole's share of a ZMP reference: normal force [N] and that sole's own CoP (x, y) [m]."""
+
+    force: float
+    cop: np.ndarray
+
+
+def distribute_zmp(zmp, sole_centres: dict, stance: str | None, total: float) -> dict:
+    """side -> :class:`FootShare` of the reference ZMP ``zmp`` [m] (xy) carrying ``total`` [N].
+
+    The wrench distribution of Kajita et al. 2010 ("Biped walking stabilization based on linear inverted
+    pendulum tracking", IROS 2010, sec. III-B; its ankle torques are here each sole's own CoP): in double
+    support the ZMP's projection on the segment ``a -> b`` between the sole centres, ``alpha = (p - a)·(b - a)
+    / |b - a|^2`` clipped to [0, 1], splits the force, ``f_b = alpha F``, ``f_a = (1 - alpha) F``; the part of
+    ``p`` off that clipped point, ``r = p - (a + alpha (b - a))``, moves both soles' CoPs alike (each sole's CoP
+    = its centre + r), so ``(f_a p_a + f_b p_b) / F = p`` exactly. In single support the stance sole carries
+    ``total`` with its CoP on ``p``; the other sole carries 0 (its CoP: its centre)."""
+    p = np.asarray(zmp, float)[:2]
+    c = {s: np.asarray(sole_centres[s], float)[:2] for s in SIDES}
     if stance is not None:
-        return {s: (weight if s == stance else 0.0) for s in SIDES}
-    a, b = (np.asarray(sole_centres[s], float)[:2] for s in SIDES)
+        return {s: FootShare(float(total), p.copy()) if s == stance else FootShare(0.0, c[s].copy()) for s in SIDES}
+    a, b = c[SIDES[0]], c[SIDES[1]]
     ab = b - a
     n2 = float(ab @ ab)
-    alpha = 0.5 if n2 < 1e-12 else float(np.clip((np.asarray(zmp, float)[:2] - a) @ ab / n2, 0.0, 1.0))
-    return {SIDES[0]: (1.0 - alpha) * weight, SIDES[1]: alpha * weight}
+    alpha = 0.5 if n2 < 1e-12 else float(np.clip((p - a) @ ab / n2, 0.0, 1.0))
+    r = p - (a + alpha * ab)
+    return {SIDES[0]: FootShare((1.0 - alpha) * total, a + r), SIDES[1]: FootShare(alpha * total, b + r)}
+
+
+def planned_loads(zmp, sole_centres: dict, stance: str | None, weight: float) -> dict:
+    """Normal load of each sole [N] for the reference ZMP ``zmp`` [m] (xy): ``stance`` carries ``weight`` in single
+    support; in double support the split of the module docstring (:func:`distribute_zmp`'s forces).
+    ``sole_centres``: side -> (x, y) [m]."""
+    return {s: sh.force for s, sh in distribute_zmp(zmp, sole_centres, stance, weight).items()}
 
 
 def sole_sinkage(loads: dict, loads_next: dict, dt: float, stiffness: float, damping: float) -> dict:
@@ -62,4 +88,4 @@ def sole_sinkage(loads: dict, loads_next: dict, dt: float, stiffness: float, dam
     return {s: max(0.0, (f - tau * (loads_next[s] - f) / dt) / stiffness) for s, f in loads.items()}
 
 
-__all__ = ["planned_loads", "sole_contact", "sole_sinkage"]
+__all__ = ["FootShare", "distribute_zmp", "planned_loads", "sole_contact", "sole_sinkage"]

@@ -126,7 +126,8 @@ class LocomotionController:
                                             c.cop_damping_time_constant, c.walk_ankle_max_offset,
                                             c.zmp_integral_gain, c.zmp_integral_max, c.foot_height_gain,
                                             c.foot_height_time_constant, c.foot_height_max,
-                                            c.cop_damping_time_constant_ds)
+                                            c.cop_damping_time_constant_ds, c.foot_force_gain, c.foot_cop_gain,
+                                            c.foot_cop_min_force)
         self.sole_stiffness, self.sole_damping = sole_contact(model)
         self._leg_columns = {s: [model.joint_index(f"{s}_{j}") for j in
                                  ("hip_yaw", "hip_roll", "hip_pitch", "knee", "ankle_pitch", "ankle_roll")]
@@ -472,7 +473,8 @@ class LocomotionController:
                 transfer_to = max(SIDES, key=lambda side: float((centres[side] - sample.zmp[:2]) @ v))
         st = self.stabilizer.update(s.capture_point, s.cop, s.feet_center, sample.capture_point, sample.zmp,
                                     ref_feet_center, stance, stance_yaw, centres, transfer_to,
-                                    swing_loaded=stance is not None and bool(s.contacts["r" if stance == "l" else "l"]))
+                                    swing_loaded=stance is not None and bool(s.contacts["r" if stance == "l" else "l"]),
+                                    foot_forces=s.foot_normal_forces, foot_cops=s.foot_cops, contacts=s.contacts)
         self.last_stabilizer = st
         r = self.ik.solve(self.q_ik, self.tasks(sample, sample.com + st.com_offset, self.pattern, st.foot_z),
                           self.dt)
