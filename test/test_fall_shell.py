@@ -112,6 +112,14 @@ def test_cleared_fall_event_message_reads_as_no_event():
     assert m.cleared and fall_event_input(m) is None
     assert m.header.stamp.sec == 4 and m.header.stamp.nanosec == 500_000_000 and m.reason == "recovered"
     assert not event_to_msg(ev, m).cleared                 # a reused message is a fall event again
+    # every controller node that reads fall_event reads a cleared one as "no event" (the e-stop read any
+    # message as "falling": over ROS it would yield after a hand-back, in process it would not)
+    from humfall_ros.nodes import estop_planner, locomotion
+    for mod in (estop_planner, locomotion):
+        fe = [i for i in mod.node_inputs() if i.name == "fall_event"]
+        assert len(fe) == 1, mod.__name__
+        cleared = cleared_msg(ev, int(4.5e9), "recovered")
+        assert fe[0].convert(event_to_msg(ev)) is True and fe[0].convert(cleared) is None, mod.__name__
 
 
 def test_controller_acts_on_the_status_of_the_tick_not_on_the_latched_topic():

@@ -16,7 +16,7 @@ import dataclasses
 from typing import Any, Callable
 
 import numpy as np
-from humfall_interfaces.msg import CentroidalState, MuxState, ObstacleArray
+from humfall_interfaces.msg import CentroidalState, FallEvent, MuxState, ObstacleArray
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
 
@@ -78,7 +78,14 @@ def imu_from_msg(msg: Imu) -> tuple[np.ndarray, np.ndarray]:
     return np.array([o.x, o.y, o.z, o.w]), np.array([g.x, g.y, g.z])
 
 
+def fall_event_input(msg: FallEvent):
+    """What a node's latched ``fall_event`` input holds: True for a fall event, None for a cleared one
+    (the FTB's recovery), as ClosedLoop's latched None clears the input."""
+    return None if msg.cleared else True
+
+
 OBSTACLES = Input("obstacles", ObstacleArray, "obstacles", obstacles_from_msg)
+FALL_EVENT = Input("fall_event", FallEvent, "fall_event", fall_event_input)
 IMU = Input("imu", Imu, "imu", imu_from_msg, per_tick=True)  # for controllers that read the IMU each tick
 
 

@@ -10,7 +10,8 @@ Inputs:
   ``ros2 topic pub --once --qos-durability transient_local /estop std_msgs/msg/Empty`` would);
 * ``estop/release`` (``std_msgs/msg/Empty``, reliable, transient-local): a release, granted once the robot
   holds still at its final posture (refused and logged otherwise);
-* ``fall_event`` (``humfall_interfaces/FallEvent``, latched): any message means "falling": the e-stop yields;
+* ``fall_event`` (``humfall_interfaces/FallEvent``, latched): "falling", the e-stop yields; a ``cleared`` one
+  (the FTB's recovery) means no fall event, as in the in-process loop (:func:`fall_event_input`);
 * ``walking/state`` (``humfall_interfaces/WalkingState``, per tick, stamped like the tick) when that message
   type exists and the parameter ``walking_state_input`` is true (the default: the locomotion node must then
   publish it every tick, or the lockstep run stalls on this node): the pattern state the stop is planned from
@@ -30,14 +31,13 @@ import math
 import numpy as np
 from geometry_msgs.msg import Point, Vector3
 from humfall_interfaces.msg import EstopStatus as EstopStatusMsg
-from humfall_interfaces.msg import FallEvent
 from std_msgs.msg import Empty
 
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.estop.config import EstopConfig
 from humfall_ros.estop.controller import EstopController, EstopStatus, TopicEvent
 from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_LATCHED, QOS_RELIABLE, run_node
-from humfall_ros.nodes.controller_node import IMU, ControllerNode, Input
+from humfall_ros.nodes.controller_node import FALL_EVENT, IMU, ControllerNode, Input
 
 try:  # the walking engineer's message; until it exists the node stops a standing robot
     from humfall_interfaces.msg import WalkingState as WalkingStateMsg
@@ -133,7 +133,7 @@ def node_inputs() -> list[Input]:
     by :class:`EstopPlannerNode` when asked."""
     return [Input("estop", Empty, "estop", event_converter(), qos=QOS_LATCHED),
             Input("estop_release", Empty, "estop/release", event_converter(), qos=QOS_LATCHED),
-            Input("fall_event", FallEvent, "fall_event", lambda _msg: True), IMU]
+            FALL_EVENT, IMU]
 
 
 WALKING_STATE = Input("walking/state", WalkingStateMsg, "walking/state", walking_state_from_msg, per_tick=True) \

@@ -29,7 +29,7 @@ from humfall_ros.control.contract import Observation
 from humfall_ros.control.tick_gate import Action, TickGate
 from humfall_ros.fall import ftb as core
 from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_LATCHED, QOS_RELIABLE, HotLoop, Params, run_node, stamp_key
-from humfall_ros.nodes.controller_node import centroidal_from_msg
+from humfall_ros.nodes.controller_node import centroidal_from_msg, fall_event_input  # noqa: F401 (re-exported)
 from rclpy.node import Node
 
 STATE_CODE = {core.FtbState.BALANCED: FtbStatus.BALANCED, core.FtbState.FALLING: FtbStatus.FALLING,
@@ -49,11 +49,6 @@ def _vec(p, n: int = 3) -> np.ndarray:
 
 def _stamp_of(ns: int, header) -> None:
     header.stamp.sec, header.stamp.nanosec = divmod(int(ns), 1_000_000_000)
-
-
-def fall_event_input(msg: FallEvent):
-    """What a node's latched ``fall_event`` input holds: True for a fall event, None for a cleared one."""
-    return None if msg.cleared else True
 
 
 def cleared_msg(ev: core.FallEvent, stamp_ns: int, reason: str) -> FallEvent:

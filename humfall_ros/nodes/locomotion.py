@@ -28,15 +28,13 @@ import math
 
 import numpy as np
 from geometry_msgs.msg import Point, Pose, Twist, Vector3
-from humfall_interfaces.msg import FallEvent
 from humfall_interfaces.msg import Footstep as FootstepMsg
 from humfall_interfaces.msg import WalkingState as WalkingStateMsg
 
 from humfall_ros import params as params_mod
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, run_node
-from humfall_ros.nodes.controller_node import IMU, ControllerNode, Input
-from humfall_ros.nodes.ftb_monitor import fall_event_input
+from humfall_ros.nodes.controller_node import FALL_EVENT, IMU, ControllerNode, Input
 from humfall_ros.walking.controller import LocomotionController, WalkingState, from_scenario
 from humfall_ros.walking.footsteps import WalkCommand
 from humfall_ros.walking.scenario import walking_config
@@ -105,7 +103,7 @@ def node_inputs() -> list[Input]:
     # the IMU per tick, as every in-process observation has it (heading steering); no estop/status: its
     # arrival is not tied to the tick, and walking gives way to the e-stop through mux/state already
     return [Input("cmd_walk", Twist, "cmd_walk", walk_command_from_twist, qos=QOS_RELIABLE),
-            Input("fall_event", FallEvent, "fall_event", fall_event_input), IMU]
+            FALL_EVENT, IMU]
 
 
 class Locomotion(ControllerNode):

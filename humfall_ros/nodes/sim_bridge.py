@@ -222,6 +222,8 @@ class SimBridge(Node):
             self.answered.add(source)
 
     def _on_fall_event(self, msg) -> None:
+        if msg.cleared:
+            return  # the recovery's stamp, not a trigger (a bridge that joins late sees only this one)
         self.truth.metrics.note_fall_event(seconds(msg.header.stamp))
 
     def _on_decision(self, msg) -> None:
