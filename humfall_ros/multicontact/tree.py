@@ -36,7 +36,7 @@ import numpy as np
 from humfall_ros.multicontact import contacts as C
 from humfall_ros.multicontact.collocation import Segment, TrajectoryOptimizer
 from humfall_ros.multicontact.landing import LandingReport, landing_report
-from humfall_ros.multicontact.model import mirror_extremity
+from humfall_ros.multicontact.model import FEET, mirror_extremity
 from humfall_ros.multicontact.modes import (
     Environment,
     Mode,
@@ -139,13 +139,47 @@ def _mirror_mode(mode: Mode) -> Mode:
     return make_mode(mirror_extremity(e) for e in mode)
 
 
-FRONTIER_ORDERS = ("pre_impact", "post_impact", "mechanical", "landing_first")
+FRONTIER_ORDERS = ("pre_impact", "post_impact", "mechanical", "landing_first", "capture")
+
+
+def capture_excess(model, q, v, mode: Mode, env: Environment) -> float:
+    """How far (m) the instantaneous capture point (linear inverted pendulum, as
+    ``collocation.capture_point``) lies outside the support of ``mode``: the
+    x-interval spanned by its ground contact points (feet: toe and heel; hands on
+    the ground). 0 when inside, or when a contact is on the wall (a wall takes
+    horizontal momentum in its normal force, friction does not bound it)."""
+    from humfall_ros.multicontact.collocation import capture_point
+    xs = []
+    for e in mode:
+        if env.surface_of(e) == "wall":
+            return 0.0
+        pts = [f"{e}_toe", f"{e}_heel"] if e in FEET else [e]
+        xs += [float(model.point(p, q)[0]) for p in pts]
+    if not xs:
+        return float("inf")
+    cp = capture_point(model, q, v)
+    return max(0.0, cp - max(xs), min(xs) - cp)
+
+
+def capture_energy(model, q, v, mode: Mode, env: Environment) -> float:
+    """Cost-to-go estimate (J) of a node: 1/2 M (g / z_com) s^2, s = ``capture_excess``:
+    the kinetic energy of the capture point's excess velocity omega s of the linear
+    inverted pendulum, i.e. what the node's support alone cannot take out (0 when the
+    capture point is inside the support). Not in the paper (eq. 9 and Alg. 1 line 20
+    look at the end of the edge only)."""
+    s = capture_excess(model, q, v, mode, env)
+    if not np.isfinite(s):
+        return float("inf")
+    z = max(float(model.com(q)[1]), 1e-3)
+    return 0.5 * model.total_mass * 9.81 / z * s * s
+
 
 
 def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
            eps_ke: float | None = None, max_depth: int = 4, time_budget: float = 60.0,
            symmetry_cut: bool = True, check_plan=None, frontier_order: str = "pre_impact",
-           landing_policy: str = "rank_last", lookahead: bool = False) -> SearchResult:
+           landing_policy: str = "rank_last", lookahead: bool = False,
+           step_lookahead: bool = False) -> SearchResult:
     """Algorithm 1: grow the tree by least kinetic energy until a node's
     self-motion ends with E_K < eps_KE, the frontier empties or the budget ends.
 
@@ -163,6 +197,16 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
     energy its own stabilisation attempt ends with (a child whose self-motion
     failed ranks after every child whose converged); a child that stops within
     eps_KE is checked and returned at once.
+    'capture' (departure, a cost-to-go estimate) adds ``capture_energy`` of the
+    child's state (after the impact map for a landing) to the line-20 key: a
+    release whose capture point has left the remaining foot ranks by the energy
+    still in it plus what its support cannot catch, so at 30-50 J the release
+    (the first half of a protective step) is popped before a hand landing that
+    arrives with more energy than that.
+    ``step_lookahead`` (departure): the lookahead for children reached by a foot
+    landing only (the second half of a step is judged by whether the double
+    support it makes can stop; eq. 9 on the landing edge alone puts the foot
+    back where it was).
     ``landing_policy`` for a landing beyond ``opt.cfg.landing_limits``:
     'rank_last' (the node and its subtree are popped after every node within
     the limits), 'refuse' (the node is not added) or 'ignore'.
@@ -287,6 +331,8 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
             key = ke_j if (pre is None or frontier_order == "post_impact") else pre      # line 20
             if frontier_order == "mechanical":
                 key += g_mass * (float(model.com(qj)[1]) - z_root)
+            elif frontier_order == "capture":
+                key += capture_energy(model, qj, vj, sigma_j, env)
             cls = 1 if (frontier_order == "landing_first" and change == "remove") else 0
             child = TreeNode(len(nodes), d.id, d.depth + 1, sigma_j, qj, vj, ke_j,
                              pre_impact_ke=pre, min_normal_impulse=min_imp, landing_impulse=landing, edge=y_ij,
@@ -294,7 +340,8 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
             nodes.append(child)                                               # lines 17-19
             d.children.append(child.id)
             deepest = max(deepest, child.depth)
-            if lookahead and not child.over_limits and time.perf_counter() < deadline:
+            early = lookahead or (step_lookahead and change == "add" and ext in FEET)
+            if early and not child.over_limits and time.perf_counter() < deadline:
                 try:
                     y_c = opt.opt_self_motion(qj, vj, sigma_j, env, deadline=deadline)   # line 5, early
                 except TimeoutError:
@@ -306,8 +353,9 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
                     if try_terminal(child):
                         return result(True, f"stabilised at depth {child.depth}: final kinetic energy "
                                             f"{y_c.final_ke:.3g} J < {eps_ke:g} J", path_to(child))
-                    cls = 0 if y_c.success else 1
-                    child.priority = key = y_c.final_ke if y_c.success else key
+                    if lookahead:
+                        cls = 0 if y_c.success else 1
+                        child.priority = key = y_c.final_ke if y_c.success else key
             heapq.heappush(frontier, (child.over_limits, cls, key, next(counter), child.id))   # line 20
     if time.perf_counter() >= deadline:   # the last NLPs were cut by the budget: not a complete search
         return result(False, f"no solution within the time budget of {time_budget:.1f} s "
