@@ -63,7 +63,8 @@ def test_recorded_cases_cover_captures_falls_and_every_case_kind():
 
 
 def test_decisions_unchanged_on_recorded_cases():
-    cfg = SafeFallConfig.from_params(params.defaults("safe_fall_controller"))
+    # the recording's grid: a sliver zone is not sampled finer (min_zone_cells came later, on purpose)
+    cfg = SafeFallConfig.from_params({**params.defaults("safe_fall_controller"), "min_zone_cells": 0})
     ctrl = SafeFallController(config=cfg)
     ties = 0
     for i, r in enumerate(DATA["decisions"]):
@@ -163,3 +164,31 @@ def test_batched_cells_equal_one_case_at_a_time():
             differ = (margin > 0) != (exact > 1e-9)
             assert np.all(np.abs(exact[differ]) < 1e-6)   # inside / outside agree but on the boundary
             assert np.all(margin[margin > 0] <= exact[margin > 0] + 1e-12)
+
+
+def test_halving_the_cells_moves_the_chosen_alpha2_by_at_most_2_deg():
+    """Issue 11: the decision must not hang on where the grid falls. With the default grid (slivers of a zone
+    sampled finer, ``min_zone_cells``) the recorded fall decisions choose the same alpha2 within 2 deg when
+    the cells are halved in x, y and beta; with the plain grid they did not (8.3 deg, measured)."""
+    d0 = params.defaults("safe_fall_controller")
+    assert d0["min_zone_cells"] > 0
+    def controller(**kw):
+        return SafeFallController(config=SafeFallConfig.from_params({**d0, **kw}))
+    plain = controller(min_zone_cells=0)
+    plain_halved = controller(min_zone_cells=0, cell_xy=d0["cell_xy"] / 2, cell_yaw=d0["cell_yaw"] / 2)
+    a = controller()
+    b = controller(cell_xy=d0["cell_xy"] / 2, cell_yaw=d0["cell_yaw"] / 2)
+    deltas, plain_deltas = [], []
+    for r in DATA["decisions"]:
+        alphas = []
+        for c in (a, b, plain, plain_halved):
+            c.reset()
+            c.step(obs_of(r))
+            alphas.append(c.decision.alpha2)
+        if math.isfinite(alphas[0]) and math.isfinite(alphas[1]):
+            deltas.append(abs(math.degrees(alphas[1] - alphas[0])))
+        if math.isfinite(alphas[2]) and math.isfinite(alphas[3]):
+            plain_deltas.append(abs(math.degrees(alphas[3] - alphas[2])))
+    assert len(deltas) >= 30
+    assert max(deltas) <= 2.0, sorted(deltas)[-5:]
+    assert max(plain_deltas) > 2.0       # the case this guards against is in the data

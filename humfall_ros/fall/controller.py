@@ -79,6 +79,7 @@ class SafeFallConfig:
     max_yaw_change_rad: float = 0.3
     cell_xy: float = 0.035
     cell_yaw: float = 0.1
+    min_zone_cells: int = 150
     capture_margin: float = 0.02
     obstacle_clearance: float = 0.03
     swing_clearance: float = 0.05
@@ -115,7 +116,7 @@ class SafeFallConfig:
     @property
     def search(self) -> ss.SearchConfig:
         return ss.SearchConfig(self.cell_xy, self.cell_yaw, self.capture_margin,
-                               obstacle_clearance=self.obstacle_clearance)
+                               obstacle_clearance=self.obstacle_clearance, min_zone_cells=self.min_zone_cells)
 
     @property
     def step(self) -> StepControlConfig:
