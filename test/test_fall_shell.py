@@ -215,3 +215,28 @@ def test_metrics_take_the_step_after_the_fall_event_not_a_walking_step_before_it
         no_event.update_feet(t, [0.15, 0.0, 0.0], {"l": True, "r": not (0.2 <= t < 0.6)}, {"l": (0, 0.1, 0, 0),
                                                                                          "r": (0.1, -0.1, 0, 0)})
     assert no_event.touchdowns["r"][0] == pytest.approx(0.6)  # without an event: the first after a lift-off
+
+
+def test_metrics_p2_of_a_step_that_bounces_is_taken_after_it_lands_again():
+    """The step's sole lands, bounces off before P2's window (0.05-0.15 s after touchdown) and lands again
+    within BOUNCE_S: P2 is the CoP after the second landing, the touchdown stays the first one (seen in the
+    sweep at 30 deg: no alpha2 at all before)."""
+    from humfall_ros.sim.metrics import BOUNCE_S
+
+    m = FallMetrics([1.2, 0.0])
+    m.set_reference_cop([0.0, 0.0, 0.0])
+    m.note_fall_event(0.6)
+    m.note_decision({"stamp_ns": int(0.6e9), "case": "step_right", "swing_side": "r", "landing": [0.3, -0.1, 0.2],
+                     "alpha2": math.radians(90.0), "captured": False, "touchdown_time": 0.45})
+    poses = {"l": (0.0, 0.1, 0.0, 0.0), "r": (0.31, -0.1, 0.21, 1.0)}
+    second = 1.04 + BOUNCE_S / 2
+    for k in range(1000):
+        t = 0.002 * k
+        down = {"l": True, "r": not (0.61 <= t < 1.04 or 1.07 <= t < second)}
+        cop = [0.3, -0.3, 0.0] if t >= second else [0.14, 0.0, 0.0]
+        m.update_feet(t, cop, down, poses)
+        fell = t > 1.6
+        m.update(t, [0.3, -1.0, 0.3] if fell else [0.1, 0, 0.75], 1.2 if fell else 0.1, 0.8, 0.5, fell and t > 1.7)
+    r = m.result()
+    assert r["measured_p2"] == pytest.approx([0.3, -0.3]) and r["avoidance_angle_p2_deg"] is not None
+    assert r["prediction"]["touchdown_time_s"] == pytest.approx(1.04)

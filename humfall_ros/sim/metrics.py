@@ -20,6 +20,7 @@ import numpy as np
 
 FALL_TRUNK_TILT = math.radians(45.0)   # trunk tilt beyond which the robot has fallen
 FALL_WAIST_HEIGHT = 0.35               # m; waist below this: fallen
+BOUNCE_S = 0.3                         # s; a step's sole that lifts and lands again within this is one touchdown (P2)
 
 
 def angle_between_deg(a, b) -> float:
@@ -115,8 +116,19 @@ class FallMetrics:
         return next((e for e in self._touchdown_log.get(side, []) if e[0] > after), None)
 
     def _step_cops(self, side: str) -> list:
-        e = self._step_entry(side)
-        return e[3] if e is not None else []
+        """The CoPs of P2: 0.05-0.15 s after the step's touchdown. A sole that bounces off before that
+        window (seen in the sweep: down at 1.012 s, up, down again at 1.144 s) has none there: then the
+        window after its next touchdown counts, if that comes within ``BOUNCE_S`` of the first."""
+        after = self.fall_event_time if self.fall_event_time is not None else -math.inf
+        entries = [e for e in self._touchdown_log.get(side, []) if e[0] > after]
+        if not entries:
+            return []
+        for e in entries:
+            if e[0] - entries[0][0] > BOUNCE_S:
+                break
+            if e[3]:
+                return e[3]
+        return []
 
     def set_reference_cop(self, cop) -> None:
         """The P of Fig. 5: the CoP when the disturbance begins."""
