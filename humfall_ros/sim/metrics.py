@@ -100,7 +100,8 @@ class FallMetrics:
                 self._lifted[side] = False
                 x, y, yaw, tilt = poses[side]
                 log.append((float(t), (float(x), float(y), float(yaw)), float(tilt), []))
-            if log and cop is not None and log[-1][0] + 0.05 - 1e-9 <= t <= log[-1][0] + 0.15 + 1e-9:
+            # P2 is the CoP on the new support: only while the step's sole is down
+            if is_down and log and cop is not None and log[-1][0] + 0.05 - 1e-9 <= t <= log[-1][0] + 0.15 + 1e-9:
                 log[-1][3].append(np.asarray(cop, float)[:2].copy())
 
     @property
