@@ -92,7 +92,8 @@ def run_case(planner: FallPlanner, ke: float, wall: float, budget: float, resim:
          "touchdown_normal_mps": None if n["landing"] is None else round(n["landing"]["normal_speed"], 2),
          "over_limits": n["over_limits"], "key": round(n["priority"], 2),
          "self_motion_end_ke": None if n["self_motion"] is None else round(n["self_motion"]["final_ke"], 3),
-         "self_motion_ok": None if n["self_motion"] is None else n["self_motion"]["success"]}
+         "self_motion_ok": None if n["self_motion"] is None else n["self_motion"]["success"],
+         "rejected": n.get("rejected")}
         for n in tree["nodes"]]
     hands = [x for x in case["landings"] if x["limb"] in ("LH", "RH")]
     case["max_hand_touchdown_normal_speed"] = max((x["normal_speed"] for x in hands), default=None)

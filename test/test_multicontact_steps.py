@@ -1,0 +1,169 @@
+"""Protective steps with the paper's objective (issue 14, session 7): the capture-point
+cost-to-go in the frontier key (``frontier_order: capture``), the soft capture-point
+terminal cost of a foot landing (``step_capture_weight``), the step lookahead
+(``frontier_lookahead_steps``), and a real 30 J plan that steps."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from humfall_ros.multicontact import tree as tree_mod
+from humfall_ros.multicontact.collocation import OptConfig, TrajectoryOptimizer, capture_point
+from humfall_ros.multicontact.initial_state import nominal_configuration, velocity_for_energy
+from humfall_ros.multicontact.landing import LandingLimits
+from humfall_ros.multicontact.model import load_model
+from humfall_ros.multicontact.modes import Environment, mode_label
+from humfall_ros.multicontact.planner import FallPlanner
+
+from test_multicontact_landing import _FakeOpt
+
+# the options this session's step plans use (docs/multicontact.md, "Session 7: protective steps")
+STEP_OPTIONS = {"frontier_order": "capture", "frontier_lookahead_steps": True, "step_capture_weight": 2000.0,
+                "step_capture_margin": 0.12, "release_t_min": 0.1, "max_iter": 600}
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model()
+
+
+def _pushed(model, ke, mode=("LF", "RF")):
+    q = nominal_configuration(model)
+    return q, velocity_for_energy(model, q, mode, ke, 1.0, Environment())
+
+
+def test_capture_energy_is_zero_inside_the_support_and_the_pendulum_energy_outside(model):
+    env = Environment()
+    q, v = _pushed(model, 30.0)
+    toe = model.point("LF_toe", q)[0]
+    cp = capture_point(model, q, v)
+    assert cp > toe                                  # a 30 J push: the capture point has left the feet
+    s = tree_mod.capture_excess(model, q, v, ("LF", "RF"), env)
+    assert s == pytest.approx(cp - toe)
+    z = model.com(q)[1]
+    assert tree_mod.capture_energy(model, q, v, ("LF", "RF"), env) == pytest.approx(
+        0.5 * model.total_mass * 9.81 / z * s * s)
+    q10, v10 = _pushed(model, 1.0)                   # a small push stays inside
+    assert tree_mod.capture_excess(model, q10, v10, ("LF", "RF"), env) == 0.0
+    assert tree_mod.capture_energy(model, q, 0 * v, ("RF",), env) == 0.0   # at rest over the foot
+    # a hand on the wall takes horizontal momentum in its normal force: no excess
+    assert tree_mod.capture_excess(model, q, v, ("LF", "RF", "LH"), Environment(0.8)) == 0.0
+
+
+class _StepOpt(_FakeOpt):
+    """A release keeps the state; a foot landing moves the robot 0.3 m forward (the step);
+    a hand landing arrives with 40 J and the centre of mass 0.3 m lower. Only a double
+    support that has stepped stops."""
+
+    def __init__(self, model, q0):
+        big = 1e9
+        super().__init__(model, LandingLimits(big, big, big, big), stop_at=set(),
+                         pre_ke_of={"LH": 40.0, "RH": 40.0})
+        self.q0 = np.array(q0, float)
+
+    def opt_self_motion(self, q0, v0, mode, env, deadline=None):
+        self.popped.append(mode_label(mode))
+        stepped = mode_label(mode) == "LF/RF" and q0[0] > self.q0[0] + 0.1
+        return self._seg(q0, v0, mode, mode, "", "", True, 0.0 if stepped else 5.0)
+
+    def opt_transition_motion(self, q0, v0, mode, target, env, deadline=None):
+        ext = (set(target) ^ set(mode)).pop()
+        change = "add" if ext in target else "remove"
+        q, v = np.array(q0, float), np.array(v0, float)
+        if change == "add" and ext in ("LF", "RF"):
+            q[0] += 0.3
+            v = 0 * v
+        elif change == "add":
+            q[1] -= 0.3
+            v = v * math.sqrt(self.pre_ke_of[ext] / self.model.kinetic_energy(q, v))
+        return self._seg(q, v, mode, target, change, ext, True, self.model.kinetic_energy(q, v))
+
+
+@pytest.mark.parametrize("order", ["pre_impact", "mechanical", "capture"])
+def test_capture_key_ranks_a_release_by_what_its_support_cannot_catch(model, order):
+    """'capture' keys the release on its energy plus the capture-point energy of its one
+    foot (the key is checked against ``capture_energy``); with that key the release of a
+    30 J push is still popped before a hand landing that arrives with 40 J, as with the
+    paper's key, and unlike 'mechanical' (which pops the landing: the centre of mass is
+    not lower after a release)."""
+    env = Environment()
+    q0, v0 = _pushed(model, 30.0)
+    fake = _StepOpt(model, q0)
+    res = tree_mod.search(fake, q0, v0, ("LF", "RF"), env, time_budget=30.0, max_depth=1,
+                          frontier_order=order, landing_policy="ignore")
+    rel = next(n for n in res.nodes if mode_label(n.mode) in ("RF", "LF"))
+    extra = tree_mod.capture_energy(model, rel.q, rel.v, rel.mode, env)
+    assert extra > 0.0
+    if order == "capture":
+        assert rel.priority == pytest.approx(rel.ke + extra)
+    popped = fake.popped[1]
+    assert popped == ("LF/RF/LH" if order == "mechanical" else mode_label(rel.mode)), fake.popped
+
+
+@pytest.mark.parametrize("step_lookahead", [False, True])
+def test_step_lookahead_returns_a_stepped_double_support_as_soon_as_it_is_made(model, step_lookahead):
+    env = Environment()
+    q0, v0 = _pushed(model, 30.0)
+    fake = _StepOpt(model, q0)
+    res = tree_mod.search(fake, q0, v0, ("LF", "RF"), env, time_budget=30.0, max_depth=2,
+                          frontier_order="capture", landing_policy="ignore", step_lookahead=step_lookahead)
+    assert res.success and res.contact_sequence[1] in ("RF", "LF") and res.contact_sequence[-1] == "LF/RF"
+    trans = [e for e in res.nlp_log if e["kind"] == "transition"]
+    step = next(i for i, e in enumerate(trans) if e["target"] == "LF/RF")
+    if step_lookahead:   # solved and returned before the release's other children are tried
+        assert step == len(trans) - 1 and res.nlp_log[-1].get("lookahead")
+    else:                # the search tries the release's hand landings first, then pops the step
+        assert step < len(trans) - 1 and not res.nlp_log[-1].get("lookahead")
+
+
+def test_soft_capture_cost_of_a_foot_landing(model):
+    """``step_capture_weight`` adds two slacks (forward, backward) to a foot landing's NLP,
+    rows toe - cp + s_f >= margin (forward push; the backward row unbounded), s >= 0,
+    and w (s_f^2 + s_b^2) to the objective; no slack without the weight, none on a hand."""
+    env = Environment()
+    w_cap, margin = 1000.0, 0.05
+    opt = TrajectoryOptimizer(model, OptConfig(step_capture_weight=w_cap, step_capture_margin=margin))
+    nlp, _ = opt.structures(("RF",), "add", "LF", env)
+    assert nlp.n_cap == 2
+    q0, v0 = _pushed(model, 30.0)
+    lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env)
+    idx = nlp._block_idx["capture_soft"]
+    assert lbg[idx][0] == pytest.approx(margin) and lbg[idx][1] == -np.inf and np.all(ubg[idx] == np.inf)
+    oc = nlp.nw - 2
+    assert np.all(lbx[oc:] == 0.0) and np.all(ubx[oc:] == np.inf)
+    w = np.zeros(nlp.nw)
+    w[oc:] = (0.1, 0.2)
+    assert float(nlp.f_cap_cost(w)) == pytest.approx(w_cap * (0.01 + 0.04))
+    hand, _ = opt.structures(("LF", "RF"), "add", "LH", env)
+    assert hand.n_cap == 0 and "capture_soft" not in hand._block_idx
+    plain = TrajectoryOptimizer(model, OptConfig())
+    foot, _ = plain.structures(("RF",), "add", "LF", env)
+    assert foot.n_cap == 0 and "capture_soft" not in foot._block_idx
+
+
+@pytest.fixture(scope="module")
+def plan30():
+    planner = FallPlanner.from_params(**STEP_OPTIONS)
+    return planner, planner.plan({"kinetic_energy": 30.0, "direction": 1.0, "time_budget": 120.0})
+
+
+def test_30J_paper_objective_takes_a_protective_step(plan30):
+    """The paper's ladder at 30 J (Sec. IV-B): a protective step, with the paper's
+    transition objective (pre-impact KE) and this session's step options: release one
+    foot, land it ahead of the capture point, stop in the new double support."""
+    planner, r = plan30
+    assert r["success"], r["reason"]
+    seq = r["contact_sequence"]
+    assert seq[0] == "LF/RF" and seq[1] in ("LF", "RF") and seq[2] == "LF/RF" and len(seq) == 3, seq
+    assert r["final_ke"] < planner.opt.cfg.eps_ke
+    assert planner.opt.cfg.transition_objective == "pre_impact"
+    (land,) = r["landings"]
+    assert land.limb in ("LF", "RF") and land.within_limits
+    assert land.normal_speed <= planner.opt.cfg.landing_limits.foot_normal_speed_max + 1e-4
+    step = r["segments"][1]   # the landing edge: the stepped foot ends ahead of where it started
+    ext = land.limb
+    x0 = planner.model.point(f"{ext}_toe", step.q[0])[0]
+    x1 = planner.model.point(f"{ext}_toe", step.q[-1])[0]
+    assert x1 - x0 > 0.3, (x0, x1)
