@@ -125,3 +125,19 @@ def test_imu_heading_drift_steers_the_steps_not_yet_planned(model):
     for k in range(50):
         c2.step(observe(model, c2.q_ik, 0.002 * (k + 1)))
     assert c2.pattern.steer_target == 0.0
+
+
+def test_per_foot_measurements_reach_the_stabiliser_up_to_the_gate_speed(model):
+    """Loops 4 (forces) and 5 of the stabiliser get the estimator's per-foot forces, CoPs and contacts in walks up to
+    ``foot_force_max_speed_kmh``; faster walks get none (the CoP-based loop 4 of phase 5)."""
+    from humfall_ros.walking.footsteps import WalkCommand
+
+    c = LocomotionController(model)
+    q = c.reference_configuration(c.standing_posture, 0.0, (0.0, 0.0))
+    st = dataclasses.replace(observe(model, q, 0.0).state, left_normal_force=300.0, right_normal_force=260.0)
+    gate = c.cfg.foot_force_max_speed_kmh
+    c.command = WalkCommand((gate - 0.1) / 3.6, 0.0)
+    got = c._foot_measurements(st)
+    assert got["foot_forces"] == {"l": 300.0, "r": 260.0} and got["contacts"] == {"l": True, "r": True}
+    c.command = WalkCommand((gate + 0.1) / 3.6, 0.0)
+    assert c._foot_measurements(st) == {}

@@ -58,9 +58,10 @@ class LocomotionConfig:
     foot_height_gain: float = 0.05        # 1/s, double-support foot height difference per metre of CoP error rate
     foot_height_time_constant: float = 0.05  # s
     foot_height_max: float = 0.0005       # m
-    foot_force_gain: float = 0.0          # m/(N s), loop 4 on the per-foot forces (0: on the CoP)
-    foot_cop_gain: float = 0.0            # rad/(m s), double-support per-foot CoP damping
+    foot_force_gain: float = 3e-5         # m/(N s), loop 4 on the per-foot forces (0: on the CoP)
+    foot_cop_gain: float = 1.0            # rad/(m s), double-support per-foot CoP damping
     foot_cop_min_force: float = 150.0     # N
+    foot_force_max_speed_kmh: float = 1.5  # km/h, loops 4 (forces) and 5 only in walks up to this speed
     swing_tilt_compensation: bool = True  # keep the swing foot on its path under the stance ankle offsets
     swing_tilt_ramp: float = 0.03         # s, that correction's ramp-in after the lift-off
     swing_tilt_min_speed_kmh: float = 0.75  # km/h, that correction only in walks faster than this

@@ -474,7 +474,7 @@ class LocomotionController:
         st = self.stabilizer.update(s.capture_point, s.cop, s.feet_center, sample.capture_point, sample.zmp,
                                     ref_feet_center, stance, stance_yaw, centres, transfer_to,
                                     swing_loaded=stance is not None and bool(s.contacts["r" if stance == "l" else "l"]),
-                                    foot_forces=s.foot_normal_forces, foot_cops=s.foot_cops, contacts=s.contacts)
+                                    **self._foot_measurements(s))
         self.last_stabilizer = st
         r = self.ik.solve(self.q_ik, self.tasks(sample, sample.com + st.com_offset, self.pattern, st.foot_z),
                           self.dt)
@@ -491,6 +491,14 @@ class LocomotionController:
         if sample.finished:
             self._finish_walk(observation, r.q)
         return JointTargets(q_cmd, r.v[6:].copy())
+
+    def _foot_measurements(self, s) -> dict:
+        """The estimator's per-foot normal forces, CoPs and contacts for the stabiliser's loops 4 (forces) and 5,
+        in walks up to ``foot_force_max_speed_kmh`` (faster: none, the CoP-based loop 4 and no loop 5)."""
+        speed = self.pattern.command.speed if self.pattern is not None else self.command.speed
+        if speed * 3.6 > self.cfg.foot_force_max_speed_kmh + 1e-9:
+            return {}
+        return {"foot_forces": s.foot_normal_forces, "foot_cops": s.foot_cops, "contacts": s.contacts}
 
     def _swing_tilt_compensation(self, q_ik: np.ndarray, q_cmd: np.ndarray, sample: PatternSample,
                                  stance: str | None) -> np.ndarray:

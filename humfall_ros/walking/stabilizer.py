@@ -155,10 +155,12 @@ class WalkingStabilizer:
                 w_s = foot_forces[side] / max(self.weight, 1e-9)
                 rate = rate + self.foot_cop_gain * w_s * np.array([-e_s[0], e_s[1]])
             self.ankle[side] = np.clip(a + self.dt * rate, -self.ankle_max, self.ankle_max)
-        if self.foot_force_gain > 0:
-            foot_z = self._foot_force_difference(foot_forces, shares)
-        else:
-            foot_z = self._foot_height(e_zmp, stance, sole_centres, transfer_to)
+        # loop 4 on the forces when they are given (the controller gates them by speed), else on the CoP;
+        # the idle one leaks, so a speed change hands over without a jump
+        forces = self.foot_force_gain > 0 and foot_forces is not None
+        fz_f = self._foot_force_difference(foot_forces, shares if forces else None)
+        fz_c = self._foot_height(e_zmp, stance, sole_centres, None if forces else transfer_to)
+        foot_z = {sd: fz_c[sd] + fz_f[sd] for sd in SIDES}
         return StabilizerOutput(np.array([off[0], off[1], 0.0]), {k: v.copy() for k, v in self.ankle.items()},
                                 foot_z, e_cp, e_zmp)
 
