@@ -167,3 +167,50 @@ def test_30J_paper_objective_takes_a_protective_step(plan30):
     x0 = planner.model.point(f"{ext}_toe", step.q[0])[0]
     x1 = planner.model.point(f"{ext}_toe", step.q[-1])[0]
     assert x1 - x0 > 0.3, (x0, x1)
+
+
+def test_seed_durations_skip_starts_after_the_seeds_already_used():
+    cfg = OptConfig()
+    full = cfg.seed_durations()
+    assert len(full) == cfg.max_seed_attempts
+    after = cfg.seed_durations(skip=2)
+    grid = np.linspace(cfg.t_min, cfg.t_max, cfg.n_seed_durations)
+    snap = [float(grid[int(np.argmin(np.abs(grid - d)))]) for d in cfg.seed_retry_durations[1:]]
+    assert after == pytest.approx(snap[:cfg.max_seed_attempts]) and after[0] == pytest.approx(full[2])
+    assert cfg.seed_durations(skip=99) == []
+
+
+class _RetryOpt(_StepOpt):
+    """The stepped double support stops; ``skip_seeds`` marks which solve it is."""
+
+    def __init__(self, model, q0):
+        super().__init__(model, q0)
+        self.skips = []
+
+    def opt_self_motion(self, q0, v0, mode, env, deadline=None, skip_seeds=0):
+        seg = super().opt_self_motion(q0, v0, mode, env, deadline)
+        seg.attempt_log = [{"seed_T": 0.8}, {"seed_T": 0.5}]
+        seg.seed_duration = 100.0 + skip_seeds     # tells the check which solve it sees
+        self.skips.append(skip_seeds)
+        return seg
+
+
+@pytest.mark.parametrize("retry", [False, True])
+def test_check_retry_seeds_solves_a_rejected_stop_again_from_the_next_seeds(model, retry):
+    env = Environment()
+    q0, v0 = _pushed(model, 30.0)
+    fake = _RetryOpt(model, q0)
+
+    def check(segments):   # rejects the first stop, accepts one solved after skipping seeds
+        return None if segments[-1].seed_duration > 100.0 else "test: first stop rejected"
+    res = tree_mod.search(fake, q0, v0, ("LF", "RF"), env, time_budget=30.0, max_depth=2,
+                          frontier_order="capture", landing_policy="ignore", step_lookahead=True,
+                          check_plan=check, check_retry_seeds=retry)
+    if retry:
+        assert res.success and res.contact_sequence[-1] == "LF/RF"
+        assert fake.skips[-1] == 2                   # after the two seeds the first solve logged
+        assert res.segments()[-1].seed_duration == 102.0
+        assert res.nlp_log[-1].get("check_retry") and res.nlp_log[-1]["plan_check"] == "passed"
+    else:
+        assert not res.success and 2 not in fake.skips
+        assert any(n.rejected for n in res.nodes)

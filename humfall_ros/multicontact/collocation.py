@@ -152,7 +152,7 @@ class OptConfig:
         """T_min of a segment of this kind (s)."""
         return self.release_t_min if change == "remove" and self.release_t_min > 0 else self.t_min
 
-    def seed_durations(self, change: str = "") -> list[float]:
+    def seed_durations(self, change: str = "", skip: int = 0) -> list[float]:
         """Seed durations in the order they are tried (Sec. III-D).
 
         The paper sweeps the whole N_tot grid by increasing duration until a
@@ -160,7 +160,8 @@ class OptConfig:
         ``seed_first_duration`` first, then ``seed_retry_durations``, each
         snapped to the grid, duplicates dropped, at most ``max_seed_attempts``.
         A release (``change == 'remove'``) uses ``release_seed_durations`` when
-        given, on a grid that starts at its own T_min.
+        given, on a grid that starts at its own T_min. ``skip``: start after that
+        many seeds of the list (another local optimum of the same NLP).
         """
         grid = np.linspace(self.t_min_of(change), self.t_max, max(2, self.n_seed_durations))
         wanted = (self.release_seed_durations if change == "remove" and self.release_seed_durations
@@ -170,7 +171,7 @@ class OptConfig:
             g = float(grid[int(np.argmin(np.abs(grid - d)))])
             if g not in out:
                 out.append(g)
-        return out[:max(1, self.max_seed_attempts)]
+        return out[skip:skip + max(1, self.max_seed_attempts)]
 
 
 @dataclasses.dataclass
@@ -746,9 +747,11 @@ class TrajectoryOptimizer:
             return self._proj[pkey]
 
     # ---------------------------------------------------------- public API
-    def opt_self_motion(self, q0, v0, mode: Mode, env: Environment, deadline: float | None = None) -> Segment:
-        """Fixed-contact (inertial shaping) trajectory at mode sigma (Alg. 1 line 5)."""
-        return self._optimize(q0, v0, mode, "", "", env, deadline)
+    def opt_self_motion(self, q0, v0, mode: Mode, env: Environment, deadline: float | None = None,
+                        skip_seeds: int = 0) -> Segment:
+        """Fixed-contact (inertial shaping) trajectory at mode sigma (Alg. 1 line 5);
+        ``skip_seeds``: begin after that many seeds of ``OptConfig.seed_durations``."""
+        return self._optimize(q0, v0, mode, "", "", env, deadline, skip_seeds)
 
     def opt_transition_motion(self, q0, v0, mode: Mode, target: Mode, env: Environment,
                               deadline: float | None = None) -> Segment:
@@ -822,7 +825,7 @@ class TrajectoryOptimizer:
             pass
         return x0
 
-    def _optimize(self, q0, v0, mode, change, ext, env, deadline) -> Segment:
+    def _optimize(self, q0, v0, mode, change, ext, env, deadline, skip_seeds: int = 0) -> Segment:
         cfg, model = self.cfg, self.model
         q0 = np.asarray(q0, float)
         v0 = np.asarray(v0, float)
@@ -838,7 +841,7 @@ class TrajectoryOptimizer:
         best = None
         attempts = 0
         log = []
-        for T in cfg.seed_durations(change):
+        for T in cfg.seed_durations(change, skip_seeds):
             if deadline is not None and time.perf_counter() >= deadline:
                 break
             attempts += 1
@@ -892,6 +895,8 @@ class TrajectoryOptimizer:
                                      and best.objective > cfg.retry_energy_fraction * ke0):
                 break
         if best is None:
+            if skip_seeds and not cfg.seed_durations(change, skip_seeds):
+                raise ValueError("no seed left after skipping")
             raise TimeoutError("time budget exhausted before the first NLP")
         best.nlp_time = time.perf_counter() - t_start
         best.build_time = build_time

@@ -56,6 +56,8 @@ class PlannerConfig:
     frontier_lookahead: bool = False
     # departure: the same for children reached by a foot landing only (the second half of a step)
     frontier_lookahead_steps: bool = False
+    # a stopping self-motion rejected by the re-simulation check is solved again from the next seeds
+    check_retry_seeds: bool = False
     stance: dict = dataclasses.field(default_factory=dict)
 
     @staticmethod
@@ -242,7 +244,8 @@ class FallPlanner:
         res = search(self.opt, vr.q, vr.v, vr.mode, vr.env, max_depth=self.cfg.max_depth,
                      time_budget=vr.time_budget, symmetry_cut=self.cfg.symmetry_cut, check_plan=check,
                      frontier_order=self.cfg.frontier_order, landing_policy=self.cfg.landing_policy,
-                     lookahead=self.cfg.frontier_lookahead, step_lookahead=self.cfg.frontier_lookahead_steps)
+                     lookahead=self.cfg.frontier_lookahead, step_lookahead=self.cfg.frontier_lookahead_steps,
+                     check_retry_seeds=self.cfg.check_retry_seeds)
         out = result_dict(self.model, res, vr)
         out["total_time_s"] = time.perf_counter() - t0
         return out

@@ -179,7 +179,7 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
            eps_ke: float | None = None, max_depth: int = 4, time_budget: float = 60.0,
            symmetry_cut: bool = True, check_plan=None, frontier_order: str = "pre_impact",
            landing_policy: str = "rank_last", lookahead: bool = False,
-           step_lookahead: bool = False) -> SearchResult:
+           step_lookahead: bool = False, check_retry_seeds: bool = False) -> SearchResult:
     """Algorithm 1: grow the tree by least kinetic energy until a node's
     self-motion ends with E_K < eps_KE, the frontier empties or the budget ends.
 
@@ -212,7 +212,11 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
     the limits), 'refuse' (the node is not added) or 'ignore'.
     ``check_plan(segments) -> reason | None``, when given, must accept the
     path's segments before a node is declared terminal; a rejected node is
-    expanded like any other (its reason is kept in the node and the log)."""
+    expanded like any other (its reason is kept in the node and the log).
+    ``check_retry_seeds``: a stopping self-motion that the check rejects is solved
+    again from the seeds after the ones it used (another local optimum of the same
+    NLP; 40 J step, session 7: the first stop swung the free elbow so that tracking
+    missed a knot by 0.13 > 0.1 rad); the node is terminal if that one stops and passes."""
     if frontier_order not in FRONTIER_ORDERS:
         raise ValueError(f"frontier_order {frontier_order!r}: one of {', '.join(FRONTIER_ORDERS)}")
     if landing_policy not in ("rank_last", "refuse", "ignore"):
@@ -266,6 +270,22 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         if check_plan is not None:
             rejected = check_plan([nodes[i].edge for i in path[1:]] + [y])
             log[-1]["plan_check"] = rejected or "passed"
+        if rejected is not None and check_retry_seeds and time.perf_counter() < deadline:
+            try:
+                y2 = opt.opt_self_motion(d.q, d.v, d.mode, env, deadline=deadline,
+                                         skip_seeds=sum(1 for a in y.attempt_log if a.get("seed_T") != "warm"))
+            except (TimeoutError, ValueError):
+                y2 = None
+            if y2 is not None:
+                record("self_motion", d, y2)
+                log[-1]["check_retry"] = True
+                if y2.success and y2.final_ke < eps_ke:
+                    rejected2 = check_plan([nodes[i].edge for i in path[1:]] + [y2])
+                    log[-1]["plan_check"] = rejected2 or "passed"
+                    if rejected2 is None:
+                        d.self_motion = y2
+                        d.status = "terminal"
+                        return True
         if rejected is None:
             d.status = "terminal"
             return True
