@@ -37,7 +37,8 @@ from humfall_ros.estop.frame import FootPose, PlanarMotion
 from humfall_ros.estop.metrics import estop_result
 from humfall_ros.estop.statespace import fit_zmp_lag
 from humfall_ros.model.humanoid import point_in_polygon_margin
-from humfall_ros.sim.closed_loop import ClosedLoop, node_params
+from humfall_ros.sim.closed_loop import ClosedLoop
+from humfall_ros.suite import node_params
 from humfall_ros.walking.controller import LocomotionController
 from humfall_ros.walking.scenario import walk_schedule, walking_config
 

@@ -14,7 +14,8 @@ import pytest
 from humfall_ros import scenario
 from humfall_ros.dynamics.pendulum import GRAVITY
 from humfall_ros.model.humanoid import SIDES, load_model
-from humfall_ros.sim.closed_loop import ClosedLoop, node_params
+from humfall_ros.sim.closed_loop import ClosedLoop
+from humfall_ros.suite import node_params
 from humfall_ros.sim.world import SimWorld
 from humfall_ros.walking.controller import from_scenario
 

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from humfall_ros import launch, scenario
-from humfall_ros.sim.closed_loop import ClosedLoop, locomotion_controller, run_scenario
+from humfall_ros.sim.closed_loop import ClosedLoop, run_scenario
+from humfall_ros.suite import locomotion_controller
 
 import takeover_controller as tc
 from test_suite_graph import joint_states_from_bag

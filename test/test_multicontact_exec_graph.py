@@ -12,7 +12,8 @@ from humfall_ros.multicontact.collocation import Segment
 from humfall_ros.multicontact.executor import StoredPlan
 from humfall_ros.multicontact.model import load_model as load_planar
 from humfall_ros.nodes.multicontact_executor import make_controller
-from humfall_ros.sim.closed_loop import locomotion_controller, run_scenario
+from humfall_ros.sim.closed_loop import run_scenario
+from humfall_ros.suite import locomotion_controller
 
 from test_contract_graph import _rows, bag_topic
 

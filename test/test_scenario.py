@@ -243,7 +243,7 @@ def test_a_walking_scenario_gives_the_fall_trigger_the_gait_reference_on_both_pa
     # humfall up (plan_nodes) and the in-process loop (node_params) apply scenario.node_defaults alike;
     # the scenario's params.<node> still overrides it; a standing scenario leaves the declared default
     from humfall_ros import launch
-    from humfall_ros.sim.closed_loop import node_params
+    from humfall_ros.suite import node_params
 
     def graph(sc):
         return {n.name: n.params for n in launch.plan_nodes(sc, tmp_path, record=False)}["ftb_monitor"]

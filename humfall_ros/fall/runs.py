@@ -19,11 +19,7 @@ import math
 
 import numpy as np
 
-from humfall_ros.fall.controller import SafeFallConfig, SafeFallController
-from humfall_ros.fall.ftb import FtbConfig, FtbMonitor
-
-CONTROLLERS = ("none", "stepping", "stepping_inertia")
-
+from humfall_ros.suite import CONTROLLERS, controllers_for  # noqa: F401 (CONTROLLERS: the kinds, for callers)
 
 @dataclasses.dataclass
 class FallRun:
@@ -48,63 +44,6 @@ class FallRun:
     trace: list
     reasons: list
     search: object | None = None
-
-
-class GaitFedFtb:
-    """The FTB monitor fed ``walking/state`` from the walking controller (``use_walking_state``) and, once
-    ``estop`` is set (``use_estop_status``), ``estop/status`` from the e-stop controller.
-
-    The loop runs monitors before controllers, so the states read are the ones the controllers
-    computed on the previous tick (2 ms old; on the graph the FTB waits for the same tick's
-    messages). The monitor's ``name``, ``latched``, ``event`` and ``state`` are the FTB's.
-    """
-
-    def __init__(self, ftb: FtbMonitor, walking=None, estop=None):
-        self.inner = ftb
-        self.walking = walking
-        self.estop = estop
-        self.name = ftb.name
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
-
-    def reset(self) -> None:
-        self.inner.reset()
-
-    def step(self, observation):
-        extra = {}
-        state = getattr(self.walking, "state", None)
-        if state is not None:
-            extra["walking/state"] = state
-        status = getattr(self.estop, "status", None)
-        if status is not None:
-            extra["estop/status"] = status
-        if not extra:
-            return self.inner.step(observation)
-        return self.inner.step(dataclasses.replace(observation, inputs={**observation.inputs, **extra}))
-
-
-def controllers_for(sc: dict, kind: str, model=None):
-    """(controllers, monitors) of the run, as the launcher would start them for ``kind``."""
-    from humfall_ros.launch import CONTROLLER_PARAMS
-    from humfall_ros.model.humanoid import load_model
-    from humfall_ros.sim.closed_loop import SameTickInputs, locomotion_controller, node_params
-
-    if kind not in CONTROLLERS:
-        raise ValueError(f"controller must be one of {CONTROLLERS}, got {kind!r}")
-    model = model or load_model()
-    ftb = FtbMonitor(FtbConfig.from_params(node_params(sc, "ftb_monitor")))
-    ctrls = [locomotion_controller(sc, model)]  # the locomotion node's own controller
-    if ftb.config.use_walking_state or ftb.config.use_estop_status:  # the e-stop is set by sim.closed_loop.suite
-        ftb = GaitFedFtb(ftb, ctrls[0] if ftb.config.use_walking_state else None)
-    if kind != "none":
-        p = node_params(sc, "safe_fall_controller")
-        p.update(CONTROLLER_PARAMS.get(kind, {}).get("safe_fall_controller", {}))
-        safe = SafeFallController(model, SafeFallConfig.from_params(p))
-        loco = ctrls[0]
-        # walking/state of the same tick (the node reads the latest message): the planned footstep
-        ctrls.append(SameTickInputs(safe, {"walking/state": lambda: loco.state}))
-    return ctrls, [ftb]
 
 
 def run(sc: dict, kind: str | None = None, noise=None, duration: float | None = None,
@@ -256,7 +195,7 @@ def summary(r: FallRun) -> dict:
     return out
 
 
-__all__ = ["CONTROLLERS", "FallRun", "GaitFedFtb", "controllers_for", "handback_run", "run", "summary"]
+__all__ = ["CONTROLLERS", "FallRun", "controllers_for", "handback_run", "run", "summary"]
 
 
 if __name__ == "__main__":  # python -m humfall_ros.fall.runs handback SCENARIO KIND DURATION [walk_at=S] [KEY=VALUE ..]

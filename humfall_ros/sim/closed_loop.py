@@ -27,15 +27,14 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from humfall_ros import params as params_mod
 from humfall_ros.control.contract import (Controller, JointTargets, Observation, Obstacle, centroidal_from_estimate,
                                           stamp_ns_of)
 from humfall_ros.control.mux import CommandMux, JointCommand, mux_order
-from humfall_ros.control.standing import StandingController
 from humfall_ros.model.estimation import CentroidalEstimator, estimate_error
 from humfall_ros.sim.ground_truth import GroundTruth
 from humfall_ros.sim.sensors import SensorNoise, Sensors
 from humfall_ros.sim.world import SimWorld
+from humfall_ros.suite import node_params, suite
 
 class Monitor(Protocol):
     name: str
@@ -55,96 +54,6 @@ class LoopResult:
     outputs: dict[str, list] = dataclasses.field(default_factory=dict)   # per-tick monitor values by name
 
 
-def node_params(sc: dict, node: str) -> dict:
-    """A node's parameters for this scenario: its declaration's defaults, what the scenario's
-    content implies (``scenario.node_defaults``), then ``params.<node>``."""
-    from humfall_ros.scenario import node_defaults
-
-    p = params_mod.defaults(node)
-    p.update(node_defaults(sc, node))
-    p.update(params_mod.check_overrides(node, sc["params"].get(node, {}), prefix=f"params.{node}."))
-    return p
-
-
-def sensor_noise(sc: dict) -> SensorNoise:
-    """The bridge's sensor noise of this scenario (``params.sim_bridge.noise_*``)."""
-    b = node_params(sc, "sim_bridge")
-    return SensorNoise(**{f.name: b[f"noise_{f.name}"] for f in dataclasses.fields(SensorNoise) if f.name != "seed"},
-                       seed=b["noise_seed"])
-
-
-def locomotion_controller(sc: dict, model):
-    """The locomotion node's controller for this scenario (what the node builds from the same file)."""
-    from humfall_ros.walking.controller import from_scenario
-
-    return from_scenario(sc, model, node_params(sc, "locomotion"))
-
-
-class SameTickInputs:
-    """A controller whose observation also gets inputs computed this tick by controllers before it.
-
-    ``SameTickInputs(estop, {"walking/state": lambda: walking.state})`` gives the e-stop the walking
-    state of the same tick (walking comes first in the loop's list), as the e-stop node's tick gate
-    waits for ``walking/state`` of the tick's stamp.
-    """
-
-    def __init__(self, controller: Controller, providers: dict[str, Callable[[], Any]]):
-        self.inner = controller
-        self.source = controller.source
-        self.providers = dict(providers)
-
-    def __getattr__(self, name):  # status, decision, ... of the wrapped controller
-        return getattr(self.inner, name)
-
-    def reset(self) -> None:
-        self.inner.reset()
-
-    def step(self, observation: Observation):
-        extra = {k: f() for k, f in self.providers.items()}
-        return self.inner.step(dataclasses.replace(observation, inputs={**observation.inputs, **extra}))
-
-
-def suite(sc: dict, model) -> tuple[list[Controller], list[Monitor]]:
-    """The controllers and monitors ``humfall up`` starts for ``sc``, as in-process objects.
-
-    locomotion (``locomotion_controller``); with ``controller`` stepping / stepping_inertia the FTB
-    monitor and the safe-fall controller (humfall_ros.fall.runs); the e-stop when the scenario walks
-    or schedules a trigger (fed the walking state of the same tick).
-    """
-    monitors: list = []
-    if sc["controller"] != "none":
-        from humfall_ros.fall.runs import controllers_for
-
-        # its locomotion controller is the one the gait-fed FTB and the safe-fall controller read
-        controllers, monitors = controllers_for(sc, sc["controller"], model)
-        loco = controllers[0]
-        assert loco.source == "locomotion"
-    else:
-        loco = locomotion_controller(sc, model)
-        controllers = [loco]
-    from humfall_ros.scenario import runs_estop
-
-    if runs_estop(sc):
-        from humfall_ros.estop.config import EstopConfig, trigger_params
-        from humfall_ros.estop.controller import EstopController
-
-        p = node_params(sc, "estop_planner")
-        p.update(trigger_params(sc["estop"]))
-        estop = EstopController(model, EstopConfig.from_params(p), 1.0 / sc["sim"]["control_rate"])
-        controllers.append(SameTickInputs(estop, {"walking/state": lambda: loco.state}))
-        for m in monitors:
-            if getattr(m, "config", None) is not None and m.config.use_estop_status and hasattr(m, "estop"):
-                m.estop = estop  # the FTB's stop reference while it plays (the node waits for estop/status)
-    return controllers, monitors
-
-
-def standing_controller(sc: dict, model) -> StandingController:
-    """The standing balance alone as the "locomotion" source (the walking controller stands with it too)."""
-    p = node_params(sc, "locomotion")
-    return StandingController(model, model.standing_posture, p["ankle_kp"], p["ankle_kd"], p["ankle_max_offset"],
-                              p["resume_time"])
-
-
 def to_command(stamp: float, targets: JointTargets | None, joint_names: list[str]) -> JointCommand:
     """What the controller node publishes (a JointState), as the bridge receives it."""
     if targets is None:
@@ -152,6 +61,13 @@ def to_command(stamp: float, targets: JointTargets | None, joint_names: list[str
     q = [float(x) for x in np.asarray(targets.positions, float)]
     v = [] if targets.velocities is None else [float(x) for x in np.asarray(targets.velocities, float)]
     return JointCommand(stamp, list(joint_names), q, v)
+
+
+def sensor_noise(sc: dict) -> SensorNoise:
+    """The bridge's sensor noise of this scenario (``params.sim_bridge.noise_*``)."""
+    b = node_params(sc, "sim_bridge")
+    return SensorNoise(**{f.name: b[f"noise_{f.name}"] for f in dataclasses.fields(SensorNoise) if f.name != "seed"},
+                       seed=b["noise_seed"])
 
 
 class ClosedLoop:
