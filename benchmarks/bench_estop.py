@@ -4,7 +4,7 @@ Prints one JSON object. "plan" is :meth:`EstopPlanner.plan` (frame, Minor-axis g
 at the trigger height, Major-axis gains eq. 19-20, closed forms eq. 6-7/16, the ZMP check on
 ``samples`` points against the double-support polygon) from a pattern state at a double-support
 start; goal <= 0.5 ms median. "posture" is the final-posture IK with the crouch search
-(:func:`humfall_ros.estop.posture.settle_posture`), timed apart. Per walking speed (step length
+(:func:`humfall_ros.estop.planner.settle_posture`), timed apart. Per walking speed (step length
 = speed x 0.8 s period) the plan's n3, crouch and feasibility are reported too.
 
     python benchmarks/bench_estop.py [--repeats N]

@@ -30,6 +30,7 @@ import numpy as np
 from humfall_ros.dynamics.pendulum import GRAVITY
 from humfall_ros.estop.config import EstopConfig
 from humfall_ros.estop.frame import FootPose, StopFrame, double_support_polygon
+from humfall_ros.estop.posture import PostureSolver
 from humfall_ros.estop.statespace import (
     MajorAxisModel,
     MajorAxisSolution,
@@ -312,8 +313,6 @@ class EstopPlanner:
     def posture_solver(self):
         """The final-posture IK (:class:`humfall_ros.estop.posture.PostureSolver`), built on first use."""
         if self._posture_solver is None:
-            from humfall_ros.estop.posture import PostureSolver
-
             c = self.cfg
             self._posture_solver = PostureSolver(self.m, c.joint_margin, c.ik_dt, c.ik_max_iterations, c.ik_tolerance)
         return self._posture_solver
@@ -438,11 +437,72 @@ class EstopPlanner:
                                    feasible=feasible, reason=reason)
 
     def plan_with_posture(self, state: PatternState, q_seed: np.ndarray) -> StopPlan:
-        """:meth:`plan`, then the final-posture check, crouch and fallback (:mod:`humfall_ros.estop.posture`)."""
-        from humfall_ros.estop.posture import settle_posture
-
+        """:meth:`plan`, then the final-posture check, crouch and fallback (:func:`settle_posture`)."""
         return settle_posture(self, self.plan(state), q_seed)
 
 
+def settle_posture(planner: "EstopPlanner", plan: "StopPlan", q_seed: np.ndarray) -> "StopPlan":
+    """Posture check, crouch and fallback for a :class:`StopPlan` (:mod:`humfall_ros.estop.posture`'s docstring).
+
+    Args:
+        planner: the :class:`~humfall_ros.estop.planner.EstopPlanner` that made ``plan``.
+        plan: its closed-form plan.
+        q_seed: the current configuration (nq,), its feet at ``plan.state.feet``
+            (:func:`configuration_from_feet` builds one from joint positions).
+    Returns:
+        the plan with ``crouch``, ``posture``, ``feasible``, ``reason`` and ``fallback`` set.
+    """
+    c = planner.cfg
+    solver = planner.posture_solver
+    state = plan.state
+    ground = state.ground_height
+    z0 = state.cog_height
+
+    def attempt(p):
+        """(plan, posture check, reason it fails or "")."""
+        target = np.array([p.final_com[0], p.final_com[1], ground + z0])
+        check = solver.solve(q_seed, state.feet, target, ground)
+        if check.reachable:
+            return p, check, ""
+        # lower the CoG: the highest reachable height by bisection down to crouch_min_cog_height
+        low = solver.solve(check.q, state.feet, np.array([*target[:2], ground + c.crouch_min_cog_height]), ground)
+        if not low.reachable:
+            return p, low, (f"final CoG not reachable with the feet fixed even at {c.crouch_min_cog_height} m "
+                            f"(limits: {', '.join(low.binding_joints) or 'none'})")
+        lo_z, hi_z, best = c.crouch_min_cog_height, z0, low
+        while hi_z - lo_z > max(c.crouch_clearance, 2 * c.ik_tolerance):
+            mid = 0.5 * (lo_z + hi_z)
+            trial = solver.solve(best.q, state.feet, np.array([*target[:2], ground + mid]), ground)
+            if trial.reachable:
+                lo_z, best = mid, trial
+            else:
+                hi_z = mid
+        z1 = max(lo_z - c.crouch_clearance, c.crouch_min_cog_height)
+        crouch = Crouch(z0, z1, c.crouch_duration)
+        p = planner.plan(state, beta=p.beta, crouch=crouch)          # the same beta, crouched
+        check = solver.solve(best.q, state.feet, p.final_com.copy(), ground)
+        if not check.reachable:
+            return p, check, f"crouched posture at {z1:.3f} m not reachable ({', '.join(check.binding_joints)})"
+        return p, check, ""
+
+    p, check, why = attempt(plan)
+    if not why and not p.feasible:
+        why = p.reason
+    if not why:
+        return dataclasses.replace(p, posture=check, feasible=True, reason="")
+    if c.fallback == "none":
+        return dataclasses.replace(p, posture=check, feasible=False, reason=why)
+    # fallback min_n3_crouch: beta = -omega_f (n3 at eq. 22's bound); if the posture is still out of
+    # reach, the deepest crouch; run anyway, feasible=False
+    fb, check_fb, why_fb = attempt(planner.plan(state, beta=-c.omega_f))
+    if why_fb and not check_fb.reachable and c.crouch_min_cog_height < z0:
+        fb = planner.plan(state, beta=-c.omega_f, crouch=Crouch(z0, c.crouch_min_cog_height, c.crouch_duration))
+        check_fb = solver.solve(check_fb.q, state.feet, fb.final_com.copy(), ground)
+    note = "; fallback min_n3_crouch: " + ("posture reachable" if check_fb.reachable else "posture NOT reachable")
+    if not fb.feasible:
+        note += f", {fb.reason}"
+    return dataclasses.replace(fb, posture=check_fb, feasible=False, reason=why + note, fallback="min_n3_crouch")
+
+
 __all__ = ["Crouch", "EstopInputError", "EstopPlanner", "MajorAxisPlan", "MinorAxisPlan", "PatternState",
-           "StopPlan", "StopReference", "polygon_margins"]
+           "StopPlan", "StopReference", "polygon_margins", "settle_posture"]
