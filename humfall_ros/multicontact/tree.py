@@ -18,8 +18,9 @@ re-simulation) before a node is declared terminal.
 The frontier key is E_K(End(y_ij)) as line 20 writes it (for an added contact
 the pre-impact energy; ``frontier_order='post_impact'`` is the departure that
 keys on the energy after the impact map; 'mechanical', the planner's default,
-'landing_first' and ``lookahead`` are departures that look past the edge, see
-``search``), and every landing gets a
+'landing_first', 'capture' (a capture-point cost-to-go), ``lookahead`` and
+``step_lookahead`` are departures that look past the edge, see ``search``), and
+every landing gets a
 ``LandingReport`` (eq. 10): with ``landing_policy='rank_last'`` a node reached
 through a landing beyond ``opt.cfg.landing_limits`` (and its subtree) is popped
 after every node within the limits.
