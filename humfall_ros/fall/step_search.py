@@ -74,7 +74,7 @@ class SearchConfig:
         corner_tie: stance corners within this of the leading one along the fall direction pivot as an edge [m].
         obstacle_clearance: landing soles keep this far from obstacle footprints [m].
         rk4_steps: fixed RK4 steps of the pendulum prediction [-].
-        min_zone_cells: a zone with fewer (x, y) cells than this is sampled again at half or a quarter
+        min_zone_cells: a zone with fewer (x, y) cells than this is also sampled at half or a quarter
             of the cell size, to hold about this many (0: the grid as it falls) [-].
     """
 
@@ -420,7 +420,9 @@ def zone_cells(zone: SteppingZone, cfg: SearchConfig, obstacles: list[Footprint]
     # cells found, alpha2 47 -> 76 deg)
     if len(xy) < cfg.min_zone_cells:
         halvings = min(2, math.ceil(0.5 * math.log2(cfg.min_zone_cells / max(len(xy), 1))))
-        xy = grid(cfg.cell_xy / 2 ** halvings)
+        # the finer lattice does not hold the coarse cells: keep both, so that sampling finer never
+        # loses the grid's best landing (walking_push: alpha2 predicted 143.5 deg by the grid, 136 without it)
+        xy = np.vstack([xy, grid(cfg.cell_xy / 2 ** halvings)])
     yaws = yaws[zone.contains_yaw(yaws)]
     if len(xy) == 0 or len(yaws) == 0:
         return np.zeros((0, 3))
