@@ -160,12 +160,18 @@ def test_messages_round_trip_exactly():
     assert event_from_msg(event_to_msg(ev)).control_duration == math.inf
 
 
-def test_metrics_alpha2_at_the_measured_p2_and_prediction():
+def _metrics_after_a_step_right_decision() -> FallMetrics:
+    """Metrics with a target 1.2 m ahead, P at the origin, a fall event at 0.6 s and a step_right decision."""
     m = FallMetrics([1.2, 0.0])
     m.set_reference_cop([0.0, 0.0, 0.0])
     m.note_fall_event(0.6)
     m.note_decision({"stamp_ns": int(0.6e9), "case": "step_right", "swing_side": "r", "landing": [0.3, -0.1, 0.2],
                      "alpha2": math.radians(90.0), "captured": False, "touchdown_time": 0.45})
+    return m
+
+
+def test_metrics_alpha2_at_the_measured_p2_and_prediction():
+    m = _metrics_after_a_step_right_decision()
     poses = {"l": (0.0, 0.1, 0.0, 0.0), "r": (0.0, -0.1, 0.0, 0.0)}
     t = 0.0
     for k in range(1000):
@@ -223,11 +229,7 @@ def test_metrics_p2_of_a_step_that_bounces_is_taken_after_it_lands_again():
     sweep at 30 deg: no alpha2 at all before)."""
     from humfall_ros.sim.metrics import BOUNCE_S
 
-    m = FallMetrics([1.2, 0.0])
-    m.set_reference_cop([0.0, 0.0, 0.0])
-    m.note_fall_event(0.6)
-    m.note_decision({"stamp_ns": int(0.6e9), "case": "step_right", "swing_side": "r", "landing": [0.3, -0.1, 0.2],
-                     "alpha2": math.radians(90.0), "captured": False, "touchdown_time": 0.45})
+    m = _metrics_after_a_step_right_decision()
     poses = {"l": (0.0, 0.1, 0.0, 0.0), "r": (0.31, -0.1, 0.21, 1.0)}
     second = 1.04 + BOUNCE_S / 2
     for k in range(1000):
