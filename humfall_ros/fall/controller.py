@@ -56,8 +56,10 @@ from humfall_ros.fall.stepping_zone import stepping_zone
 from humfall_ros.model.humanoid import SIDES, HumanoidModel, load_model, support_polygon
 
 
-# joints inertia shaping may move, by name fragment: all of them (the paper), or the pitch chain
-RECRUIT = {"all": ("",), "pitch": ("chest_pitch", "hip_pitch", "shoulder_pitch")}
+# joints inertia shaping may move, by name fragment: all of them (the paper), the pitch chain, or its upper body
+# part (the hips left out: flexing them swings the legs, which kicked the target in walking_push)
+RECRUIT = {"all": ("",), "pitch": ("chest_pitch", "hip_pitch", "shoulder_pitch"),
+           "upper": ("chest_pitch", "shoulder_pitch")}
 
 
 @dataclasses.dataclass(frozen=True)
