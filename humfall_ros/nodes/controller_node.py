@@ -121,8 +121,12 @@ class ControllerNode(Node):
         self.latched: dict[str, Any] = {}
         for i in self.extra:
             if not i.per_tick:
-                self.create_subscription(i.msg_type, i.topic, lambda m, i=i: self._on_latched(i, m),
-                                         i.qos or QOS_LATCHED)
+                # taken by the hot loop as soon as they arrive, not by the executor's 50 ms service pass: the
+                # FTB's cleared fall_event must reach locomotion within the safe-fall controller's hand-back
+                # delay (10 ticks, ~15 ms of wall time on a quiet machine in lockstep); the executor's pass
+                # gave a tick with no engaged source in a fresh-clone run
+                self.hot_loop.subscribe(i.msg_type, i.topic, lambda m, i=i: self._on_latched(i, m),
+                                        i.qos or QOS_LATCHED)
         self.last_cmd: JointState | None = None
         self.tick_outputs: list[tuple[Any, Any]] = []  # (publisher, message) of the last tick, see publish_tick
         self.engaged = False
