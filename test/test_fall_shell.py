@@ -104,7 +104,8 @@ def test_recovery_from_fallen_by_timeout_but_not_lying_or_moving():
 
 def test_cleared_fall_event_message_reads_as_no_event():
     pytest.importorskip("humfall_interfaces")
-    from humfall_ros.nodes.ftb_monitor import cleared_msg, event_to_msg, fall_event_input
+    from humfall_ros.nodes.controller_node import fall_event_input
+    from humfall_ros.nodes.ftb_monitor import cleared_msg, event_to_msg
 
     ev = _event()
     assert fall_event_input(event_to_msg(ev)) is True

@@ -21,6 +21,7 @@ import numpy as np
 
 from humfall_ros.suite import CONTROLLERS, controllers_for  # noqa: F401 (CONTROLLERS: the kinds, for callers)
 
+
 @dataclasses.dataclass
 class FallRun:
     """One run's outcome.

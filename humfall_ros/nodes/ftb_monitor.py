@@ -10,8 +10,8 @@ Gathers the tick's ``centroidal_state`` (and ``walking/state`` with ``use_walkin
 * ``fall_event`` (``humfall_interfaces/FallEvent``, transient-local) once, on the edge; and once
   more with ``cleared = true`` when the FTB recovers (falling/fallen -> balanced: a step captured the
   fall) or is reset: stamped with that tick, the cleared event's fields. Every reader of the topic
-  treats a cleared message as "no fall event" (:func:`fall_event_input`): locomotion takes the robot
-  back once the safe-fall controller releases it.
+  treats a cleared message as "no fall event" (``controller_node.fall_event_input``): locomotion takes
+  the robot back once the safe-fall controller releases it.
 
 Service ``ftb/reset`` (std_srvs/Trigger): back to balanced, the event cleared (published). A
 retransmitted tick is answered with the last status; time going back resets the monitor.
@@ -29,7 +29,7 @@ from humfall_ros.control.contract import Observation
 from humfall_ros.control.tick_gate import Action, TickGate
 from humfall_ros.fall import ftb as core
 from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_LATCHED, QOS_RELIABLE, HotLoop, Params, run_node, stamp_key
-from humfall_ros.nodes.controller_node import centroidal_from_msg, fall_event_input  # noqa: F401 (re-exported)
+from humfall_ros.nodes.controller_node import centroidal_from_msg
 from rclpy.node import Node
 
 STATE_CODE = {core.FtbState.BALANCED: FtbStatus.BALANCED, core.FtbState.FALLING: FtbStatus.FALLING,

@@ -112,18 +112,26 @@ class FallMetrics:
         depend on when the event became known (the bridge learns it over the graph)."""
         return {side: e[:3] for side, e in ((s, self._step_entry(s)) for s in self._touchdown_log) if e is not None}
 
-    def _step_entry(self, side: str):
+    def _entries_after_event(self, side: str) -> list:
+        """``side``'s touchdowns after the fall event (with no event, all of them)."""
         after = self.fall_event_time if self.fall_event_time is not None else -math.inf
-        return next((e for e in self._touchdown_log.get(side, []) if e[0] > after), None)
+        return [e for e in self._touchdown_log.get(side, []) if e[0] > after]
+
+    def _step_entry(self, side: str):
+        entries = self._entries_after_event(side)
+        return entries[0] if entries else None
 
     def _step_cops(self, side: str) -> list:
         """The CoPs of P2: 0.05-0.15 s after the step's touchdown. A sole that bounces off before that
         window (seen in the sweep: down at 1.012 s, up, down again at 1.144 s) has none there: then the
         window after its next touchdown counts, if that comes within ``BOUNCE_S`` of the first."""
-        after = self.fall_event_time if self.fall_event_time is not None else -math.inf
-        entries = [e for e in self._touchdown_log.get(side, []) if e[0] > after]
-        if not entries:
-            return []
+        entries = self._entries_after_event(side)
+        for e in entries:
+            if e[0] - entries[0][0] > BOUNCE_S:
+                break
+            if e[3]:
+                return e[3]
+        return []
         for e in entries:
             if e[0] - entries[0][0] > BOUNCE_S:
                 break
