@@ -13,6 +13,9 @@ from humfall_ros.fall.controller import SafeFallConfig, SafeFallController
 from humfall_ros.fall.ftb import TRANSITIONS, FtbConfig, FtbMonitor, FtbState, TriggerMode, features_of
 from humfall_ros.fall.geometry import avoidance_angle, nearest_on_boundary, polygon_edges
 from humfall_ros.fall.inertia_shaping import (
+    ClearBox,
+    ShapingConfig,
+    box_distance,
     crb_inertia_and_jacobian,
     crb_inertia_vector,
     desired_angular_velocity,
@@ -225,6 +228,58 @@ def test_inertia_shaping_direction_and_progress():
     qd, info = shaping_velocities(M, q, [0.1, 0, 0], [1.2, 0, 0], 0.002)
     assert np.all(np.abs(qd) <= M.limits.velocity + 1e-9)
     assert info["residual"] < info["error"]
+
+
+def test_box_distance_outside_inside_and_turned():
+    box = ClearBox(np.array([1.0, 0.0, 0.4]), np.array([0.15, 0.3, 0.4]), 0.0)
+    d, u = box_distance([[0.5, 0.0, 0.4], [1.0, 0.0, 1.0], [1.0, 0.0, 0.4], [0.85 - 0.3, 0.3 + 0.4, 0.4]], box)
+    assert d[:3] == pytest.approx([0.35, 0.2, 0.0])
+    assert d[3] == pytest.approx(0.5)
+    assert u[0] == pytest.approx([-1, 0, 0]) and u[1] == pytest.approx([0, 0, 1])
+    assert u[3] == pytest.approx([-0.6, 0.8, 0])
+    turned = ClearBox(np.zeros(3), np.array([0.5, 0.1, 0.1]), math.pi / 2)   # long along y once turned
+    d, u = box_distance([[0.0, 0.7, 0.0], [0.3, 0.0, 0.0]], turned)
+    assert d == pytest.approx([0.2, 0.2])
+    assert u[0] == pytest.approx([0, 1, 0]) and u[1] == pytest.approx([1, 0, 0])
+
+
+def _sweep(q, qd, frames, horizon):
+    """Each frame's shaping motion relative to the CoM over ``horizon``: (start, end) positions."""
+    M.forward(q)
+    Jg = M.com_jacobian(q)[:, 6:]
+    out = {}
+    for f in frames:
+        J = M.frame_jacobian(q, f)[:3, 6:] - Jg
+        p = M.frame_position(f)
+        out[f] = (p, p + J @ qd * horizon)
+    return out
+
+
+def test_limb_sweep_guard_holds_the_joints_that_carry_a_limb_into_a_box():
+    """The shaping alone swings a limb point; a box put where it would go makes the guard hold the joints carrying
+    it there: every followed point then stays out of the clearance or moves away, and the shaping still acts."""
+    q = standing_q()
+    cfg = ShapingConfig()
+    frames = ["l_shank", "r_shank", "l_forearm", "r_forearm", "l_hand", "r_hand"]
+    qd0, info0 = shaping_velocities(M, q, [0.1, 0, 0], [1.2, 0, 0], 0.002, cfg=cfg)
+    moves = _sweep(q, qd0, frames, cfg.sweep_horizon_s)
+    name = max(frames, key=lambda f: np.linalg.norm(moves[f][1] - moves[f][0]))
+    start, end = moves[name]
+    assert np.linalg.norm(end - start) > 0.2   # the shaping moves it far enough for the test to mean something
+    box = ClearBox(end + 0.08 * (end - start) / np.linalg.norm(end - start), np.full(3, 0.05))
+    assert box_distance(start, box)[0][0] > cfg.sweep_clearance_m
+    qd, info = shaping_velocities(M, q, [0.1, 0, 0], [1.2, 0, 0], 0.002, cfg=cfg, keep_clear=[box],
+                                  sweep_frames=frames)
+    assert info["swept"] and info["swept"][0][0] == name
+    assert info["recruited"] < info0["recruited"]
+    for f, (p0, p1) in _sweep(q, qd, frames, cfg.sweep_horizon_s).items():
+        d0, d1 = box_distance(p0, box)[0][0], box_distance(p1, box)[0][0]
+        assert d1 >= min(cfg.sweep_clearance_m, d0) - 1e-9, f
+    assert np.abs(qd).max() > 0.1 and info["residual"] < info["error"]
+    off = ShapingConfig(sweep_horizon_s=0.0)
+    qd_off, _ = shaping_velocities(M, q, [0.1, 0, 0], [1.2, 0, 0], 0.002, cfg=off, keep_clear=[box],
+                                   sweep_frames=frames)
+    assert qd_off == pytest.approx(qd0)
 
 
 # ---------------------------------------------------------------------- controller

@@ -45,7 +45,7 @@ from humfall_ros.dynamics.toppling import FallOutcome, time_to_lean
 from humfall_ros.fall import step_search as ss
 from humfall_ros.fall.ftb import FtbState, features_of
 from humfall_ros.fall.geometry import polygon_margin_xy
-from humfall_ros.fall.inertia_shaping import ShapingConfig, shaping_velocities
+from humfall_ros.fall.inertia_shaping import ClearBox, ShapingConfig, shaping_velocities
 from humfall_ros.fall.step_control import (
     StepControlConfig,
     StepController,
@@ -101,6 +101,8 @@ class SafeFallConfig:
     shaping_settled_sign: float = 1.0
     shaping_settled_s: float = 0.2
     shaping_settled_only: bool = True
+    shaping_sweep_horizon_s: float = 0.25
+    shaping_sweep_clearance_m: float = 0.15
     single_support_lift_m: float = 0.01
     capture_balance: bool = True
     balance_kp: float = 0.3
@@ -129,7 +131,8 @@ class SafeFallConfig:
     @property
     def shaping(self) -> ShapingConfig:
         return ShapingConfig(gain=self.shaping_gain, sign=self.shaping_sign, damping=self.shaping_damping,
-                             direction=self.shaping_direction)
+                             direction=self.shaping_direction, sweep_horizon_s=self.shaping_sweep_horizon_s,
+                             sweep_clearance_m=self.shaping_sweep_clearance_m)
 
 
 @dataclasses.dataclass
@@ -285,6 +288,7 @@ class SafeFallController:
         self.single_support: str | None = None
         self.balancer = None
         self.shape_allowed = self.config.inertia_shaping   # set at touchdown (a target, not a lift)
+        self._swept_noted = False
         self.recovered_since: float | None = None
         self.handbacks: list[dict] = []   # one per hand-back: time [s], CoM [m], CoM speed [m/s], feet (x, y, yaw)
 
@@ -385,6 +389,27 @@ class SafeFallController:
                 polygon_margin_xy(float(t[0]), float(t[1]), hull) > 0:
             return None, f"target at {t.round(3).tolist()} is inside the robot: ignored, no step"
         return t, ""
+
+    def _clear_boxes(self, obs: Observation) -> list[ClearBox]:
+        """The obstacles as boxes the shaping's limb-sweep guard keeps the limbs clear of (finite ones only)."""
+        out = []
+        for o in obs.inputs.get("obstacles") or []:
+            p = np.asarray(_get(o, "position", [math.nan] * 3), float).reshape(-1)
+            s = np.asarray(_get(o, "size", [math.nan] * 3), float).reshape(-1)
+            yaw = float(_get(o, "yaw", 0.0) or 0.0)
+            if p.size == 3 and s.size == 3 and np.all(np.isfinite(p)) and np.all(np.isfinite(s)) and math.isfinite(yaw):
+                out.append(ClearBox(p, 0.5 * np.abs(s), yaw))
+        return out
+
+    def _sweep_frames(self, state) -> list[str]:
+        """The limb points the limb-sweep guard follows: knees, elbows, hands, and the sole corners of a foot off
+        the ground (a loaded sole does not sweep: the shaping moves the body over it)."""
+        frames = []
+        for sd, loaded in (("l", state.left_contact), ("r", state.right_contact)):
+            frames += [f"{sd}_shank", f"{sd}_forearm", self.m.hand_frame[sd]]
+            if not loaded:
+                frames += list(self.m.corner_frames[sd])
+        return frames
 
     def _obstacle_footprints(self, obs: Observation) -> list[ss.Footprint]:
         out = []
@@ -619,8 +644,15 @@ class SafeFallController:
             if quat is not None:
                 q = configuration_from_sensors(self.m, obs.joint_position, quat, obs.state.com)
                 q[7:] = self.last_command  # shape from the commanded posture (position-controlled joints lag)
-                qd, _ = shaping_velocities(self.m, q, obs.state.cop, self.target, c.control_period_s,
-                                           recruit=self._recruit, cfg=self.shaping_config, com=obs.state.com)
+                qd, info = shaping_velocities(self.m, q, obs.state.cop, self.target, c.control_period_s,
+                                              recruit=self._recruit, cfg=self.shaping_config, com=obs.state.com,
+                                              keep_clear=self._clear_boxes(obs),
+                                              sweep_frames=self._sweep_frames(obs.state))
+                if info["swept"] and not self._swept_noted:
+                    self._swept_noted = True
+                    name, now, nxt = info["swept"][0]
+                    self.reasons.append(f"{obs.time:.3f} s: inertia shaping would sweep {name} to {nxt:.2f} m of an "
+                                        f"obstacle ({now:.2f} m now): the joints carrying it there held")
                 pos = np.clip(self.last_command + qd * c.control_period_s, self.m.limits.lower, self.m.limits.upper)
                 self.last_command = pos
                 return JointTargets(pos, qd)

@@ -22,10 +22,18 @@
 * eq. 14: theta' = J_I^# (I_d - I) / dt, the pseudo-inverse over the recruited joints, within
   the joint speed limits and with joints at a position limit (moving outward) dropped and the
   rest re-solved.
+* **limb-sweep guard** (ours; the paper shapes blind to where the limbs go): eq. 14's joint motion
+  swings whole limbs, and on walking_push the hips it recruited threw the legs into the target the
+  step had turned the fall away from. Each limb point off the ground (sole corners of an unloaded
+  foot, knees, elbows, hands) is moved by the shaping, relative to the CoM (linear momentum is
+  unchanged by joint motion), at v = (J_p - J_G) theta'. If that motion held for ``sweep_horizon_s``
+  would bring the point within ``sweep_clearance_m`` of a box to keep clear of, and closer than it is,
+  the joints that carry it towards the box are dropped and the rest re-solved, like a joint at its limit.
 """
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pinocchio as pin
@@ -44,6 +52,12 @@ def crb_inertia_vector(inertia: np.ndarray) -> np.ndarray:
 
 def crb_inertia_and_jacobian(model: HumanoidModel, q) -> tuple[np.ndarray, np.ndarray]:
     """(I_G (3 x 3) [kg m^2], J_I (6 x njoints) [kg m^2 / rad]) at configuration ``q`` (eq. 13)."""
+    I, J_I, _ = _crb_inertia_jacobian_com(model, q)
+    return I, J_I
+
+
+def _crb_inertia_jacobian_com(model: HumanoidModel, q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """I_G, J_I and d G / d theta (3 x njoints); leaves ``model.data``'s joint Jacobians computed at ``q``."""
     m, d = model.model, model.data
     pin.computeJointJacobians(m, d, q)
     com = pin.centerOfMass(m, d, q, False)
@@ -82,7 +96,7 @@ def crb_inertia_and_jacobian(model: HumanoidModel, q) -> tuple[np.ndarray, np.nd
     par = 2 * trace[:, None, None] * np.eye(3) - outer - outer.transpose(0, 2, 1)
     dI = rot + par                                   # (n, 3, 3)
     J_I = np.stack([dI[:, i, j] for i, j in _IDX])   # (6, n)
-    return I, J_I
+    return I, J_I, dcom
 
 
 def desired_angular_velocity(cop, target, com=None, mode: str = "away") -> np.ndarray:
@@ -132,6 +146,9 @@ class ShapingConfig:
         velocity_fraction: joint speeds within this fraction of the URDF limits [-].
         position_margin: joints stay this far inside their limits [rad].
         direction: V_d of eq. 12: "away" (-PT, the paper) or "turn" (ours, :func:`desired_angular_velocity`).
+        sweep_horizon_s: limb-sweep guard (module docstring): how far ahead a limb point's shaping motion is
+            followed [s] (0: no guard).
+        sweep_clearance_m: the guard keeps limb points this far from the boxes [m].
     """
 
     gain: float = 0.02
@@ -140,10 +157,63 @@ class ShapingConfig:
     velocity_fraction: float = 0.9
     position_margin: float = 0.02
     direction: str = "away"
+    sweep_horizon_s: float = 0.25
+    sweep_clearance_m: float = 0.15
+
+
+@dataclasses.dataclass(frozen=True)
+class ClearBox:
+    """A box the limbs keep clear of (an obstacle): centre [m] (3,), half sizes [m] (3,), yaw [rad]."""
+
+    center: np.ndarray
+    half: np.ndarray
+    yaw: float = 0.0
+
+
+def box_distance(points, box: ClearBox) -> tuple[np.ndarray, np.ndarray]:
+    """Distance [m] (k,) from points (k, 3) to a box (0 inside) and the unit direction (k, 3) from the box's
+    closest point to each point (the box centre's direction for a point inside)."""
+    p = np.atleast_2d(np.asarray(points, float))
+    c, s = math.cos(box.yaw), math.sin(box.yaw)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    local = (p - np.asarray(box.center, float)) @ R            # rows: R^T (p - c)
+    half = np.asarray(box.half, float)
+    off = local - np.clip(local, -half, half)
+    dist = np.linalg.norm(off, axis=1)
+    inside = dist < 1e-12
+    off[inside] = local[inside]
+    n = np.linalg.norm(off, axis=1, keepdims=True)
+    unit = np.where(n > 1e-12, off / np.maximum(n, 1e-12), np.array([0.0, 0.0, 1.0])) @ R.T
+    return dist, unit
+
+
+def _sweep_offenders(model: HumanoidModel, qd: np.ndarray, dcom: np.ndarray, frames, boxes, cfg: ShapingConfig,
+                     active: np.ndarray) -> tuple[np.ndarray, list]:
+    """Joints (mask) whose shaping motion carries a limb point towards a box it would come within the clearance of.
+
+    Expects ``model.data``'s joint Jacobians at the configuration (``_crb_inertia_jacobian_com``)."""
+    m, d = model.model, model.data
+    drop = np.zeros_like(active)
+    hits = []
+    for name in frames:
+        fid = model.frame_ids[name]
+        pin.updateFramePlacement(m, d, fid)
+        p = d.oMf[fid].translation
+        Jrel = pin.getFrameJacobian(m, d, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[:3, 6:] - dcom
+        v = Jrel @ qd
+        for b in boxes:
+            d_now, _ = box_distance(p, b)
+            d_next, unit = box_distance(p + v * cfg.sweep_horizon_s, b)
+            if d_next[0] < cfg.sweep_clearance_m and d_next[0] < d_now[0]:
+                towards = active & ((unit[0] @ Jrel) * qd < 0.0)   # joint j's share of the motion into the box
+                drop |= towards
+                hits.append((name, round(float(d_now[0]), 3), round(float(d_next[0]), 3)))
+    return drop, hits
 
 
 def shaping_velocities(model: HumanoidModel, q, cop, target, dt: float, recruit: np.ndarray | None = None,
-                       cfg: ShapingConfig | None = None, com=None) -> tuple[np.ndarray, dict]:
+                       cfg: ShapingConfig | None = None, com=None, keep_clear=(), sweep_frames=()
+                       ) -> tuple[np.ndarray, dict]:
     """Eq. 14: joint velocities [rad/s] (njoints,) towards I_d, and diagnostics.
 
     Args:
@@ -152,10 +222,13 @@ def shaping_velocities(model: HumanoidModel, q, cop, target, dt: float, recruit:
         dt: control period [s].
         recruit: mask of the joints that may move (default all).
         com: G [m] (3,) (the ``turn`` direction needs it).
+        keep_clear: :class:`ClearBox` es the limb points keep clear of (the limb-sweep guard).
+        sweep_frames: model frame names of the limb points the guard follows.
     """
     cfg = cfg or ShapingConfig()
     n = model.njoints
-    I, J = crb_inertia_and_jacobian(model, q)
+    I, J, dcom = _crb_inertia_jacobian_com(model, q)
+    guard = cfg.sweep_horizon_s > 0 and len(keep_clear) > 0 and len(sweep_frames) > 0
     omega_d = desired_angular_velocity(cop, target, com, cfg.direction)
     Id = desired_inertia(I, omega_d, cfg.sign * cfg.gain)
     err = crb_inertia_vector(Id) - crb_inertia_vector(I)
@@ -165,9 +238,11 @@ def shaping_velocities(model: HumanoidModel, q, cop, target, dt: float, recruit:
     hi = model.limits.upper - cfg.position_margin
     vmax = cfg.velocity_fraction * model.limits.velocity
     qd = np.zeros(n)
-    for _ in range(4):  # drop joints that would leave their range, re-solve with the rest
+    swept = []
+    for _ in range(8):  # drop joints that would leave their range or sweep a limb into a box, re-solve with the rest
         Ja = J[:, active]
         if Ja.shape[1] == 0:
+            qd = np.zeros(n)
             break
         A = Ja @ Ja.T + cfg.damping * np.eye(6)
         dq = Ja.T @ np.linalg.solve(A, err)
@@ -178,14 +253,20 @@ def shaping_velocities(model: HumanoidModel, q, cop, target, dt: float, recruit:
             qd /= scale
         nxt = qj + qd * dt
         out = active & (((nxt < lo) & (qd < 0)) | ((nxt > hi) & (qd > 0)))
+        if guard:
+            drop, hits = _sweep_offenders(model, qd, dcom, sweep_frames, keep_clear, cfg, active)
+            out |= drop
+            swept += hits
         if not np.any(out):
             break
         active &= ~out
+    else:   # still offending after the last re-solve: those joints stand still
+        qd[out] = 0.0
     info = {"inertia": I, "desired_inertia": Id, "omega_d": omega_d,
             "residual": float(np.linalg.norm(err - J @ (qd * dt))), "error": float(np.linalg.norm(err)),
-            "recruited": int(active.sum())}
+            "recruited": int(active.sum()), "swept": swept}
     return qd, info
 
 
-__all__ = ["ShapingConfig", "crb_inertia_and_jacobian", "crb_inertia_vector", "desired_angular_velocity",
-           "desired_inertia", "shaping_velocities"]
+__all__ = ["ClearBox", "ShapingConfig", "box_distance", "crb_inertia_and_jacobian", "crb_inertia_vector",
+           "desired_angular_velocity", "desired_inertia", "shaping_velocities"]
