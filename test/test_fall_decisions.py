@@ -18,6 +18,7 @@ import pytest
 
 from humfall_ros import params
 from humfall_ros.control.contract import CentroidalObservation, Observation
+from humfall_ros.fall import step_search as ss
 from humfall_ros.fall.controller import SafeFallConfig, SafeFallController
 from humfall_ros.fall.ftb import features_of
 
@@ -64,7 +65,9 @@ def test_recorded_cases_cover_captures_falls_and_every_case_kind():
 
 def test_decisions_unchanged_on_recorded_cases():
     # the recording's grid: a sliver zone is not sampled finer (min_zone_cells came later, on purpose)
-    cfg = SafeFallConfig.from_params({**params.defaults("safe_fall_controller"), "min_zone_cells": 0})
+    # nor does a landing that fails the IK retry the case's next cells (ik_retry_cells came later too)
+    cfg = SafeFallConfig.from_params({**params.defaults("safe_fall_controller"), "min_zone_cells": 0,
+                                      "ik_retry_cells": 0})
     ctrl = SafeFallController(config=cfg)
     ties = 0
     for i, r in enumerate(DATA["decisions"]):
@@ -166,11 +169,30 @@ def test_batched_cells_equal_one_case_at_a_time():
             assert np.all(margin[margin > 0] <= exact[margin > 0] + 1e-12)
 
 
+def test_ranked_cells_start_with_the_searchs_best_and_go_down():
+    rng = np.random.default_rng(3)
+    cfg = ss.SearchConfig()
+    sole = np.array([[0.145, 0.06], [-0.095, 0.06], [-0.095, -0.06], [0.145, -0.06]])
+    for _ in range(20):
+        cells = np.column_stack([rng.uniform(-0.3, 0.6, 200), rng.uniform(-0.6, 0.6, 200), rng.uniform(-0.3, 0.3, 200)])
+        pivot = rng.uniform(-0.1, 0.1, (2, 2))
+        q2, target = rng.uniform(-0.5, 0.5, 2), rng.uniform(-2, 2, 2)
+        best = ss._cells(ss.StepCase.STEP_LEFT, cells, pivot, q2, target, np.zeros(3), sole, cfg)
+        ranked = ss.ranked_cells(ss.StepCase.STEP_LEFT, cells, pivot, q2, target, np.zeros(3), sole, cfg, limit=30)
+        assert len(ranked) == 30 and np.allclose(ranked[0].landing, best.landing)
+        assert ranked[0].score == pytest.approx(best.score, abs=1e-12)
+        scores = [r.score for r in ranked]
+        assert all(a >= b - 1e-12 for a, b in zip(scores, scores[1:]))
+
+
 def test_halving_the_cells_moves_the_chosen_alpha2_by_at_most_2_deg():
     """Issue 11: the decision must not hang on where the grid falls. With the default grid (slivers of a zone
     sampled finer, ``min_zone_cells``) the recorded fall decisions choose the same alpha2 within 2 deg when
-    the cells are halved in x, y and beta; with the plain grid they did not (8.3 deg, measured)."""
-    d0 = params.defaults("safe_fall_controller")
+    the cells are halved in x, y and beta; with the plain grid they did not (8.3 deg, measured).
+
+    Without ``ik_retry_cells``: with it every recorded fall becomes a capture (next test), which leaves no alpha2
+    to compare; this is the search's own resolution."""
+    d0 = {**params.defaults("safe_fall_controller"), "ik_retry_cells": 0}
     assert d0["min_zone_cells"] > 0
     def controller(**kw):
         return SafeFallController(config=SafeFallConfig.from_params({**d0, **kw}))
@@ -192,3 +214,27 @@ def test_halving_the_cells_moves_the_chosen_alpha2_by_at_most_2_deg():
     assert len(deltas) >= 30
     assert max(deltas) <= 2.0, sorted(deltas)[-5:]
     assert max(plain_deltas) > 2.0       # the case this guards against is in the data
+
+
+def test_a_landing_the_ik_cannot_reach_retries_the_cases_next_cells():
+    """The zone's reach cap is a bound: the best cell (for a capture the deepest, at the zone's far edge) can fail
+    the eq.-9 IK check. The controller then tries the case's next cells that rank above the next case: on the
+    recorded take-overs the choice never ranks lower than without the retry, a retried landing is reachable and
+    is in the failed case, and a recorded fall whose best cell failed becomes a capture."""
+    d0 = params.defaults("safe_fall_controller")
+    assert d0["ik_retry_cells"] > 0
+    retry = SafeFallController(config=SafeFallConfig.from_params(d0))
+    plain = SafeFallController(config=SafeFallConfig.from_params({**d0, "ik_retry_cells": 0}))
+    retried = 0
+    for r in DATA["decisions"][::3]:
+        for c in (retry, plain):
+            c.reset()
+            c.step(obs_of(r))
+        assert retry.chosen.score >= plain.chosen.score - 1e-9
+        if "instead" in retry.decision.reason:
+            retried += 1
+            failed = retry.decision.reason.split(" to ")[0]
+            assert retry.decision.case == failed and retry.decision.ik_reachable
+            if not plain.decision.captured:
+                assert retry.decision.captured
+    assert retried >= 5

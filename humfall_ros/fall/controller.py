@@ -101,6 +101,7 @@ class SafeFallConfig:
     shaping_settled_sign: float = 1.0
     shaping_settled_s: float = 0.2
     shaping_settled_only: bool = True
+    ik_retry_cells: int = 4
     shaping_sweep_horizon_s: float = 0.25
     shaping_sweep_clearance_m: float = 0.15
     single_support_lift_m: float = 0.01
@@ -502,12 +503,12 @@ class SafeFallController:
         if not c.stepping:
             ranked = [cr for cr in ranked if cr.landing is None and cr.case.swing is None] or ranked
         chosen, reachable = None, True
-        for cr in ranked:
+        for n, cr in enumerate(ranked):
             if cr.landing is None:
                 chosen = cr
                 break
             swing = self._swing_of(cr.case)
-            piv, G_td, _ = lift_pred[swing]
+            piv, G_td, Q_td = lift_pred[swing]
             stance = "r" if swing == "l" else "l"
             pv = piv.mean(axis=0)
             st_landed = predicted_stance_placement(placements[stance], pv, s.com - np.append(pv, 0.0),
@@ -519,7 +520,34 @@ class SafeFallController:
                 break
             reachable = False
             notes.append(f"{cr.case.value} to {np.round(cr.landing, 3).tolist()} not reachable by the IK "
-                         f"({err * 100:.1f} cm off): next case")
+                         f"({err * 100:.1f} cm off)")
+            if cr.case is ss.StepCase.CONTINUE_STEP or swing not in zones or c.ik_retry_cells <= 0:
+                notes[-1] += ": next case"
+                continue
+            # the zone's reach cap is a bound, not the IK: try the case's next cells that rank above the next case,
+            # skipping those as near a failed landing as the IK missed it by
+            floor = ranked[n + 1].score if n + 1 < len(ranked) else -math.inf
+            failed = [(np.asarray(cr.landing[:2], float), err)]
+            cand = ss.ranked_cells(cr.case, ss.zone_cells(zones[swing], scfg, self._obstacle_footprints(obs)), piv,
+                                   Q_td, target, G_td, self._sole_local, scfg)
+            tries = 0
+            for alt in cand:
+                if alt.score < floor or tries >= c.ik_retry_cells:
+                    break
+                xy = np.asarray(alt.landing[:2], float)
+                if any(np.linalg.norm(xy - f) < e for f, e in failed):
+                    continue
+                tries += 1
+                ok, e = self.stepper.reachable(q, swing, st_landed, StepController.landing_placement(*alt.landing))
+                if ok:
+                    chosen, reachable = alt, True
+                    notes.append(f"{cr.case.value} to {np.round(alt.landing, 3).tolist()} instead (cell tried "
+                                 f"{tries} of {c.ik_retry_cells})")
+                    break
+                failed.append((xy, e))
+            if chosen is not None:
+                break
+            notes[-1] += f"; {tries} further cells not reachable either: next case"
         if chosen is None:
             chosen = ranked[-1]
         self.chosen = chosen

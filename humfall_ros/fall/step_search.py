@@ -595,5 +595,33 @@ def _cells_batch(groups: list, target, sole_local, cfg: SearchConfig) -> list[Ca
     return out
 
 
+def ranked_cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, target, g_td, sole_local,
+                 cfg: SearchConfig, limit: int = 50) -> list[CaseResult]:
+    """One step case's landing cells as candidates, best first (the order :func:`_cells_batch` picks the best by:
+    captures by depth, then shallow insides, then falls by alpha2), the first ``limit``.
+
+    For the controller when the best cell fails the IK's reach check (eq. 9): the next ones are tried."""
+    cells = np.asarray(cells, float).reshape(-1, 3)
+    if not len(cells):
+        return []
+    target = np.asarray(target, float)[:2]
+    pivot = np.asarray(pivot, float).reshape(-1, 2)
+    q2 = np.asarray(q2, float)[:2]
+    h = _hull_core(cells, sole_local, pivot, q2)
+    margin = h.margin
+    inside = margin > 0
+    p2x, p2y = h.p2(slice(0, len(cells)))
+    alpha = _alpha(p2x, p2y, q2, target)
+    key = np.where(margin >= cfg.capture_margin, 1e3 + margin,
+                   np.where(inside, 5e2 + margin, np.where(np.isfinite(alpha), alpha, -1.0)))
+    out = []
+    for i in np.argsort(-key, kind="stable")[:limit]:
+        poly = support_polygon(np.vstack([sole_corners_at(cells[i:i + 1], sole_local)[0], pivot]).tolist())
+        a = math.nan if inside[i] else float(alpha[i])
+        out.append(CaseResult(case, np.array([p2x[i], p2y[i]]), q2.copy(), a, bool(inside[i]), float(margin[i]),
+                              cells[i].copy(), poly, g_td, len(cells), cfg.capture_margin))
+    return out
+
+
 __all__ = ["CaseResult", "FallSituation", "Footprint", "SearchConfig", "StepCase", "StepDecision", "predict_touchdown",
-           "search", "sole_corners_at", "zone_cells"]
+           "ranked_cells", "search", "sole_corners_at", "zone_cells"]
