@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/fall_closed_loop.py push [SCALE] [KINDS] [OUT]  # standing_push, none/stepping/...
     .venv/bin/python benchmarks/fall_closed_loop.py ftb                         # 0.9x / 1.1x per direction
     .venv/bin/python benchmarks/fall_closed_loop.py quiet [SECONDS]             # standing_quiet, exact + noise
+    .venv/bin/python benchmarks/fall_closed_loop.py small                       # small_push in 8 directions: FTB quiet?
     .venv/bin/python benchmarks/fall_closed_loop.py noise [SCALE]               # stepping_inertia, seeds 1-3
     .venv/bin/python benchmarks/fall_closed_loop.py repeat [SCALE]              # two lockstep runs identical?
     .venv/bin/python benchmarks/fall_closed_loop.py shaping [SCALE] [KEY=VALUE ...]  # stepping_inertia, diagnostics
@@ -84,6 +85,20 @@ def quiet(seconds: float = 60.0) -> dict:
         out[name] = {"triggered": r.fall_event is not None, "fell": r.metrics["fell"],
                      "wall_s": round(time.perf_counter() - t0, 1)}
     return out
+
+
+def small_pushes(duration: float | None = None) -> dict:
+    """small_push.yaml's push turned into 8 directions (every 45 deg, clockwise from +x): the FTB must stay quiet."""
+    sc0 = scenario.load("small_push")
+    f = sc0["push"][0]["force"]
+    mag = math.hypot(f[0], f[1])
+    rows = []
+    for angle in range(0, 360, 45):
+        force = sweep.push_force(mag, angle)
+        r = runs.run(scenario.load("small_push", [f"push.0.force={force}"]), "none", duration=duration)
+        rows.append({"angle_deg": angle, "force_n": round(mag, 1), "triggered": r.fall_event is not None,
+                     "fell": r.metrics["fell"]})
+    return {"rows": rows, "no_trigger": all(not r["triggered"] for r in rows)}
 
 
 def noise_runs(scale: float = 1.0, kind: str = "stepping_inertia") -> dict:
@@ -269,6 +284,8 @@ def main(argv: list[str]) -> None:
         out = standing_push(kinds, scale, argv[3] if len(argv) > 3 else "runs/fall_figures")
     elif what == "ftb":
         out = ftb_check()
+    elif what == "small":
+        out = small_pushes()
     elif what == "quiet":
         out = quiet(float(argv[1]) if len(argv) > 1 else 60.0)
     elif what == "noise":
