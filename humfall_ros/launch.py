@@ -147,12 +147,6 @@ def plan_nodes(sc: dict, run_dir: pathlib.Path, record: bool) -> list[NodeSpec]:
         own = dict(CONTROLLER_PARAMS.get(controller, {}).get(n, {}))
         if "scenario" in params_mod.declarations(n):  # it reads its part of the scenario (e.g. the walk)
             own["scenario"] = str(run_dir / "scenario.yaml")
-        if n == "ftb_monitor" and sc["push"] and "push_end_time_s" in params_mod.declarations(n):
-            # the paper's fixed trigger (mode fixed) starts 0.05 s after the first push ends
-            from humfall_ros.sim.ground_truth import push_time
-
-            first = min(sc["push"], key=lambda p: push_time(sc, p))
-            own["push_end_time_s"] = float(push_time(sc, first) + first["duration"])
         nodes.append(NodeSpec(n, f"humfall_ros.nodes.{n}", own, src, builtin.get(src) if src else None))
     from humfall_ros.estop.config import trigger_params
 

@@ -605,8 +605,15 @@ def node_defaults(sc: dict, node: str) -> dict[str, Any]:
     (``ftb_monitor.use_walking_state``), since the standing boundary fires in normal steps
     (docs/safe_fall.md: at 2.9 s of a 1.0 km/h walk), and one that runs the e-stop the stop's
     reference (``use_estop_status``: the standing boundary fired 12 ms into an unpushed stop).
+    A pushed scenario gives the boundary's ``fixed`` mode (paper 1 §V-A: the controller starts
+    0.05 s after the push ends) the end of its first push (``push_end_time_s``).
     """
     out: dict[str, Any] = {}
+    if node == "ftb_monitor" and sc.get("push"):
+        from humfall_ros.sim.ground_truth import push_time
+
+        first = min(sc["push"], key=lambda p: push_time(sc, p))
+        out["push_end_time_s"] = float(push_time(sc, first) + first["duration"])
     if node == "ftb_monitor" and walks(sc):
         out["use_walking_state"] = True
     if node == "ftb_monitor" and runs_estop(sc):

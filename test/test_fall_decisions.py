@@ -24,6 +24,8 @@ from humfall_ros.fall.ftb import features_of
 
 DATA = json.loads((pathlib.Path(__file__).parent / "data" / "fall_decisions.json").read_text())
 TOL = 1e-9
+# the controller settings the recording was made with, where today's defaults differ
+RECORDING = {"min_zone_cells": 0, "ik_retry_cells": 0, "max_swing_s": 0.45, "cell_xy": 0.035}
 
 
 def state_of(d: dict) -> CentroidalObservation:
@@ -66,8 +68,8 @@ def test_recorded_cases_cover_captures_falls_and_every_case_kind():
 def test_decisions_unchanged_on_recorded_cases():
     # the recording's grid: a sliver zone is not sampled finer (min_zone_cells came later, on purpose)
     # nor does a landing that fails the IK retry the case's next cells (ik_retry_cells came later too)
-    cfg = SafeFallConfig.from_params({**params.defaults("safe_fall_controller"), "min_zone_cells": 0,
-                                      "ik_retry_cells": 0})
+    # and its swing and cell size (max_swing_s 0.45, cell_xy 0.035 until 2026-12-03)
+    cfg = SafeFallConfig.from_params({**params.defaults("safe_fall_controller"), **RECORDING})
     ctrl = SafeFallController(config=cfg)
     ties = 0
     for i, r in enumerate(DATA["decisions"]):
@@ -190,9 +192,11 @@ def test_halving_the_cells_moves_the_chosen_alpha2_by_at_most_2_deg():
     sampled finer, ``min_zone_cells``) the recorded fall decisions choose the same alpha2 within 2 deg when
     the cells are halved in x, y and beta; with the plain grid they did not (8.3 deg, measured).
 
-    Without ``ik_retry_cells``: with it every recorded fall becomes a capture (next test), which leaves no alpha2
-    to compare; this is the search's own resolution."""
-    d0 = {**params.defaults("safe_fall_controller"), "ik_retry_cells": 0}
+    Without ``ik_retry_cells`` and with the recording's swing and cells (0.45 s, 0.035 m): with today's 0.25 s swing,
+    or the retries, every recorded take-over is a capture, which leaves no alpha2 to compare; this is the search's
+    own resolution (with 0.03 m cells and the 0.45 s swing one of the 36 falls moves 3.1 deg: measured)."""
+    d0 = {**params.defaults("safe_fall_controller"), "ik_retry_cells": 0, "max_swing_s": RECORDING["max_swing_s"],
+          "cell_xy": RECORDING["cell_xy"]}
     assert d0["min_zone_cells"] > 0
     def controller(**kw):
         return SafeFallController(config=SafeFallConfig.from_params({**d0, **kw}))
@@ -216,12 +220,33 @@ def test_halving_the_cells_moves_the_chosen_alpha2_by_at_most_2_deg():
     assert max(plain_deltas) > 2.0       # the case this guards against is in the data
 
 
+def test_halving_the_default_cells_keeps_every_recorded_capture_a_capture():
+    """With the default grid and swing every recorded take-over is a capture (no alpha2 to compare): halving the cells
+    changes none of them into a fall, and the landing moves by less than half a step's length."""
+    d0 = params.defaults("safe_fall_controller")
+    a = SafeFallController(config=SafeFallConfig.from_params(d0))
+    b = SafeFallController(config=SafeFallConfig.from_params({**d0, "cell_xy": d0["cell_xy"] / 2,
+                                                              "cell_yaw": d0["cell_yaw"] / 2}))
+    moved = []
+    for r in DATA["decisions"][::2]:
+        for c in (a, b):
+            c.reset()
+            c.step(obs_of(r))
+        assert a.decision.captured == b.decision.captured
+        if a.decision.case == b.decision.case and np.all(np.isfinite(a.decision.landing[:2])) \
+                and np.all(np.isfinite(b.decision.landing[:2])):
+            moved.append(float(np.linalg.norm(np.asarray(a.decision.landing[:2]) - np.asarray(b.decision.landing[:2]))))
+    assert len(moved) >= 20 and float(np.median(moved)) < 0.05 and max(moved) < 0.2, sorted(moved)[-5:]
+
+
 def test_a_landing_the_ik_cannot_reach_retries_the_cases_next_cells():
     """The zone's reach cap is a bound: the best cell (for a capture the deepest, at the zone's far edge) can fail
     the eq.-9 IK check. The controller then tries the case's next cells that rank above the next case: on the
     recorded take-overs the choice never ranks lower than without the retry, a retried landing is reachable and
     is in the failed case, and a recorded fall whose best cell failed becomes a capture."""
-    d0 = params.defaults("safe_fall_controller")
+    # with the recording's 0.45 s swing: its zones reach farther, and the far-edge cells fail the IK (with 0.25 s the
+    # recorded take-overs never retry)
+    d0 = {**params.defaults("safe_fall_controller"), "max_swing_s": RECORDING["max_swing_s"]}
     assert d0["ik_retry_cells"] > 0
     retry = SafeFallController(config=SafeFallConfig.from_params(d0))
     plain = SafeFallController(config=SafeFallConfig.from_params({**d0, "ik_retry_cells": 0}))

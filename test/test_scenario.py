@@ -258,3 +258,20 @@ def test_a_walking_scenario_gives_the_fall_trigger_the_gait_reference_on_both_pa
     assert not scenario.walks(standing)
     assert "use_walking_state" not in graph(standing) and "use_estop_status" not in graph(standing)
     assert node_params(standing, "ftb_monitor")["use_walking_state"] is False
+
+
+def test_the_fixed_trigger_gets_the_push_end_on_both_paths(tmp_path):
+    # paper 1 sec. V-A's fixed mode needs the push end: humfall up and the in-process loop (fall.runs, the
+    # benchmarks) both take it from the scenario's first push; the in-process loop once had none and never fired
+    from humfall_ros import launch
+    from humfall_ros.sim.ground_truth import push_time
+    from humfall_ros.suite import node_params
+
+    sc = scenario.load("standing_push", ["controller=stepping", "params.ftb_monitor.mode=fixed"])
+    first = min(sc["push"], key=lambda p: push_time(sc, p))
+    end = push_time(sc, first) + first["duration"]
+    graph = {n.name: n.params for n in launch.plan_nodes(sc, tmp_path, record=False)}["ftb_monitor"]
+    assert graph["push_end_time_s"] == pytest.approx(end)
+    assert node_params(sc, "ftb_monitor")["push_end_time_s"] == pytest.approx(end)
+    quiet = scenario.load("standing_quiet", ["controller=stepping"])
+    assert not quiet["push"] and node_params(quiet, "ftb_monitor")["push_end_time_s"] < 0

@@ -70,7 +70,7 @@ class SafeFallConfig:
     stepping: bool = True
     theta_threshold_deg: float = 15.0
     min_swing_s: float = 0.25
-    max_swing_s: float = 0.45
+    max_swing_s: float = 0.25
     stale_event_s: float = 0.1
     inconsistent_com_m: float = 0.3
     min_target_distance_m: float = 0.25
@@ -79,7 +79,7 @@ class SafeFallConfig:
     reach_fraction: float = 0.98
     hip_drop_m: float = 0.08
     max_yaw_change_rad: float = 0.3
-    cell_xy: float = 0.035
+    cell_xy: float = 0.03
     cell_yaw: float = 0.1
     min_zone_cells: int = 150
     capture_margin: float = 0.02
