@@ -25,7 +25,7 @@ from humfall_ros.fall.ftb import features_of
 DATA = json.loads((pathlib.Path(__file__).parent / "data" / "fall_decisions.json").read_text())
 TOL = 1e-9
 # the controller settings the recording was made with, where today's defaults differ
-RECORDING = {"min_zone_cells": 0, "ik_retry_cells": 0, "max_swing_s": 0.45, "cell_xy": 0.035}
+RECORDING = {"min_zone_cells": 0, "ik_retry_cells": 0, "max_swing_s": 0.45, "cell_xy": 0.035, "capture_depth_m": 0.0}
 
 
 def state_of(d: dict) -> CentroidalObservation:
@@ -187,16 +187,53 @@ def test_ranked_cells_start_with_the_searchs_best_and_go_down():
         assert all(a >= b - 1e-12 for a, b in zip(scores, scores[1:]))
 
 
+def test_captures_deep_enough_rank_the_shortest_step_first():
+    """``capture_depth``: among the captures at least that deep the shortest step (from the swing sole now) ranks
+    first, above every shallower capture; without it the deepest capture does. The batch, one case and the ranked
+    list agree; a case without a step (no change, lift) that captures that deep ranks above any step."""
+    rng = np.random.default_rng(5)
+    sole = np.array([[0.145, 0.06], [-0.095, 0.06], [-0.095, -0.06], [0.145, -0.06]])
+    deep, plain = ss.SearchConfig(capture_depth=0.04), ss.SearchConfig()
+    checked = 0
+    for _ in range(30):
+        cells = np.column_stack([rng.uniform(-0.2, 0.7, 300), rng.uniform(-0.5, 0.2, 300), rng.uniform(-0.3, 0.3, 300)])
+        pivot, q2, target = np.array([[0.0, 0.1], [0.0, 0.2]]), rng.uniform(0.1, 0.4, 2) * [1, -1], np.array([2.0, 0.0])
+        start = np.array([0.0, -0.1])
+        h = ss._hull_core(cells, sole, pivot, q2)
+        length = np.hypot(*(cells[:, :2] - start).T)
+        ok = h.margin >= 0.04
+        if not np.any(ok) or np.all(ok):
+            continue
+        checked += 1
+        got = ss._cells(ss.StepCase.STEP_RIGHT, cells, pivot, q2, target, np.zeros(3), sole, deep, start=start)
+        i = int(np.argmin(np.where(ok, length, np.inf)))
+        assert np.allclose(got.landing, cells[i]) and got.margin >= 0.04 and got.step_length == pytest.approx(length[i])
+        ranked = ss.ranked_cells(ss.StepCase.STEP_RIGHT, cells, pivot, q2, target, np.zeros(3), sole, deep, start=start)
+        assert np.allclose(ranked[0].landing, got.landing)
+        n_ok = int(ok.sum())
+        assert all(r.margin >= 0.04 for r in ranked[:min(n_ok, len(ranked))])
+        lengths = [r.step_length for r in ranked[:min(n_ok, len(ranked))]]
+        assert lengths == sorted(lengths)
+        deepest = ss._cells(ss.StepCase.STEP_RIGHT, cells, pivot, q2, target, np.zeros(3), sole, plain, start=start)
+        assert deepest.margin == pytest.approx(float(h.margin.max()))
+        assert deepest.step_length >= got.step_length - 1e-12
+        lift = ss.CaseResult(ss.StepCase.LIFT_LEFT, q2, q2, math.nan, True, 0.041, None, pivot, np.zeros(3),
+                             capture_depth=0.04)
+        assert lift.score > got.score
+    assert checked >= 10
+
+
 def test_halving_the_cells_moves_the_chosen_alpha2_by_at_most_2_deg():
     """Issue 11: the decision must not hang on where the grid falls. With the default grid (slivers of a zone
     sampled finer, ``min_zone_cells``) the recorded fall decisions choose the same alpha2 within 2 deg when
     the cells are halved in x, y and beta; with the plain grid they did not (8.3 deg, measured).
 
-    Without ``ik_retry_cells`` and with the recording's swing and cells (0.45 s, 0.035 m): with today's 0.25 s swing,
-    or the retries, every recorded take-over is a capture, which leaves no alpha2 to compare; this is the search's
-    own resolution (with 0.03 m cells and the 0.45 s swing one of the 36 falls moves 3.1 deg: measured)."""
-    d0 = {**params.defaults("safe_fall_controller"), "ik_retry_cells": 0, "max_swing_s": RECORDING["max_swing_s"],
-          "cell_xy": RECORDING["cell_xy"]}
+    With the recording's settings but the sliver sampling (no IK retries, 0.45 s swing, 0.035 m cells, the deepest
+    capture first): with today's 0.25 s swing, the retries or ``capture_depth_m`` every recorded take-over is a
+    capture, which leaves no alpha2 to compare; this is the search's own resolution (with 0.03 m cells and the
+    0.45 s swing one of the 36 falls moves 3.1 deg: measured)."""
+    now = params.defaults("safe_fall_controller")
+    d0 = {**now, **RECORDING, "min_zone_cells": now["min_zone_cells"]}
     assert d0["min_zone_cells"] > 0
     def controller(**kw):
         return SafeFallController(config=SafeFallConfig.from_params({**d0, **kw}))
@@ -244,9 +281,10 @@ def test_a_landing_the_ik_cannot_reach_retries_the_cases_next_cells():
     the eq.-9 IK check. The controller then tries the case's next cells that rank above the next case: on the
     recorded take-overs the choice never ranks lower than without the retry, a retried landing is reachable and
     is in the failed case, and a recorded fall whose best cell failed becomes a capture."""
-    # with the recording's 0.45 s swing: its zones reach farther, and the far-edge cells fail the IK (with 0.25 s the
-    # recorded take-overs never retry)
-    d0 = {**params.defaults("safe_fall_controller"), "max_swing_s": RECORDING["max_swing_s"]}
+    # with the recording's 0.45 s swing and the deepest capture first: its zones reach farther, and the far-edge cells
+    # fail the IK (with 0.25 s or capture_depth_m the recorded take-overs never retry)
+    d0 = {**params.defaults("safe_fall_controller"), "max_swing_s": RECORDING["max_swing_s"],
+          "capture_depth_m": RECORDING["capture_depth_m"]}
     assert d0["ik_retry_cells"] > 0
     retry = SafeFallController(config=SafeFallConfig.from_params(d0))
     plain = SafeFallController(config=SafeFallConfig.from_params({**d0, "ik_retry_cells": 0}))

@@ -82,6 +82,7 @@ class SafeFallConfig:
     cell_xy: float = 0.03
     cell_yaw: float = 0.1
     min_zone_cells: int = 150
+    capture_depth_m: float = 0.04
     capture_margin: float = 0.02
     obstacle_clearance: float = 0.03
     swing_clearance: float = 0.05
@@ -121,7 +122,8 @@ class SafeFallConfig:
     @property
     def search(self) -> ss.SearchConfig:
         return ss.SearchConfig(self.cell_xy, self.cell_yaw, self.capture_margin,
-                               obstacle_clearance=self.obstacle_clearance, min_zone_cells=self.min_zone_cells)
+                               obstacle_clearance=self.obstacle_clearance, min_zone_cells=self.min_zone_cells,
+                               capture_depth=self.capture_depth_m)
 
     @property
     def step(self) -> StepControlConfig:
@@ -529,7 +531,8 @@ class SafeFallController:
             floor = ranked[n + 1].score if n + 1 < len(ranked) else -math.inf
             failed = [(np.asarray(cr.landing[:2], float), err)]
             cand = ss.ranked_cells(cr.case, ss.zone_cells(zones[swing], scfg, self._obstacle_footprints(obs)), piv,
-                                   Q_td, target, G_td, self._sole_local, scfg)
+                                   Q_td, target, G_td, self._sole_local, scfg,
+                                   start=np.asarray(sit.sole_poses[swing], float)[:2])
             tries = 0
             for alt in cand:
                 if alt.score < floor or tries >= c.ik_retry_cells:
@@ -799,7 +802,8 @@ class SafeFallController:
                 far = np.hypot(cells[:, 0] - self.target[0], cells[:, 1] - self.target[1])
                 i = int(np.argmax(np.where(ok, far, -np.inf)))
                 cells = cells[i:i + 1]
-        r = ss._cells(case, cells, pivot, Q[0], self.target, G[0], self._sole_local, c.search)
+        r = ss._cells(case, cells, pivot, Q[0], self.target, G[0], self._sole_local, c.search,
+                      start=self.m.frame_placement(self.m.sole_frame[swing]).translation[:2])
         if r is None:
             return
         if r.case is not self.chosen.case:

@@ -76,6 +76,8 @@ class SearchConfig:
         rk4_steps: fixed RK4 steps of the pendulum prediction [-].
         min_zone_cells: a zone with fewer (x, y) cells than this is also sampled at half or a quarter
             of the cell size, to hold about this many (0: the grid as it falls) [-].
+        capture_depth: among the captures at least this deep, the shortest step ranks first (ours; 0: the
+            deepest capture ranks first, which puts the landing at the zone's far edge) [m].
     """
 
     cell_xy: float = 0.04
@@ -85,6 +87,7 @@ class SearchConfig:
     obstacle_clearance: float = 0.03
     rk4_steps: int = 8
     min_zone_cells: int = 0
+    capture_depth: float = 0.0
 
 
 @dataclasses.dataclass
@@ -149,12 +152,27 @@ class CaseResult:
     com_touchdown: np.ndarray
     cells: int = 0
     capture_margin: float = 0.02
+    step_length: float = 0.0    # swing sole start -> landing [m] (0: no step)
+    capture_depth: float = 0.0  # SearchConfig.capture_depth
 
     @property
     def score(self) -> float:
         if self.captured:
-            return (1e3 if self.margin >= self.capture_margin else 5e2) + self.margin
+            return float(_capture_key(self.margin, self.step_length, self.capture_margin, self.capture_depth))
         return self.alpha2 if math.isfinite(self.alpha2) else -1.0
+
+
+def _capture_key(margin, step_length, capture_margin: float, capture_depth: float):
+    """Rank of an inside Q2 (captures above shallow insides above every fall, whose key is alpha2 < 4).
+
+    Deepest first; with ``capture_depth`` > 0 the captures at least that deep rank above the others, shortest step
+    first (margins are well under 0.5 m, so 1e3 + 0.5 + ... is above every 1e3 + margin)."""
+    margin = np.asarray(margin, float)
+    base = np.where(margin >= capture_margin, 1e3, 5e2) + margin
+    if capture_depth <= 0.0:
+        return base
+    deep = margin >= max(capture_depth, capture_margin)
+    return np.where(deep, 1e3 + 0.5 + 0.49 / (1.0 + np.asarray(step_length, float)), base)
 
 
 @dataclasses.dataclass
@@ -502,14 +520,14 @@ def search(sit: FallSituation, sole_local: np.ndarray, cfg: SearchConfig | None 
         order.append(lift_case)
         if sit.single_support and sit.planned_landing is not None:
             plan = np.asarray(sit.planned_landing, float).reshape(1, 3)
-            steps.append((StepCase.CONTINUE_STEP, plan, piv, Q[k], G[k]))
+            steps.append((StepCase.CONTINUE_STEP, plan, piv, Q[k], G[k], _sole_xy(sit, swing)))
             order.append(StepCase.CONTINUE_STEP)
         zone = sit.zones.get(swing)
         if zone is None:
             continue
         cells = zone_cells(zone, cfg, sit.obstacles)
         total_cells += len(cells)
-        steps.append((step_case, cells, piv, Q[k], G[k]))
+        steps.append((step_case, cells, piv, Q[k], G[k], _sole_xy(sit, swing)))
         order.append(step_case)
     for (case, *_), r in zip(steps, _cells_batch(steps, target, sole_local, cfg)):
         if r is not None:
@@ -520,6 +538,12 @@ def search(sit: FallSituation, sole_local: np.ndarray, cfg: SearchConfig | None 
                         time.perf_counter() - t0)
 
 
+def _sole_xy(sit: FallSituation, side: str) -> np.ndarray | None:
+    """Where the swing sole is now (x, y) [m], for the step length (None: unknown)."""
+    pose = (sit.sole_poses or {}).get(side)
+    return None if pose is None else np.asarray(pose, float)[:2]
+
+
 def _single(case: StepCase, poly, q2, target, g_td, cfg: SearchConfig) -> CaseResult:
     """A case without a landing (no change, lift): Q2 against one polygon (or the pivot segment / corner)."""
     poly = np.asarray(poly, float).reshape(-1, 2)
@@ -528,7 +552,7 @@ def _single(case: StepCase, poly, q2, target, g_td, cfg: SearchConfig) -> CaseRe
     qx, qy = float(q2[0]), float(q2[1])
     if len(pts) >= 3 and inside_convex_xy(qx, qy, pts, cfg.capture_margin):
         return CaseResult(case, q2.copy(), q2.copy(), math.nan, True, polygon_margin_xy(qx, qy, pts), None, poly,
-                          g_td)
+                          g_td, capture_margin=cfg.capture_margin, capture_depth=cfg.capture_depth)
     if len(pts) >= 2:
         px, py = nearest_on_boundary_xy(qx, qy, pts, closed=len(pts) >= 3)
     else:
@@ -539,13 +563,14 @@ def _single(case: StepCase, poly, q2, target, g_td, cfg: SearchConfig) -> CaseRe
 
 
 def _cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, target, g_td, sole_local,
-           cfg: SearchConfig) -> CaseResult | None:
-    """The best landing cell of one case (:func:`_cells_batch` of one)."""
-    return _cells_batch([(case, cells, pivot, q2, g_td)], target, sole_local, cfg)[0]
+           cfg: SearchConfig, start=None) -> CaseResult | None:
+    """The best landing cell of one case (:func:`_cells_batch` of one); ``start``: the swing sole's x, y now."""
+    return _cells_batch([(case, cells, pivot, q2, g_td, start)], target, sole_local, cfg)[0]
 
 
 def _cells_batch(groups: list, target, sole_local, cfg: SearchConfig) -> list[CaseResult | None]:
-    """The best landing cell of each case ``(case, cells (n, 3), pivot (K, 2), Q2, G at touchdown)``.
+    """The best landing cell of each case ``(case, cells (n, 3), pivot (K, 2), Q2, G at touchdown[, swing sole
+    x, y now])``.
 
     All cases' cells go through one :func:`_hull_core` call (numpy's per-call overhead is paid once);
     a one-corner pivot is padded to two equal corners (the same hull, the same pieces' distances).
@@ -559,7 +584,7 @@ def _cells_batch(groups: list, target, sole_local, cfg: SearchConfig) -> list[Ca
     cells, piv, qs, bounds = [], [], [], []
     start = 0
     for k in live:
-        _case, c, pv, q2, _g = groups[k]
+        _case, c, pv, q2, _g, *_ = groups[k]
         pv = np.asarray(pv, float).reshape(-1, 2)
         pv = np.vstack([pv, np.repeat(pv[-1:], npiv - len(pv), axis=0)])
         cells.append(c)
@@ -574,15 +599,16 @@ def _cells_batch(groups: list, target, sole_local, cfg: SearchConfig) -> list[Ca
         C, P, Qc = np.vstack(cells), np.concatenate(piv, axis=1), np.vstack(qs)
     h = _hull_core(C, sole_local, P, Qc)
     for k, (lo, hi) in zip(live, bounds):
-        case, c, pv, q2, g_td = groups[k]
+        case, c, pv, q2, g_td, *rest = groups[k]
         pivot = np.asarray(pv, float).reshape(-1, 2)
         q2 = np.asarray(q2, float)[:2]
         margin = h.margin[lo:hi]
         inside = margin > 0
+        length = _step_lengths(c, rest[0] if rest else None)
         if np.any(inside):   # captures and shallow insides rank above every fall: no alpha needed
-            captured = margin >= cfg.capture_margin
             # inside but shallow (by the lower bound): ranks above every fall, below the captures
-            i = int(np.argmax(np.where(captured, 1e3 + margin, np.where(inside, 5e2 + margin, -1.0))))
+            key = _capture_key(margin, length, cfg.capture_margin, cfg.capture_depth)
+            i = int(np.argmax(np.where(inside, key, -1.0)))
             p2, alpha_i = np.array(h.p2(lo + i)), math.nan
         else:
             p2x, p2y = h.p2(slice(lo, hi))
@@ -591,12 +617,20 @@ def _cells_batch(groups: list, target, sole_local, cfg: SearchConfig) -> list[Ca
             p2, alpha_i = np.array([p2x[i], p2y[i]]), float(alpha[i])
         poly = support_polygon(np.vstack([sole_corners_at(c[i:i + 1], sole_local)[0], pivot]).tolist())
         out[k] = CaseResult(case, p2.copy(), q2.copy(), alpha_i, bool(inside[i]), float(margin[i]), c[i].copy(), poly,
-                            g_td, len(c), cfg.capture_margin)
+                            g_td, len(c), cfg.capture_margin, float(length[i]), cfg.capture_depth)
     return out
 
 
+def _step_lengths(cells: np.ndarray, start) -> np.ndarray:
+    """Distance of each landing cell (x, y) from the swing sole now [m] (zeros when unknown)."""
+    cells = np.asarray(cells, float).reshape(-1, 3)
+    if start is None:
+        return np.zeros(len(cells))
+    return np.hypot(cells[:, 0] - float(start[0]), cells[:, 1] - float(start[1]))
+
+
 def ranked_cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, target, g_td, sole_local,
-                 cfg: SearchConfig, limit: int = 50) -> list[CaseResult]:
+                 cfg: SearchConfig, limit: int = 50, start=None) -> list[CaseResult]:
     """One step case's landing cells as candidates, best first (the order :func:`_cells_batch` picks the best by:
     captures by depth, then shallow insides, then falls by alpha2), the first ``limit``.
 
@@ -612,14 +646,16 @@ def ranked_cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, targe
     inside = margin > 0
     p2x, p2y = h.p2(slice(0, len(cells)))
     alpha = _alpha(p2x, p2y, q2, target)
-    key = np.where(margin >= cfg.capture_margin, 1e3 + margin,
-                   np.where(inside, 5e2 + margin, np.where(np.isfinite(alpha), alpha, -1.0)))
+    length = _step_lengths(cells, start)
+    key = np.where(inside, _capture_key(margin, length, cfg.capture_margin, cfg.capture_depth),
+                   np.where(np.isfinite(alpha), alpha, -1.0))
     out = []
     for i in np.argsort(-key, kind="stable")[:limit]:
         poly = support_polygon(np.vstack([sole_corners_at(cells[i:i + 1], sole_local)[0], pivot]).tolist())
         a = math.nan if inside[i] else float(alpha[i])
         out.append(CaseResult(case, np.array([p2x[i], p2y[i]]), q2.copy(), a, bool(inside[i]), float(margin[i]),
-                              cells[i].copy(), poly, g_td, len(cells), cfg.capture_margin))
+                              cells[i].copy(), poly, g_td, len(cells), cfg.capture_margin, float(length[i]),
+                              cfg.capture_depth))
     return out
 
 
