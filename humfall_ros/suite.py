@@ -41,26 +41,32 @@ def locomotion_controller(sc: dict, model):
 
 
 class SameTickInputs:
-    """A controller whose observation also gets inputs computed this tick by controllers before it.
+    """A controller or monitor whose observation also gets inputs that other in-process controllers computed.
 
-    ``SameTickInputs(estop, {"walking/state": lambda: walking.state})`` gives the e-stop the walking
-    state of the same tick (walking comes first in the loop's list), as the e-stop node's tick gate
-    waits for ``walking/state`` of the tick's stamp.
+    ``SameTickInputs(estop, {"walking/state": lambda: walking.state})`` gives the e-stop the walking state of
+    the same tick (walking comes first in the loop's list), as the e-stop node's tick gate waits for
+    ``walking/state`` of the tick's stamp. A monitor (the FTB fed ``walking/state`` and ``estop/status``) runs
+    before the controllers, so it reads what they computed on the previous tick (2 ms old; on the graph the
+    FTB waits for the same tick's messages). A provider that returns None adds nothing. Everything else
+    (``source``, ``name``, ``status``, ``decision``, ``latched``, ...) is the wrapped object's.
     """
 
-    def __init__(self, controller: Controller, providers: dict[str, Callable[[], Any]]):
-        self.inner = controller
-        self.source = controller.source
+    def __init__(self, inner, providers: dict[str, Callable[[], Any]]):
+        self.inner = inner
         self.providers = dict(providers)
 
-    def __getattr__(self, name):  # status, decision, ... of the wrapped controller
+    def __getattr__(self, name):
+        if name in ("inner", "providers"):  # not set yet (copy, unpickling): no recursion
+            raise AttributeError(name)
         return getattr(self.inner, name)
 
     def reset(self) -> None:
         self.inner.reset()
 
     def step(self, observation: Observation):
-        extra = {k: f() for k, f in self.providers.items()}
+        extra = {k: v for k, v in ((k, f()) for k, f in self.providers.items()) if v is not None}
+        if not extra:
+            return self.inner.step(observation)
         return self.inner.step(dataclasses.replace(observation, inputs={**observation.inputs, **extra}))
 
 
@@ -91,8 +97,9 @@ def suite(sc: dict, model) -> tuple[list[Controller], list]:
         estop = EstopController(model, EstopConfig.from_params(p), 1.0 / sc["sim"]["control_rate"])
         controllers.append(SameTickInputs(estop, {"walking/state": lambda: loco.state}))
         for m in monitors:
-            if getattr(m, "config", None) is not None and m.config.use_estop_status and hasattr(m, "estop"):
-                m.estop = estop  # the FTB's stop reference while it plays (the node waits for estop/status)
+            if isinstance(m, SameTickInputs) and m.config.use_estop_status:
+                # the FTB's stop reference while it plays (the node waits for estop/status)
+                m.providers["estop/status"] = lambda: estop.status
     return controllers, monitors
 
 
@@ -101,40 +108,6 @@ def standing_controller(sc: dict, model) -> StandingController:
     p = node_params(sc, "locomotion")
     return StandingController(model, model.standing_posture, p["ankle_kp"], p["ankle_kd"], p["ankle_max_offset"],
                               p["resume_time"])
-
-
-class GaitFedFtb:
-    """The FTB monitor fed ``walking/state`` from the walking controller (``use_walking_state``) and, once
-    ``estop`` is set (``use_estop_status``), ``estop/status`` from the e-stop controller.
-
-    The loop runs monitors before controllers, so the states read are the ones the controllers
-    computed on the previous tick (2 ms old; on the graph the FTB waits for the same tick's
-    messages). The monitor's ``name``, ``latched``, ``event`` and ``state`` are the FTB's.
-    """
-
-    def __init__(self, ftb: FtbMonitor, walking=None, estop=None):
-        self.inner = ftb
-        self.walking = walking
-        self.estop = estop
-        self.name = ftb.name
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
-
-    def reset(self) -> None:
-        self.inner.reset()
-
-    def step(self, observation):
-        extra = {}
-        state = getattr(self.walking, "state", None)
-        if state is not None:
-            extra["walking/state"] = state
-        status = getattr(self.estop, "status", None)
-        if status is not None:
-            extra["estop/status"] = status
-        if not extra:
-            return self.inner.step(observation)
-        return self.inner.step(dataclasses.replace(observation, inputs={**observation.inputs, **extra}))
 
 
 def controllers_for(sc: dict, kind: str, model=None):
@@ -146,8 +119,10 @@ def controllers_for(sc: dict, kind: str, model=None):
     model = model or load_model()
     ftb = FtbMonitor(FtbConfig.from_params(node_params(sc, "ftb_monitor")))
     ctrls = [locomotion_controller(sc, model)]  # the locomotion node's own controller
-    if ftb.config.use_walking_state or ftb.config.use_estop_status:  # the e-stop is set by suite()
-        ftb = GaitFedFtb(ftb, ctrls[0] if ftb.config.use_walking_state else None)
+    if ftb.config.use_walking_state or ftb.config.use_estop_status:  # the e-stop's status is added by suite()
+        loco0 = ctrls[0]
+        ftb = SameTickInputs(ftb, {"walking/state": lambda: getattr(loco0, "state", None)}
+                             if ftb.config.use_walking_state else {})
     if kind != "none":
         p = node_params(sc, "safe_fall_controller")
         p.update(CONTROLLER_PARAMS.get(kind, {}).get("safe_fall_controller", {}))
@@ -158,5 +133,5 @@ def controllers_for(sc: dict, kind: str, model=None):
     return ctrls, [ftb]
 
 
-__all__ = ["CONTROLLERS", "GaitFedFtb", "SameTickInputs", "controllers_for", "locomotion_controller",
+__all__ = ["CONTROLLERS", "SameTickInputs", "controllers_for", "locomotion_controller",
            "node_params", "standing_controller", "suite"]
