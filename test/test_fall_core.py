@@ -399,19 +399,19 @@ def test_controller_slow_topple_after_a_captured_step_uses_the_settled_sign(stoo
 
 
 def test_shaping_recruit_sets_name_the_joints_shaping_may_move():
-    """'pitch' (the default) moves the chest, hip and shoulder pitch; 'upper' leaves the legs alone (flexing the hips
-    swings the legs: in walking_push the swinging foot kicked the target); an unknown set is refused."""
+    """'all' (the paper, the default) moves every joint; 'pitch' the chest, hip and shoulder pitch; 'upper' leaves the
+    legs alone (flexing the hips swings the legs: in walking_push the swinging foot kicked the target before the
+    limb-sweep guard); an unknown set is refused."""
     from humfall_ros import params
     from humfall_ros.fall.controller import SafeFallConfig, SafeFallController
 
     d0 = params.defaults("safe_fall_controller")
-    assert d0["shaping_recruit"] == "pitch"
     moved = {}
-    for rec in ("pitch", "upper"):
+    for rec in ("all", "pitch", "upper"):
         c = SafeFallController(config=SafeFallConfig.from_params({**d0, "shaping_recruit": rec}))
         moved[rec] = {n for n, r in zip(c.m.joint_names, c._recruit) if r}
     assert any("hip_pitch" in n for n in moved["pitch"]) and any("chest_pitch" in n for n in moved["pitch"])
-    assert moved["upper"] and moved["upper"] < moved["pitch"]
+    assert moved["upper"] and moved["upper"] < moved["pitch"] < moved["all"] == set(c.m.joint_names)
     assert not any(k in n for n in moved["upper"] for k in ("hip", "knee", "ankle"))
     with pytest.raises(ValueError, match="shaping_recruit"):
         SafeFallController(config=SafeFallConfig.from_params({**d0, "shaping_recruit": "legs"}))

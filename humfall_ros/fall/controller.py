@@ -96,7 +96,7 @@ class SafeFallConfig:
     shaping_lean_deg: float = 20.0
     shaping_gain: float = 0.02
     shaping_sign: float = -1.0
-    shaping_recruit: str = "pitch"
+    shaping_recruit: str = "all"
     shaping_damping: float = 1e-4
     shaping_direction: str = "away"
     shaping_settled_sign: float = 1.0
