@@ -317,3 +317,37 @@ def test_a_yawed_robot_result_is_measured_in_the_stop_frame_on_its_measured_feet
     assert res["stop_time_s"] == pytest.approx(plan.stop_time, abs=0.02)
     old = estop_result(plan, t, com, cop, margin, 0.0, False)          # the pattern's frame: wrong
     assert math.hypot(old["final_cog_major_m"] - plan.major.n3, old["final_cog_minor_m"]) > 0.05
+
+
+def test_a_standing_stop_takes_the_feet_heading_from_the_imu():
+    """Without walking/state the stop places the feet from the joints; their heading comes from the IMU (a robot that
+    has turned stops in its own frame), as the estimator places them. Without an IMU the heading is 0."""
+    import math
+
+    import pinocchio as pin
+
+    from humfall_ros.estop.controller import feet_from_joints
+    from humfall_ros.model.humanoid import SIDES
+
+    m = load_model()
+    joints = m.joint_vector(STANDING_POSTURE)
+    d = m.model.createData()
+    pin.framesForwardKinematics(m.model, d, m.configuration([0, 0, 0], [0, 0, 0, 1], joints))
+    imu_in_base = d.oMf[m.frame_ids[m.imu_frame]].rotation
+
+    def heading(feet):
+        x = sum(feet[s].rotation[:, 0] for s in SIDES)
+        return math.atan2(x[1], x[0])
+
+    center = np.array([0.4, -0.2])
+    for yaw in (0.0, 0.7, -2.0):
+        Rz = pin.utils.rpyToMatrix(0.0, 0.0, yaw)
+        quat = pin.Quaternion(Rz @ imu_in_base).coeffs()       # x, y, z, w
+        feet = feet_from_joints(m, joints, center, imu_orientation=quat)
+        assert heading(feet) == pytest.approx(yaw, abs=1e-9)
+        left_of = feet["l"].position[:2] - feet["r"].position[:2]
+        assert math.atan2(left_of[1], left_of[0]) == pytest.approx(yaw + math.pi / 2, abs=0.05)
+        mid = 0.5 * (feet["l"].position[:2] + feet["r"].position[:2])
+        assert np.allclose(mid, center, atol=1e-9)
+        assert all(abs(feet[s].position[2] - feet["l"].position[2]) < 1e-9 for s in SIDES)
+    assert heading(feet_from_joints(m, joints, center)) == pytest.approx(0.0, abs=1e-9)

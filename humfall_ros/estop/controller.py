@@ -250,12 +250,21 @@ def feet_from_soles(model: HumanoidModel, soles: dict, offsets: dict | None = No
     return out
 
 
-def feet_from_joints(model: HumanoidModel, joints, feet_center_xy, heading: float = 0.0) -> dict[str, FootPose]:
-    """Flat feet on z = 0 from measured joints: mean sole yaw ``heading``, ankles' mid-point at ``feet_center_xy``."""
+def feet_from_joints(model: HumanoidModel, joints, feet_center_xy, heading: float = 0.0,
+                     imu_orientation=None) -> dict[str, FootPose]:
+    """Flat feet on z = 0 from measured joints: mean sole yaw ``heading``, ankles' mid-point at ``feet_center_xy``.
+
+    With ``imu_orientation`` (xyzw) the heading is the soles' mean yaw in the world instead: the trunk's IMU
+    orientation through the waist kinematics, as the estimator places the feet (a robot that has turned stops in
+    its own frame, not in the world's x)."""
     d = model.model.createData()
     q = model.configuration([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], np.asarray(joints, float))
     pin.framesForwardKinematics(model.model, d, q)
     soles = {s: d.oMf[model.frame_ids[model.sole_frame[s]]] for s in SIDES}
+    if imu_orientation is not None:
+        R_base = quat_matrix(np.asarray(imu_orientation, float)) @ d.oMf[model.frame_ids[model.imu_frame]].rotation.T
+        x_axes = sum(R_base @ soles[s].rotation[:, 0] for s in SIDES)
+        heading = math.atan2(float(x_axes[1]), float(x_axes[0]))
     ankles = {s: d.oMf[model.frame_ids[model.foot_link[s]]] for s in SIDES}
     yaw = {s: math.atan2(soles[s].rotation[1, 0], soles[s].rotation[0, 0]) for s in SIDES}
     mean_yaw = 0.5 * (yaw["l"] + yaw["r"])
@@ -520,7 +529,9 @@ class EstopController:
         if ws is not None and np.any(np.asarray(ws.left_foot, float) != 0):
             feet = feet_from_soles(self.m, {"l": ws.left_foot, "r": ws.right_foot}, self._offsets)
         else:
-            feet = feet_from_joints(self.m, observation.joint_position, st.feet_center[:2])
+            imu = observation.inputs.get("imu")
+            feet = feet_from_joints(self.m, observation.joint_position, st.feet_center[:2],
+                                    imu_orientation=None if imu is None else imu[0])
         ground = float(np.mean([feet[s].sole_corners(self.m, s)[:, 2].mean() for s in SIDES]))
         return PatternState(np.asarray(st.com, float).copy(), np.asarray(st.com_velocity, float).copy(),
                             np.asarray(st.cop, float).copy(), feet, float(st.com[2] - ground))
