@@ -141,19 +141,29 @@ def fig11(runs: dict, obstacles, path) -> pathlib.Path:
 def sweep_polar(rows: list[dict], path, key: str = "avoidance_angle_p2_deg") -> pathlib.Path:
     """Avoidance angle (alpha2; alpha where alpha2 is undefined) against the push direction, per controller."""
     plt = _plt()
-    fig = plt.figure(figsize=(6, 6))
+    fig = plt.figure(figsize=(7.5, 6))
     ax = fig.add_subplot(projection="polar")
+    ax.set_theta_direction(-1)
     for kind in ("none", "stepping", "stepping_inertia"):
         rs = sorted((r for r in rows if r["controller"] == kind), key=lambda r: r["push_angle_deg"])
         if not rs:
             continue
-        th = [math.radians(-r["push_angle_deg"]) for r in rs]  # pushes clockwise from +x: plot them that way
+        th = [math.radians(r["push_angle_deg"]) for r in rs]  # pushes clockwise from +x (the axes turn clockwise)
         val = [r[key] if r.get(key) is not None else r.get("avoidance_angle_deg") for r in rs]
         val = [np.nan if v is None else v for v in val]
         ax.plot(th + th[:1], val + val[:1], "o-", color=COLORS[kind], label=kind)
+        # a capture has no avoidance angle: a hollow marker on the rim; a target hit (< 5 cm) a cross
+        cap = [t for t, r in zip(th, rs) if r.get("fell") is False]
+        if cap:
+            ax.plot(cap, [180.0] * len(cap), "o", mfc="none", ms=9, color=COLORS[kind], label=f"{kind}: captured")
+        hit = [(t, v) for t, v, r in zip(th, val, rs)
+               if r.get("fell") and (r.get("min_target_distance_m") or 0.0) < 0.05 and np.isfinite(v)]
+        if hit and kind != "none":
+            ax.plot(*zip(*hit), "x", ms=10, mew=2, color=COLORS[kind], label=f"{kind}: target hit")
     ax.set_rlim(0, 180)
-    ax.set_title("avoidance angle alpha2 [deg] by push direction", fontsize=10)
-    ax.legend(fontsize=8, loc="lower left", bbox_to_anchor=(-0.1, -0.12))
+    ax.set_title("avoidance angle alpha2 [deg] by push direction\n(pushes clockwise from the robot's forward +x)",
+                 fontsize=10)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.05, 1.0))
     path = pathlib.Path(path)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
