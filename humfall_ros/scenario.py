@@ -596,6 +596,20 @@ def walks(sc: dict) -> bool:
     return w.get("steps", 0) > 0 and w.get("speed_kmh", 0.0) > 0
 
 
+def push_time(sc: dict, push: dict) -> float:
+    """When a scenario push begins [s]: its ``time``, or the gait event ``at`` of the scenario's walk.
+
+    The gait is planned deterministically from the scenario (humfall_ros.walking.scenario),
+    so a push at ``{step: K, phase: ss_start}`` is an absolute time known before the run,
+    the same in process and over ROS.
+    """
+    if push.get("at") is None:
+        return float(push["time"])
+    from humfall_ros.walking.scenario import phase_time
+
+    return float(phase_time(sc, push["at"]))
+
+
 def node_defaults(sc: dict, node: str) -> dict[str, Any]:
     """A node's parameter values that follow from what the scenario contains.
 
@@ -610,8 +624,6 @@ def node_defaults(sc: dict, node: str) -> dict[str, Any]:
     """
     out: dict[str, Any] = {}
     if node == "ftb_monitor" and sc.get("push"):
-        from humfall_ros.sim.ground_truth import push_time
-
         first = min(sc["push"], key=lambda p: push_time(sc, p))
         out["push_end_time_s"] = float(push_time(sc, first) + first["duration"])
     if node == "ftb_monitor" and walks(sc):

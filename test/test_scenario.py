@@ -264,7 +264,7 @@ def test_the_fixed_trigger_gets_the_push_end_on_both_paths(tmp_path):
     # paper 1 sec. V-A's fixed mode needs the push end: humfall up and the in-process loop (fall.runs, the
     # benchmarks) both take it from the scenario's first push; the in-process loop once had none and never fired
     from humfall_ros import launch
-    from humfall_ros.sim.ground_truth import push_time
+    from humfall_ros.scenario import push_time
     from humfall_ros.suite import node_params
 
     sc = scenario.load("standing_push", ["controller=stepping", "params.ftb_monitor.mode=fixed"])

@@ -8,22 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from humfall_ros.scenario import push_time
 from humfall_ros.sim.metrics import FallMetrics, foot_state
 from humfall_ros.sim.world import Box, SimWorld
-
-
-def push_time(sc: dict, push: dict) -> float:
-    """When a scenario push begins [s]: its ``time``, or the gait event ``at`` of the scenario's walk.
-
-    The gait is planned deterministically from the scenario (humfall_ros.walking.scenario),
-    so a push at ``{step: K, phase: ss_start}`` is an absolute time known before the run,
-    the same in process and over ROS.
-    """
-    if push.get("at") is None:
-        return float(push["time"])
-    from humfall_ros.walking.scenario import phase_time
-
-    return float(phase_time(sc, push["at"]))
 
 
 class GroundTruth:

@@ -40,7 +40,7 @@ from humfall_ros.multicontact.executor import (ExecutorConfig, MulticontactExecu
 from humfall_ros.multicontact.modes import mode_label, parse_mode
 from humfall_ros.sim.closed_loop import ClosedLoop
 from humfall_ros.suite import locomotion_controller
-from humfall_ros.sim.ground_truth import push_time
+from humfall_ros.scenario import push_time
 
 EXECUTOR_PRIORITY = 40          # above locomotion 10, estop 20, safe_fall 30 (scenario.BUILTIN_PRIORITIES)
 INITIAL_MODE = "LF/RF"
