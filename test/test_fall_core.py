@@ -415,3 +415,26 @@ def test_shaping_recruit_sets_name_the_joints_shaping_may_move():
     assert not any(k in n for n in moved["upper"] for k in ("hip", "knee", "ankle"))
     with pytest.raises(ValueError, match="shaping_recruit"):
         SafeFallController(config=SafeFallConfig.from_params({**d0, "shaping_recruit": "legs"}))
+
+
+def test_sweep_summary_counts_steps_that_land_as_predicted():
+    """``humfall sweep``'s summary: per controller, the steps whose touchdown (50 ms), landing (3 cm / 5 deg) and
+    flatness (3 deg) are within issue 11's goals, and the worst of each; runs without a step are left out."""
+    from humfall_ros.fall import sweep
+
+    def row(kind, angle, pred, fell=True):
+        return {"controller": kind, "push_angle_deg": angle, "push_n": 300.0, "fell": fell, "fall_direction_deg": 0.0,
+                "avoidance_angle_deg": 90.0 if fell else None, "avoidance_angle_p2_deg": 120.0 if fell else None,
+                "predicted_avoidance_deg": None, "min_target_distance_m": 0.5, "lead_time_s": 1.0, "prediction": pred}
+
+    good = {"touchdown_error_s": -0.02, "landing_error_m": 0.01, "landing_yaw_error_deg": 0.5, "landing_tilt_deg": 0.4}
+    late = {**good, "touchdown_error_s": 0.08}
+    short = {**good, "landing_error_m": 0.16}
+    rows = [row("stepping", 0, good, fell=False), row("stepping", 30, late), row("stepping", 60, short),
+            row("none", 0, None)]
+    summ = sweep.summary(rows)
+    p = summ["stepping"]["prediction"]
+    assert (p["steps"], p["within_goals"]) == (3, 1)
+    assert p["worst_touchdown_error_s"] == pytest.approx(0.08) and p["worst_landing_error_m"] == pytest.approx(0.16)
+    assert "prediction" not in summ["none"] and summ["stepping"]["fell"] == 2
+    assert "yes" in sweep.row_line(rows[0]) and "80" in sweep.row_line(rows[1])

@@ -147,15 +147,27 @@ def _f(x, w=6, p=0):
     return f"{'-':>{w}}" if x is None else f"{x:{w}.{p}f}"
 
 
+def _scaled(x, k):
+    return None if x is None else x * k
+
+
 def row_line(s: dict) -> str:
     d = s.get("decision") or {}
+    p = s.get("prediction") or {}
     return (f"{s['push_angle_deg']:4d} {s['push_n']:6.1f} {s['controller']:16s} {_f(s['fall_direction_deg'])} "
             f"{_f(s['avoidance_angle_deg'])} {_f(s['avoidance_angle_p2_deg'])} {_f(s['predicted_avoidance_deg'])} "
-            f"{_f(s['min_target_distance_m'], 6, 3)} {_f(s['lead_time_s'], 5, 2)} {d.get('case', '-'):>11s}")
+            f"{_f(s['min_target_distance_m'], 6, 3)} {_f(s['lead_time_s'], 5, 2)} {d.get('case', '-'):>11s} "
+            f"{'yes' if s.get('fell') is False else '-':>5s} {_f(_scaled(p.get('touchdown_error_s'), 1e3), 6)} "
+            f"{_f(_scaled(p.get('landing_error_m'), 1e2), 6, 1)} {_f(p.get('landing_tilt_deg'), 5, 1)}")
 
 
-HEADER = ("push    N  controller        fall  alpha  alpha2  pred  min_d  lead        case\n"
-          "(deg)                          (deg)  (deg)  (deg)  (deg)   (m)   (s)")
+HEADER = ("push    N  controller        fall  alpha  alpha2  pred  min_d  lead        case  capt  td_err  land  tilt\n"
+          "(deg)                          (deg)  (deg)  (deg)  (deg)   (m)   (s)                     (ms)  (cm) (deg)")
+
+
+def _worst(rows: list[dict], key: str) -> float | None:
+    xs = [abs(r["prediction"][key]) for r in rows if (r.get("prediction") or {}).get(key) is not None]
+    return None if not xs else float(max(xs))
 
 
 def summary(rows: list[dict]) -> dict:
@@ -169,6 +181,19 @@ def summary(rows: list[dict]) -> dict:
                      "worst_alpha2_deg": None if not a2 else round(float(np.min(a2)), 1),
                      "mean_alpha_deg": None if not a else round(float(np.mean(a)), 1),
                      "target_hit_directions": hit, "fell": sum(bool(r["fell"]) for r in rs)}
+        # the step's prediction against the outcome (issue 11: touchdown 50 ms, landing 3 cm / 5 deg, flat 3 deg)
+        stepped = [r for r in rs if (r.get("prediction") or {}).get("touchdown_error_s") is not None]
+        if stepped:
+            ok = [r for r in stepped if abs(r["prediction"]["touchdown_error_s"]) <= 0.05
+                  and (r["prediction"].get("landing_error_m") or 0.0) <= 0.03
+                  and abs(r["prediction"].get("landing_yaw_error_deg") or 0.0) <= 5.0
+                  and (r["prediction"].get("landing_tilt_deg") or 0.0) <= 3.0]
+            out[kind]["prediction"] = {
+                "steps": len(stepped), "within_goals": len(ok),
+                "worst_touchdown_error_s": _worst(stepped, "touchdown_error_s"),
+                "worst_landing_error_m": _worst(stepped, "landing_error_m"),
+                "worst_landing_yaw_error_deg": _worst(stepped, "landing_yaw_error_deg"),
+                "worst_landing_tilt_deg": _worst(stepped, "landing_tilt_deg")}
     return out
 
 
