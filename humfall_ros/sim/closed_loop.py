@@ -100,7 +100,8 @@ class ClosedLoop:
         self.ground_truth = GroundTruth(self.world, sc)
         self.sensors = Sensors(self.world, sensor_noise(sc) if noise is None else noise)
         est = node_params(sc, "state_estimator")
-        self.estimator = CentroidalEstimator(self.model, contact_force=est["contact_force"])
+        self.estimator = CentroidalEstimator(self.model, contact_force=est["contact_force"],
+                                             com_velocity_time_constant=est["com_velocity_time_constant"])
         if controllers is None:
             controllers, default_monitors = suite(sc, self.model)
             monitors = default_monitors if monitors is None else monitors
