@@ -164,3 +164,19 @@ def test_an_unpushed_stop_is_not_a_fall_and_a_pushed_one_is_handed_to_safe_fall(
     ftb, sources = run(True)
     assert ftb.event is not None and sources[-1] == "safe_fall"
     assert sources.index("estop") < sources.index("safe_fall")
+
+
+@pytest.mark.parametrize("replan_s", [0.05, 0.08])
+def test_walking_push_capture_does_not_hang_on_the_replan_window(replan_s):
+    """walking_push, stepping: the landing is re-decided each tick for ``replan_single_support_s``; with the
+    hysteresis (``replan_keep_capture``) a landing that still captures is kept, so the outcome no longer depends on
+    which tick the window ends at (measured without it: 0.05 s fell 0.19 m from the target, 0.08 s captured)."""
+    from humfall_ros import scenario
+    from humfall_ros.fall import runs
+
+    sc = scenario.load("walking_push", [f"params.safe_fall_controller.replan_single_support_s={replan_s}"])
+    r = runs.run(sc, "stepping", stop_after_landing_s=1.0)
+    s = runs.summary(r)
+    assert not s["fell"] and s["captured"], s
+    assert s["min_target_distance_m"] > 0.3
+    assert abs(s["prediction"]["touchdown_error_s"]) <= 0.05

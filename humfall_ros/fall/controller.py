@@ -93,6 +93,7 @@ class SafeFallConfig:
     replan_s: float = 0.0
     replan_single_support_s: float = 0.05
     replan_capture_away: bool = False
+    replan_keep_capture: bool = True    # re-plan: keep a landing that still captures (hysteresis, ours)
     shaping_lean_deg: float = 20.0
     shaping_gain: float = 0.02
     shaping_sign: float = -1.0
@@ -793,6 +794,16 @@ class SafeFallController:
         case = self.chosen.case
         if case is ss.StepCase.CONTINUE_STEP:   # re-deciding the planned step over the cells: a re-target
             case = ss.StepCase.STEP_LEFT if swing == "l" else ss.StepCase.STEP_RIGHT
+        if c.replan_keep_capture and self.chosen.captured and len(cells):
+            # hysteresis (ours): the landing chosen last tick stays while it still captures and the zone still
+            # reaches it; re-deciding each tick from scratch let the pick jump between far-apart captures (walking_push:
+            # x 1.06 <-> 1.69 m from one tick to the next), so the outcome hung on which tick the window ended at
+            cur = np.asarray(self.chosen.landing, float).reshape(1, 3)
+            if np.any(np.hypot(cells[:, 0] - cur[0, 0], cells[:, 1] - cur[0, 1]) <= c.search.cell_xy):
+                kept = ss._cells(case, cur, pivot, Q[0], self.target, G[0], self._sole_local, c.search,
+                                 start=self.m.frame_placement(self.m.sole_frame[swing]).translation[:2])
+                if kept is not None and kept.captured:
+                    cells = cur
         if c.replan_capture_away and len(cells):
             # among the captures (Q2 >= capture_margin inside), the landing farthest from the target (ours): the
             # deepest one moves forward with the push, towards the target (walking_push 360 N: under its edge)
