@@ -794,17 +794,18 @@ class SafeFallController:
         case = self.chosen.case
         if case is ss.StepCase.CONTINUE_STEP:   # re-deciding the planned step over the cells: a re-target
             case = ss.StepCase.STEP_LEFT if swing == "l" else ss.StepCase.STEP_RIGHT
+        start = self.m.frame_placement(self.m.sole_frame[swing]).translation[:2]
+        r = None
         if c.replan_keep_capture and self.chosen.captured and len(cells):
             # hysteresis (ours): the landing chosen last tick stays while it still captures and the zone still
             # reaches it; re-deciding each tick from scratch let the pick jump between far-apart captures (walking_push:
             # x 1.06 <-> 1.69 m from one tick to the next), so the outcome hung on which tick the window ended at
             cur = np.asarray(self.chosen.landing, float).reshape(1, 3)
             if np.any(np.hypot(cells[:, 0] - cur[0, 0], cells[:, 1] - cur[0, 1]) <= c.search.cell_xy):
-                kept = ss._cells(case, cur, pivot, Q[0], self.target, G[0], self._sole_local, c.search,
-                                 start=self.m.frame_placement(self.m.sole_frame[swing]).translation[:2])
+                kept = ss._cells(case, cur, pivot, Q[0], self.target, G[0], self._sole_local, c.search, start=start)
                 if kept is not None and kept.captured:
-                    cells = cur
-        if c.replan_capture_away and len(cells):
+                    r = kept
+        if r is None and c.replan_capture_away and len(cells):
             # among the captures (Q2 >= capture_margin inside), the landing farthest from the target (ours): the
             # deepest one moves forward with the push, towards the target (walking_push 360 N: under its edge)
             h = ss._hull_core(cells, self._sole_local, pivot.reshape(-1, 2), np.asarray(Q[0], float)[:2])
@@ -813,8 +814,8 @@ class SafeFallController:
                 far = np.hypot(cells[:, 0] - self.target[0], cells[:, 1] - self.target[1])
                 i = int(np.argmax(np.where(ok, far, -np.inf)))
                 cells = cells[i:i + 1]
-        r = ss._cells(case, cells, pivot, Q[0], self.target, G[0], self._sole_local, c.search,
-                      start=self.m.frame_placement(self.m.sole_frame[swing]).translation[:2])
+        if r is None:
+            r = ss._cells(case, cells, pivot, Q[0], self.target, G[0], self._sole_local, c.search, start=start)
         if r is None:
             return
         if r.case is not self.chosen.case:
