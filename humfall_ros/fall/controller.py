@@ -109,7 +109,7 @@ class SafeFallConfig:
     single_support_lift_m: float = 0.01
     capture_balance: bool = True
     balance_kp: float = 0.3
-    balance_kd: float = 0.05
+    balance_kd: float = 0.1
     balance_max_offset: float = 0.12
     settle_s: float = 0.5
     handback: bool = True

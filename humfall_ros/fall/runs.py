@@ -31,7 +31,7 @@ class FallRun:
         joint_positions: measured joint positions per tick (ticks x joints) [rad].
         active_sources: the mux's source per tick.
         decision: the controller's ``SafeFallDecision`` (None: no take-over).
-        fall_event: the FTB's ``FallEvent`` (None: no trigger).
+        fall_event: the FTB's first ``FallEvent`` of the run, even if its recovery cleared it (None: no trigger).
         trace: per tick (t, CoM (3,), estimated CoP (3,), ground-truth CoP (3,) or None, FTB state) for plots.
         reasons: the controller's notes.
         search: the controller's ``StepDecision`` (every case's best candidate), for plots.
@@ -67,6 +67,7 @@ def run(sc: dict, kind: str | None = None, noise=None, duration: float | None = 
     safe = ctrls[1] if len(ctrls) > 1 else None
     m = loop.ground_truth.metrics
     trace = []
+    first_event = None   # the run's fall event, kept when the FTB's recovery clears it later
     try:
         ticks = int(round((duration or sc["duration"]) * sc["sim"]["control_rate"]))
         for _ in range(ticks):
@@ -76,6 +77,7 @@ def run(sc: dict, kind: str | None = None, noise=None, duration: float | None = 
             m.update_feet(w.time, cop, down, poses)
             if ftb.event is not None:
                 m.note_fall_event(ftb.event.time)
+                first_event = first_event or ftb.event
             if safe is not None and safe.decision is not None:
                 m.note_decision(safe.decision)
             if keep_trace:
@@ -89,7 +91,7 @@ def run(sc: dict, kind: str | None = None, noise=None, duration: float | None = 
     finally:
         loop.close()
     return FallRun(res, np.array(loop.joint_positions), list(loop.active_sources),
-                   None if safe is None else safe.decision, ftb.event, trace,
+                   None if safe is None else safe.decision, first_event, trace,
                    [] if safe is None else list(safe.reasons), None if safe is None else safe.search_result)
 
 
