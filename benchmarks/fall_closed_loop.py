@@ -145,12 +145,16 @@ def shaping(scale: float = 1.0, overrides: tuple[str, ...] = (), kind: str = "st
 
     from humfall_ros.fall import controller as fc
     from humfall_ros.fall.geometry import avoidance_angle
+    from humfall_ros.fall.inertia_shaping import ShapingConfig
 
     log = []
     orig = fc.shaping_velocities
 
-    def spy(model, q, cop, target, dt, recruit=None, cfg=None, com=None):
-        qd, info = orig(model, q, cop, target, dt, recruit=recruit, cfg=cfg, com=com)
+    def spy(model, q, cop, target, dt, *args, **kwargs):
+        # forwards whatever the controller passes: a spy with a stale signature made every shaping tick fail
+        # (TypeError, "holding the last command") and reported a run without shaping (session 10's 135.6 deg)
+        qd, info = orig(model, q, cop, target, dt, *args, **kwargs)
+        cfg = kwargs.get("cfg") or ShapingConfig()
         vmax = cfg.velocity_fraction * model.limits.velocity
         log.append({"scale": float(np.max(np.abs(qd) / vmax)), "recruited": info["recruited"],
                     "error": info["error"], "residual": info["residual"], "q": np.asarray(q, float)[7:].copy()})
@@ -169,7 +173,8 @@ def shaping(scale: float = 1.0, overrides: tuple[str, ...] = (), kind: str = "st
            **{k: s.get(k) for k in ("avoidance_angle_p2_deg", "avoidance_angle_deg", "min_target_distance_m",
                                     "landing_time_s", "decision_case", "measured_p2")},
            "touchdown_s": (s.get("prediction") or {}).get("touchdown_time_s"),
-           "shaping": [x for x in r.reasons if "shaping" in x or "fallen" in x]}
+           "shaping": [x for x in r.reasons if "shaping" in x or "fallen" in x],
+           "tick_failures": [x for x in r.reasons if "tick failed" in x]}   # must be empty for a valid figure
     target = np.asarray(scenario.load("standing_push", ov)["obstacles"][0]["position"], float)[:2]
     p2 = s.get("measured_p2")
     if p2 is not None:

@@ -104,7 +104,7 @@ class SafeFallConfig:
     shaping_settled_s: float = 0.2
     shaping_settled_only: bool = True
     ik_retry_cells: int = 4
-    shaping_sweep_horizon_s: float = 0.25
+    shaping_sweep_horizon_s: float = 0.1
     shaping_sweep_clearance_m: float = 0.15
     single_support_lift_m: float = 0.01
     capture_balance: bool = True

@@ -157,7 +157,7 @@ class ShapingConfig:
     velocity_fraction: float = 0.9
     position_margin: float = 0.02
     direction: str = "away"
-    sweep_horizon_s: float = 0.25
+    sweep_horizon_s: float = 0.1
     sweep_clearance_m: float = 0.15
 
 
