@@ -100,7 +100,7 @@ class SafeFallConfig:
     shaping_recruit: str = "all"
     shaping_damping: float = 1e-4
     shaping_direction: str = "away"
-    shaping_settled_sign: float = 1.0
+    shaping_settled_sign: float = -1.0
     shaping_settled_s: float = 0.2
     shaping_settled_only: bool = True
     ik_retry_cells: int = 4
