@@ -202,6 +202,30 @@ def test_search_picks_known_optimum():
 
 
 # ---------------------------------------------------------------------- inertia shaping
+def test_delayed_capture_point_is_the_linear_pendulum_with_the_cop_held():
+    """xi(t) = p + (xi0 - p) exp(omega t) against an integration of c'' = omega^2 (c - p); and predict_touchdown's
+    cop_delay moves Q2 away from each case's pivot along pivot -> Q2 (0 leaves it as it was)."""
+    from scipy.integrate import solve_ivp
+
+    g, z, tau = 9.81, 0.74, 0.15
+    w = math.sqrt(g / z)
+    c0, v0, p = np.array([0.05, -0.02]), np.array([0.6, -0.15]), np.array([0.12, -0.08])
+    sol = solve_ivp(lambda t, y: np.r_[y[2:], w * w * (y[:2] - p)], (0.0, tau), np.r_[c0, v0], rtol=1e-11, atol=1e-12)
+    c, v = sol.y[:2, -1], sol.y[2:, -1]
+    got = ss.delayed_capture_point((c0 + v0 / w)[None], p[None], np.array([z]), tau, g)[0]
+    assert got == pytest.approx(c + v / w, abs=1e-8)
+    com, vel = np.array([0.03, 0.0, 0.74]), np.array([0.5, -0.1, 0.0])
+    pivots = [np.array([[0.12, 0.07]]), np.array([[0.12, -0.07]])]
+    G0, _, Q0 = ss.predict_touchdown(com, vel, pivots, 0.25)
+    G1, _, Q1 = ss.predict_touchdown(com, vel, pivots, 0.25, cop_delay=0.0)
+    assert np.array_equal(Q0, Q1)
+    _, _, Qd = ss.predict_touchdown(com, vel, pivots, 0.25, cop_delay=tau)
+    for k, pv in enumerate(pivots):
+        a, b = Q0[k] - pv[0], Qd[k] - pv[0]
+        assert abs(a[0] * b[1] - a[1] * b[0]) < 1e-9 * np.linalg.norm(b) and b @ a > 0   # same ray from the pivot
+        assert np.linalg.norm(b) / np.linalg.norm(a) == pytest.approx(math.exp(math.sqrt(g / G0[k, 2]) * tau))
+
+
 def test_crb_inertia_jacobian_against_finite_differences():
     rng = np.random.default_rng(0)
     q = standing_q()

@@ -83,6 +83,7 @@ class SafeFallConfig:
     cell_yaw: float = 0.1
     min_zone_cells: int = 150
     capture_depth_m: float = 0.04
+    capture_cop_delay_s: float = 0.0
     capture_margin: float = 0.02
     obstacle_clearance: float = 0.03
     swing_clearance: float = 0.05
@@ -124,7 +125,7 @@ class SafeFallConfig:
     def search(self) -> ss.SearchConfig:
         return ss.SearchConfig(self.cell_xy, self.cell_yaw, self.capture_margin,
                                obstacle_clearance=self.obstacle_clearance, min_zone_cells=self.min_zone_cells,
-                               capture_depth=self.capture_depth_m)
+                               capture_depth=self.capture_depth_m, cop_delay=self.capture_cop_delay_s)
 
     @property
     def step(self) -> StepControlConfig:
@@ -487,7 +488,8 @@ class SafeFallController:
                                planned_landing=planned)
         scfg = c.search
         stance_sides, pivots = ss.case_pivots(sit, scfg)
-        G, _, Q = ss.predict_touchdown(s.com, s.com_velocity, pivots, touchdown, scfg.rk4_steps)
+        G, _, Q = ss.predict_touchdown(s.com, s.com_velocity, pivots, touchdown, scfg.rk4_steps,
+                                       cop_delay=scfg.cop_delay)
         zones = {}
         lift_pred = {}
         for k, stance in enumerate(stance_sides, start=1):
@@ -786,7 +788,8 @@ class SafeFallController:
             return
         u = u / np.linalg.norm(u)
         pivot = ss._pivot(soles, stance, u, c.search.corner_tie)
-        G, _, Q = ss.predict_touchdown(s.com, s.com_velocity, [pivot], remaining, c.search.rk4_steps)
+        G, _, Q = ss.predict_touchdown(s.com, s.com_velocity, [pivot], remaining, c.search.rk4_steps,
+                                       cop_delay=c.search.cop_delay)
         zone = stepping_zone(self.m, q, swing, remaining, Q[0] - pivot.mean(axis=0), G[0], c.zone_velocity_fraction,
                              c.reach_fraction, hip_drop=c.hip_drop_m, max_yaw_change=c.max_yaw_change_rad,
                              yaw_reference=self.lift_off_yaw)

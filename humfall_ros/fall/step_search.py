@@ -78,6 +78,9 @@ class SearchConfig:
             of the cell size, to hold about this many (0: the grid as it falls) [-].
         capture_depth: among the captures at least this deep, the shortest step ranks first (ours; 0: the
             deepest capture ranks first, which puts the landing at the zone's far edge) [m].
+        cop_delay: how long after touchdown the CoP stays on the stance pivot before the balance can move it
+            into the new polygon (ours; 0: at once, the paper's capture): Q2 is taken that much later on the
+            linear pendulum about the pivot, :func:`delayed_capture_point` [s].
     """
 
     cell_xy: float = 0.04
@@ -88,6 +91,7 @@ class SearchConfig:
     rk4_steps: int = 8
     min_zone_cells: int = 0
     capture_depth: float = 0.0
+    cop_delay: float = 0.0
 
 
 @dataclasses.dataclass
@@ -226,10 +230,11 @@ def _pendulum_start(com, vel, pivots: list[np.ndarray]):
 
 
 def predict_touchdown(com, com_velocity, pivots: list[np.ndarray], duration: float, steps: int = 8,
-                      g: float = GRAVITY) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      g: float = GRAVITY, cop_delay: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """CoM, its velocity and the capture point (eq. 1-2) ``duration`` after now, per pivot set.
 
-    Returns (com (k, 3), velocity (k, 3), capture point (k, 2)).
+    ``cop_delay`` > 0: the capture point is the one ``cop_delay`` later with the CoP still on the pivot
+    (:func:`delayed_capture_point`). Returns (com (k, 3), velocity (k, 3), capture point (k, 2)).
     """
     com = np.asarray(com, float)
     vel = np.asarray(com_velocity, float)
@@ -241,7 +246,26 @@ def predict_touchdown(com, com_velocity, pivots: list[np.ndarray], duration: flo
     G = (com[None, :] - r0) + r
     z = np.maximum(G[:, 2], 1e-3)
     Q = G[:, :2] + np.sqrt(z / g)[:, None] * v[:, :2]
+    if cop_delay > 0.0:
+        Q = delayed_capture_point(Q, com[None, :2] - r0[:, :2], z, cop_delay, g)
     return G, v, Q
+
+
+def delayed_capture_point(q, cop, com_height, delay: float, g: float = GRAVITY) -> np.ndarray:
+    """The capture point ``delay`` later with the CoP held at ``cop`` (ours; the linear inverted pendulum).
+
+    The capture point xi = c + c'/omega obeys xi' = omega (xi - p) for a CoP p (omega = sqrt(g / z)), so with p
+    held: xi(t) = p + (xi(0) - p) exp(omega t). Used for the robot's balance response after touchdown: the CoP
+    does not jump into the new support polygon on the touchdown tick (measured at 1.3x standing_push: it stays
+    under the CoM for ~0.15 s while the capture point runs on).
+
+    Args:
+        q: capture points (k, 2) [m]; cop: CoPs (k, 2) [m]; com_height: z (k,) [m]; delay [s].
+    """
+    q = np.asarray(q, float)
+    p = np.asarray(cop, float)
+    omega = np.sqrt(g / np.maximum(np.asarray(com_height, float), 1e-3))
+    return p + (q - p) * np.exp(omega * delay)[:, None]
 
 
 def _hull_eval(cells: np.ndarray, sole_local: np.ndarray, pivot: np.ndarray, q: np.ndarray, target: np.ndarray):
@@ -497,7 +521,7 @@ def search(sit: FallSituation, sole_local: np.ndarray, cfg: SearchConfig | None 
     stance_sides, pivots = case_pivots(sit, cfg)
     edge = pivots[0]
     if prediction is None:
-        G, _V, Q = predict_touchdown(com, vel, pivots, sit.touchdown_time, cfg.rk4_steps)
+        G, _V, Q = predict_touchdown(com, vel, pivots, sit.touchdown_time, cfg.rk4_steps, cop_delay=cfg.cop_delay)
     else:
         G, Q = prediction
     cases: dict[StepCase, CaseResult] = {}
