@@ -489,9 +489,12 @@ class SegmentNLP:
         return pts
 
     # ------------------------------------------------------------ bounds
-    def bounds(self, q0, v0, env: Environment, lb_clear_start: np.ndarray | None = None):
-        """Numeric variable and constraint bounds for one solve."""
+    def bounds(self, q0, v0, env: Environment, lb_clear_start: np.ndarray | None = None,
+               acc_max: float | None = None):
+        """Numeric variable and constraint bounds for one solve (``acc_max``: the knot
+        acceleration bound of this solve instead of ``OptConfig.acc_max``)."""
         model, cfg, key = self.model, self.cfg, self.key
+        acc = cfg.acc_max if acc_max is None or acc_max <= 0 else float(acc_max)
         n, m, N = model.n, model.m, key.n_knots
         lbx = np.full(self.nw, -np.inf)
         ubx = np.full(self.nw, np.inf)
@@ -519,7 +522,7 @@ class SegmentNLP:
             lbx[o + 3 * n:o + 3 * n + m], ubx[o + 3 * n:o + 3 * n + m] = -1.0, 1.0
             # a: bounded so that the splines cannot hide an oscillating
             # acceleration between the collocation points
-            lbx[o + 2 * n:o + 3 * n], ubx[o + 2 * n:o + 3 * n] = -cfg.acc_max, cfg.acc_max
+            lbx[o + 2 * n:o + 3 * n], ubx[o + 2 * n:o + 3 * n] = -acc, acc
             # lambda (scaled by M g): normal components >= 0 (eq. 5), and a cap
             # on any component (no impulsive forces inside a segment)
             lo = o + 3 * n + m
@@ -905,18 +908,23 @@ class TrajectoryOptimizer:
         best.attempt_log = log
         return best
 
-    def warm_solve(self, q0, v0, guess: Segment, env: Environment) -> Segment:
+    def warm_solve(self, q0, v0, guess: Segment, env: Environment, acc_max: float | None = None) -> Segment:
         """Re-solve ``guess``'s NLP (same mode and contact change) from a new initial
         state, with ``guess``'s knots, torques and forces as the initial point: one
         IPOPT run, no seed sweep (the online re-plan from a library of plans; paper 2,
         Sec. V names such a database as future work). The first knot is the new state
-        (the bounds fix it); the rest of the guess is used as it is."""
+        (the bounds fix it); the rest of the guess is used as it is.
+
+        ``acc_max`` (rad/s^2 or m/s^2) replaces ``OptConfig.acc_max`` as the bound on
+        the knot accelerations of this solve (a bound, not a structure: the cached NLP
+        serves). The tree's polish of a stop the re-simulation check rejected uses it
+        (docs/multicontact.md, "Session 11")."""
         q0 = np.asarray(q0, float)
         v0 = np.asarray(v0, float)
         t0, c0 = time.perf_counter(), time.thread_time()
         nlp, _ = self.structures(guess.mode, guess.change, guess.extremity, env)
         build_time = time.perf_counter() - t0
-        lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env)
+        lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env, acc_max=acc_max)
         # the stored knots moved so that they start at the new state, the shift fading
         # out linearly to the last knot (which keeps the stored end)
         fade = np.linspace(1.0, 0.0, len(guess.time))[:, None]

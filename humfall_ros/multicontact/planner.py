@@ -58,6 +58,9 @@ class PlannerConfig:
     frontier_lookahead_steps: bool = False
     # a stopping self-motion rejected by the re-simulation check is solved again from the next seeds
     check_retry_seeds: bool = False
+    # a stopping self-motion rejected by the re-simulation check is re-solved warm from itself with
+    # its knot accelerations bounded by this (rad/s^2 or m/s^2; 0: off) before it is given up
+    check_polish_acc_max: float = 0.0
     stance: dict = dataclasses.field(default_factory=dict)
 
     @staticmethod
@@ -245,7 +248,8 @@ class FallPlanner:
                      time_budget=vr.time_budget, symmetry_cut=self.cfg.symmetry_cut, check_plan=check,
                      frontier_order=self.cfg.frontier_order, landing_policy=self.cfg.landing_policy,
                      lookahead=self.cfg.frontier_lookahead, step_lookahead=self.cfg.frontier_lookahead_steps,
-                     check_retry_seeds=self.cfg.check_retry_seeds)
+                     check_retry_seeds=self.cfg.check_retry_seeds,
+                     polish_acc_max=self.cfg.check_polish_acc_max if check is not None else 0.0)
         out = result_dict(self.model, res, vr)
         out["total_time_s"] = time.perf_counter() - t0
         return out
