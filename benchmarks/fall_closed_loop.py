@@ -1,6 +1,7 @@
 """Safe fall in one process (``humfall_ros.fall.runs`` on the suite's ClosedLoop): issue 11's experiments.
 
-    .venv/bin/python benchmarks/fall_closed_loop.py push [SCALE] [KINDS] [OUT]  # standing_push, none/stepping/...
+    .venv/bin/python benchmarks/fall_closed_loop.py push [SCALE] [KINDS] [OUT] [KEY=VALUE ...]  # standing_push
+        (KEY=VALUE: scenario overrides, e.g. params.safe_fall_controller.balance_kd=0.1)
     .venv/bin/python benchmarks/fall_closed_loop.py ftb                         # 0.9x / 1.1x per direction
     .venv/bin/python benchmarks/fall_closed_loop.py quiet [SECONDS]             # standing_quiet, exact + noise
     .venv/bin/python benchmarks/fall_closed_loop.py small                       # small_push in 8 directions: FTB quiet?
@@ -36,8 +37,8 @@ def _push_overrides(scale: float) -> list[str]:
     return [f"push.0.force={f}"]
 
 
-def standing_push(kinds, scale: float = 1.0, out: str | None = "runs/fall_figures") -> dict:
-    ov = _push_overrides(scale)
+def standing_push(kinds, scale: float = 1.0, out: str | None = "runs/fall_figures", overrides=()) -> dict:
+    ov = _push_overrides(scale) + list(overrides)
     got, res = {}, {}
     for k in kinds:
         t0 = time.perf_counter()
@@ -286,7 +287,10 @@ def main(argv: list[str]) -> None:
     if what == "push":
         scale = float(argv[1]) if len(argv) > 1 else 1.0
         kinds = argv[2].split(",") if len(argv) > 2 else list(runs.CONTROLLERS)
-        out = standing_push(kinds, scale, argv[3] if len(argv) > 3 else "runs/fall_figures")
+        rest = argv[3:]
+        folders = [a for a in rest if "=" not in a]   # an override is never taken for the figures' folder
+        out = standing_push(kinds, scale, folders[0] if folders else "runs/fall_figures",
+                            [a for a in rest if "=" in a])
     elif what == "ftb":
         out = ftb_check()
     elif what == "small":
