@@ -74,7 +74,7 @@ def test_stepping_inertia_standing_push_over_ros_equals_in_process(run_up):
     assert r["metrics"]["min_target_distance_m"] >= 0.05
 
 
-HANDBACK_DURATION = 5.0  # s: trigger 0.60 s, touchdown 1.02 s, FTB recovered 4.45 s, hand-back 4.47 s
+HANDBACK_DURATION = 3.5  # s: trigger 0.60 s, touchdown 0.85 s, FTB recovered 2.35 s, hand-back 2.37 s (balance_kd 0.1)
 
 
 def test_captured_push_handed_back_to_locomotion_over_ros_equals_in_process(run_up):
