@@ -4,6 +4,7 @@ terminal cost of a foot landing (``step_capture_weight``), the step lookahead
 (``frontier_lookahead_steps``), and a real 30 J plan that steps."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -214,3 +215,63 @@ def test_check_retry_seeds_solves_a_rejected_stop_again_from_the_next_seeds(mode
     else:
         assert not res.success and 2 not in fake.skips
         assert any(n.rejected for n in res.nodes)
+
+
+class _PolishOpt(_StepOpt):
+    """The stepped double support stops; ``warm_solve`` returns a copy of the stop marked
+    with the acceleration bound it was given (and whether it still stops)."""
+
+    def __init__(self, model, q0, polished_stops=True):
+        super().__init__(model, q0)
+        self.warm_calls = []
+        self.polished_stops = polished_stops
+
+    def warm_solve(self, q0, v0, guess, env, acc_max=None):
+        self.warm_calls.append(acc_max)
+        ke = guess.ke.copy()
+        ke[-1] = 0.0 if self.polished_stops else 1.0
+        return dataclasses.replace(guess, ke=ke, seed_duration=-float(acc_max))
+
+
+@pytest.mark.parametrize("polish,polished_stops", [(0.0, True), (100.0, True), (100.0, False)])
+def test_polish_re_solves_a_rejected_stop_with_bounded_accelerations(model, polish, polished_stops):
+    """``polish_acc_max``: a stop that the check rejects is re-solved warm from itself with
+    that acceleration bound; the node is terminal only if the polished solve still stops
+    and passes the check, and its self-motion is then the polished one."""
+    env = Environment()
+    q0, v0 = _pushed(model, 30.0)
+    fake = _PolishOpt(model, q0, polished_stops)
+    seen = []
+
+    def check(segments):   # rejects any stop that was not polished with a bound <= 150
+        seen.append(segments[-1].seed_duration)
+        return None if -150.0 <= segments[-1].seed_duration < 0 else "test: flailing arms"
+    res = tree_mod.search(fake, q0, v0, ("LF", "RF"), env, time_budget=30.0, max_depth=2,
+                          frontier_order="capture", landing_policy="ignore", step_lookahead=True,
+                          check_plan=check, polish_acc_max=polish)
+    if polish > 0:
+        assert fake.warm_calls and set(fake.warm_calls) == {polish}
+        assert any(e.get("polish_acc_max") == polish for e in res.nlp_log)
+    else:
+        assert not fake.warm_calls
+    if polish > 0 and polished_stops:
+        assert res.success and res.contact_sequence[-1] == "LF/RF"
+        assert res.segments()[-1].seed_duration == -polish and res.final_ke == 0.0
+        assert res.nlp_log[-1]["plan_check"] == "passed"
+    else:
+        assert not res.success and any(n.rejected for n in res.nodes)
+        if polish > 0:   # the polished solve ended above eps_KE: never checked
+            assert all(s > 0 for s in seen)
+
+
+def test_polish_bound_replaces_acc_max_in_the_nlp_bounds(model):
+    """``warm_solve(acc_max=)`` reaches the knot-acceleration bounds of the cached NLP."""
+    env = Environment()
+    opt = TrajectoryOptimizer(model, OptConfig())
+    nlp, _ = opt.structures(("LF", "RF"), "", "", env)
+    q0, v0 = _pushed(model, 10.0)
+    n = model.n
+    o = nlp.knot_slices[1][0]
+    for acc, want in ((None, opt.cfg.acc_max), (100.0, 100.0), (0.0, opt.cfg.acc_max)):
+        lbx, ubx, *_ = nlp.bounds(q0, v0, env, acc_max=acc)
+        assert np.all(ubx[o + 2 * n:o + 3 * n] == want) and np.all(lbx[o + 2 * n:o + 3 * n] == -want)
