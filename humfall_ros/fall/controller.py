@@ -100,6 +100,7 @@ class SafeFallConfig:
     shaping_sign: float = -1.0
     shaping_recruit: str = "all"
     shaping_damping: float = 1e-4
+    shaping_velocity_fraction: float = 1.0
     shaping_direction: str = "away"
     shaping_settled_sign: float = -1.0
     shaping_settled_s: float = 0.2
@@ -137,7 +138,8 @@ class SafeFallConfig:
     def shaping(self) -> ShapingConfig:
         return ShapingConfig(gain=self.shaping_gain, sign=self.shaping_sign, damping=self.shaping_damping,
                              direction=self.shaping_direction, sweep_horizon_s=self.shaping_sweep_horizon_s,
-                             sweep_clearance_m=self.shaping_sweep_clearance_m)
+                             sweep_clearance_m=self.shaping_sweep_clearance_m,
+                             velocity_fraction=self.shaping_velocity_fraction)
 
 
 @dataclasses.dataclass
