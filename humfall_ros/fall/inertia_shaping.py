@@ -154,7 +154,7 @@ class ShapingConfig:
     gain: float = 0.02
     sign: float = -1.0
     damping: float = 1e-4
-    velocity_fraction: float = 0.9
+    velocity_fraction: float = 1.0
     position_margin: float = 0.02
     direction: str = "away"
     sweep_horizon_s: float = 0.1
