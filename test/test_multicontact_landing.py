@@ -102,7 +102,7 @@ def test_planner_is_built_from_its_one_declaration():
         elif name in {f.name for f in dataclasses.fields(PlannerConfig)}:
             assert getattr(cfg, name) == value, name
     assert opt.transition_objective == "pre_impact"   # the paper
-    assert cfg.frontier_order == "mechanical"   # departure from Alg. 1 line 20 (docs/multicontact.md)
+    assert cfg.frontier_order == "capture"   # departure from Alg. 1 line 20 (docs/multicontact.md, session 11)
     assert opt.landing_limits.hand_normal_speed_max == decl["landing_hand_normal_speed_max"]
     assert cfg.stance["knee"] == decl["stance_knee"]
     # the dataclass defaults do not drift from the declaration (nlp_max_wall_time was 20 s vs 10 s)

@@ -85,7 +85,7 @@ class OptConfig:
     mu: float = 0.35              # friction coefficient
     torque_reg: float = 1e-4      # weight of sum (u/u_max)^2 h (tie breaker)
     force_reg: float = 0.0        # weight of sum (lambda/(M g))^2 h: picks one of the non-unique internal forces
-    max_iter: int = 300
+    max_iter: int = 600            # 300 until session 11 (the 40 J step's stop needs ~400)
     tol: float = 1e-4
     constr_viol_tol: float = 1e-5
     feasibility_tol: float = 1e-4  # our own check of the returned solution
@@ -105,7 +105,7 @@ class OptConfig:
     transition_objective: str = "pre_impact"
     # T_min of a transition that removes a contact (s; <= 0: t_min). A release is
     # a lift-off: it has no reason to last as long as the shortest landing.
-    release_t_min: float = 0.0
+    release_t_min: float = 0.1     # session 7, default since session 11 (Table I: t_min for all)
     # seed durations of a release (s; values <= 0 dropped; empty: the general list). Tried in order.
     release_seed_durations: tuple = ()
     # foot landing seeds: the seed goal puts the landing foot's toe this far past
@@ -122,13 +122,13 @@ class OptConfig:
     # eq. 5 on the impulses of eq. 10 (|Lambda_t| <= mu Lambda_n per contact): the
     # paper's impact map sticks whatever friction that needs (departure, off by default)
     impact_friction_cone: bool = False
-    step_capture_margin: float = 0.0
+    step_capture_margin: float = 0.12
     # J/m^2, terminal cost w * s^2 of a foot landing, s = how far the post-impact capture point is past the
     # landing foot's toe (forward push; heel backward) less step_capture_margin (departure, 0 = off, the paper):
     # a cost-to-go estimate of the next node that eq. 9 does not have. Soft, unlike step_capture_constraint
     # (with which the landing did not converge); scale: 1/2 M g / z_com = 374 J/m^2 is the kinetic energy of
     # the excess capture-point velocity omega * s of the linear inverted pendulum
-    step_capture_weight: float = 0.0
+    step_capture_weight: float = 2000.0   # default since session 11
     # kinetic energy at every inner knot of a contact-adding transition <= this many times the energy it
     # starts with (departure, 0 = off, the paper): eq. 9 prices only the end, so a plan may swing up to 6x
     # its start energy and brake just before the touchdown, which an early contact turns into a hard impact

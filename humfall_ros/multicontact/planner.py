@@ -50,17 +50,17 @@ class PlannerConfig:
     check_feedback_max: float = 0.5
     # frontier key of a child reached by a landing: 'pre_impact' (Alg. 1 line 20, the
     # paper) or 'post_impact' (departure); landings beyond the limits: rank_last | refuse | ignore
-    frontier_order: str = "mechanical"
+    frontier_order: str = "capture"   # departure; default since session 11 (session 6-10: mechanical)
     landing_policy: str = "rank_last"
     # departure: solve a child's self-motion when it is made and key it on its end energy (tree.search)
     frontier_lookahead: bool = False
     # departure: the same for children reached by a foot landing only (the second half of a step)
-    frontier_lookahead_steps: bool = False
+    frontier_lookahead_steps: bool = True
     # a stopping self-motion rejected by the re-simulation check is solved again from the next seeds
     check_retry_seeds: bool = False
     # a stopping self-motion rejected by the re-simulation check is re-solved warm from itself with
     # its knot accelerations bounded by this (rad/s^2 or m/s^2; 0: off) before it is given up
-    check_polish_acc_max: float = 0.0
+    check_polish_acc_max: float = 100.0
     stance: dict = dataclasses.field(default_factory=dict)
 
     @staticmethod
