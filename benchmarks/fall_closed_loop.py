@@ -237,9 +237,11 @@ def walk(speeds=(0.5, 1.0, 1.35, 1.8), kind: str = "stepping", overrides: tuple[
         loop = ClosedLoop(sc, ctrls, mons)
         ftb, loco = mons[0], ctrls[0]
         err, lean, margin, steps = (0.0, 0.0), 0.0, -math.inf, 0
+        first = None   # the first fall event, also one the FTB's recovery cleared later
         try:
             for _ in range(int(round(sc["duration"] * sc["sim"]["control_rate"]))):
                 loop.step()
+                first = first or ftb.event
                 f = loop.outputs["ftb/status"][-1].features
                 if math.isfinite(f.capture_point_error) and f.capture_point_error > err[0]:
                     err = (f.capture_point_error, loop.world.time)
@@ -251,7 +253,7 @@ def walk(speeds=(0.5, 1.0, 1.35, 1.8), kind: str = "stepping", overrides: tuple[
             m = loop.metrics()
         finally:
             loop.close()
-        ev = ftb.event
+        ev = first
         rows.append({"speed_kmh": v, "triggered": ev is not None, "trigger_time_s": None if ev is None else ev.time,
                      "reason": None if ev is None else ev.reason, "steps": steps, "fell": m["fell"],
                      "max_capture_point_error_m": round(err[0], 4), "at_s": round(err[1], 3),
