@@ -279,33 +279,31 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         if check_plan is not None:
             rejected = check_plan([nodes[i].edge for i in path[1:]] + [y])
             log[-1]["plan_check"] = rejected or "passed"
-        if rejected is not None and polish_acc_max > 0 and time.perf_counter() < deadline:
-            y2 = opt.warm_solve(d.q, d.v, y, env, acc_max=polish_acc_max)
+        def accept(y2, key, value) -> bool:
+            """Another self-motion for d after a rejection: terminal if it stops and passes the check."""
             record("self_motion", d, y2)
-            log[-1]["polish_acc_max"] = polish_acc_max
-            if y2.success and y2.final_ke < eps_ke:
-                rejected2 = check_plan([nodes[i].edge for i in path[1:]] + [y2])
-                log[-1]["plan_check"] = rejected2 or "passed"
-                if rejected2 is None:
-                    d.self_motion = y2
-                    d.status = "terminal"
-                    return True
+            log[-1][key] = value
+            if not (y2.success and y2.final_ke < eps_ke):
+                return False
+            rejected2 = check_plan([nodes[i].edge for i in path[1:]] + [y2])
+            log[-1]["plan_check"] = rejected2 or "passed"
+            if rejected2 is not None:
+                return False
+            d.self_motion = y2
+            d.status = "terminal"
+            return True
+
+        if rejected is not None and polish_acc_max > 0 and time.perf_counter() < deadline:
+            if accept(opt.warm_solve(d.q, d.v, y, env, acc_max=polish_acc_max), "polish_acc_max", polish_acc_max):
+                return True
         if rejected is not None and check_retry_seeds and time.perf_counter() < deadline:
             try:
                 y2 = opt.opt_self_motion(d.q, d.v, d.mode, env, deadline=deadline,
                                          skip_seeds=sum(1 for a in y.attempt_log if a.get("seed_T") != "warm"))
             except (TimeoutError, ValueError):
                 y2 = None
-            if y2 is not None:
-                record("self_motion", d, y2)
-                log[-1]["check_retry"] = True
-                if y2.success and y2.final_ke < eps_ke:
-                    rejected2 = check_plan([nodes[i].edge for i in path[1:]] + [y2])
-                    log[-1]["plan_check"] = rejected2 or "passed"
-                    if rejected2 is None:
-                        d.self_motion = y2
-                        d.status = "terminal"
-                        return True
+            if y2 is not None and accept(y2, "check_retry", True):
+                return True
         if rejected is None:
             d.status = "terminal"
             return True
