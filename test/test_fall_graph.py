@@ -15,7 +15,7 @@ from humfall_ros.fall import runs
 
 from test_suite_graph import joint_states_from_bag
 
-DURATION = 2.4  # s: trigger 0.60 s, touchdown ~1.0 s; then captured (FTB clears) or falling, per the balance gains
+DURATION = 2.4  # s: trigger 0.60 s, touchdown 0.85 s, captured: FTB recovered 2.35 s, hand-back 2.37 s
 
 
 def bag_messages(bag, topic):
@@ -38,9 +38,8 @@ def test_stepping_inertia_standing_push_over_ros_equals_in_process(run_up):
     bag = r["bag"]
     # the FTB: a status every tick, the event latched once
     events = bag_messages(bag, "/fall_event")
-    # the event, latched once; a recovery after the step may clear it (and only that)
-    assert 1 <= len(events) <= 2 and not events[0].cleared
-    assert all(e.cleared and "recovered" in e.reason for e in events[1:])
+    # the event, latched once, then its clearing: the step captures the push and the FTB sees the recovery
+    assert [e.cleared for e in events] == [False, True] and "recovered" in events[1].reason
     ev = events[0]
     assert ev.trigger_mode == "ftb" and math.isfinite(ev.control_duration) and len(ev.support_polygon) >= 2
     statuses = bag_messages(bag, "/ftb/status")
@@ -55,12 +54,13 @@ def test_stepping_inertia_standing_push_over_ros_equals_in_process(run_up):
     # the mux: safe_fall drives from the tick after the trigger on
     active = [(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, m.active) for m in bag_messages(bag, "/mux/state")]
     t_ev = ev.header.stamp.sec * 10**9 + ev.header.stamp.nanosec
-    # after a clearing, safe_fall hands back to locomotion (at most once, after the clearing)
-    t_clear = (events[1].header.stamp.sec * 10**9 + events[1].header.stamp.nanosec) if len(events) == 2 else math.inf
+    # after the clearing, safe_fall hands back to locomotion once, for good, within the run
+    t_clear = events[1].header.stamp.sec * 10**9 + events[1].header.stamp.nanosec
     assert all(a == "safe_fall" for k, a in active if t_ev < k <= t_clear)
     assert all(a == "locomotion" for k, a in active if 0 < k <= t_ev)
     after = [a for k, a in sorted(active) if k > t_clear]
-    assert after == sorted(after, key=lambda a: a == "locomotion")   # safe_fall ..., then locomotion ...
+    k_hb = after.index("locomotion")
+    assert set(after[:k_hb]) <= {"safe_fall"} and set(after[k_hb:]) == {"locomotion"}
     # identical to the in-process loop
     sc = scenario.load("standing_push", ov + ["controller=stepping_inertia"])
     mine = runs.run(sc, stop_after_landing_s=None)
