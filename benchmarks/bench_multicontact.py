@@ -37,13 +37,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import yaml  # noqa: E402
 
 from humfall_ros.multicontact.modes import Environment  # noqa: E402
-from humfall_ros.multicontact.planner import FallPlanner  # noqa: E402
-
-# the planner before issue 14 (departures from paper 2, Sec. III-A / Alg. 1 line 20)
-# (and none of the step options that are the defaults since session 11)
-DEPARTURE = {"transition_objective": "post_impact", "frontier_order": "post_impact", "landing_policy": "ignore",
-             "touchdown_speed_constraint": False, "frontier_lookahead_steps": False, "step_capture_weight": 0.0,
-             "step_capture_margin": 0.0, "release_t_min": 0.0, "max_iter": 300, "check_polish_acc_max": 0.0}
+from humfall_ros.multicontact.planner import DEPARTURE, FallPlanner  # noqa: E402  (DEPARTURE: the planner before issue 14)
 
 PAPER = {10: "inertial shaping", 20: "inertial shaping", 30: "protective step", 40: "protective step",
          50: "protective step", 60: "hand contact", 70: "hand contact", 80: "hand contact"}

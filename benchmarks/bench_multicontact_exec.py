@@ -12,8 +12,8 @@ final 3-D KE, final contact mode vs the plan's, links touching the ground beside
 extremities, planned vs executed contact times and positions, peak contact force per limb.
 
 ``--objective departure`` (default) plans with the post-impact objective and frontier key, landings
-unlimited, no touchdown-speed constraint (``bench_multicontact.DEPARTURE``): with the paper's objective
-only 10 and 20 J have a plan today (docs/multicontact.md). ``--objective paper`` uses the declaration as
+unlimited, no touchdown-speed constraint (``humfall_ros.multicontact.planner.DEPARTURE``): with the paper's objective
+the step options of session 11 are the defaults (docs/multicontact.md). ``--objective paper`` uses the declaration as
 it is. ``--save-plans DIR`` writes each executed plan as ``multicontact_push_<KE>J.json``
 (``StoredPlan``; the executor node's ``plan_file``). ``--calibrate F,...`` only prints the push -> KE
 table for those forces.
@@ -32,10 +32,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 
 from humfall_ros import scenario as scenario_mod  # noqa: E402
 from humfall_ros.multicontact.executor import StoredPlan  # noqa: E402
-from humfall_ros.multicontact.planner import FallPlanner  # noqa: E402
+from humfall_ros.multicontact.planner import DEPARTURE, FallPlanner  # noqa: E402
 from humfall_ros.sim import multicontact_run as mr  # noqa: E402
-
-from bench_multicontact import DEPARTURE  # noqa: E402 - the one definition (this directory is on sys.path)
 
 SCENARIO = "multicontact_push"
 

@@ -12,17 +12,10 @@ import pytest
 from humfall_ros.multicontact import contacts as C
 from humfall_ros.multicontact.collocation import Segment
 from humfall_ros.multicontact.modes import Environment
-from humfall_ros.multicontact.planner import FallPlanner
+from humfall_ros.multicontact.planner import DEPARTURE, NO_STEP_OPTIONS, FallPlanner
 from humfall_ros.multicontact.resim import dense_check, forward_resim, plan_check
 
-
-# today's planner before issue 14, kept as an option: the post-impact objective and frontier key
-# (departures from paper 2, Sec. III-A), landings not limited
-# (and none of the step options that are the defaults since session 11)
-NO_STEP_OPTIONS = {"frontier_lookahead_steps": False, "step_capture_weight": 0.0, "step_capture_margin": 0.0,
-                   "release_t_min": 0.0, "max_iter": 300, "check_polish_acc_max": 0.0}
-DEPARTURE = {"transition_objective": "post_impact", "frontier_order": "post_impact", "landing_policy": "ignore",
-             "touchdown_speed_constraint": False, **NO_STEP_OPTIONS}
+# DEPARTURE: the planner before issue 14, kept as an option (humfall_ros.multicontact.planner)
 # the defaults of sessions 6-10: the paper's objective with the 'mechanical' key, no step options
 SESSION6 = {"frontier_order": "mechanical", **NO_STEP_OPTIONS}
 

@@ -30,6 +30,16 @@ from humfall_ros.multicontact.resim import plan_check
 from humfall_ros.multicontact.tree import SearchResult, search
 
 
+# Named parameter sets of earlier planners, as ``FallPlanner.from_params(**...)`` overrides (the benchmarks'
+# comparisons and the tests use these; one definition). NO_STEP_OPTIONS: none of the step options that are the
+# defaults since session 11. DEPARTURE: the planner before issue 14 (post-impact objective and frontier key,
+# departures from paper 2 Sec. III-A / Alg. 1 line 20; landings not limited).
+NO_STEP_OPTIONS = {"frontier_lookahead_steps": False, "step_capture_weight": 0.0, "step_capture_margin": 0.0,
+                   "release_t_min": 0.0, "max_iter": 300, "check_polish_acc_max": 0.0}
+DEPARTURE = {"transition_objective": "post_impact", "frontier_order": "post_impact", "landing_policy": "ignore",
+             "touchdown_speed_constraint": False, **NO_STEP_OPTIONS}
+
+
 @dataclasses.dataclass
 class PlannerConfig:
     max_depth: int = 4
