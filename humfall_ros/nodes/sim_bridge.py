@@ -45,6 +45,7 @@ from humfall_ros.nodes.common import (
     QOS_CLOCK,
     QOS_LATCHED,
     QOS_RELIABLE,
+    _profiled,
     Params,
     shutting_down,
     stamp_key,
@@ -577,7 +578,8 @@ def main(args=None) -> int:
         executor.add_node(node)
         command_executor = rclpy.executors.SingleThreadedExecutor()
         command_executor.add_node(node.command_node)
-        node.run(executor, command_executor)
+        with _profiled(node):
+            node.run(executor, command_executor)
         # linger briefly so latched results reach late subscribers
         end = time.monotonic() + 0.3
         while rclpy.ok() and time.monotonic() < end:
