@@ -94,3 +94,37 @@ def test_balance_holds_the_com_over_the_feet_not_over_a_drifting_world_point():
     # the noisy odometry drifts ~0.1 m in the world; a world-fixed reference leant the robot 1.5 deg
     r = run_scenario(scenario.load("standing_quiet"), duration=3.0, noise=dataclasses.replace(TYPICAL_NOISE, seed=2))
     assert r.max_trunk_tilt_deg < 0.3
+
+
+def _pushed_state(**kw):
+    """Joint positions 0.5 s into a 150 N sideways chest push (the robot rocks on its sole edges: contacts drift)."""
+    w = SimWorld(**kw)
+    try:
+        w.add_push([0.0, 150.0, 0.0], duration=0.1, start=0.05)
+        for _ in range(250):
+            w.step_control()
+        return w.joint_states()[0].copy()
+    finally:
+        w.close()
+
+
+def test_contact_breaking_threshold_default_is_bullets_own_and_reaches_the_engine(monkeypatch):
+    import pybullet as pb
+
+    explicit = _pushed_state(contact_breaking_threshold=0.02)
+    set_params = pb.setPhysicsEngineParameter
+
+    def without_threshold(**kw):  # what the world did before the parameter existed
+        kw.pop("contactBreakingThreshold", None)
+        return set_params(**kw)
+
+    monkeypatch.setattr(pb, "setPhysicsEngineParameter", without_threshold)
+    engine_default = _pushed_state()
+    monkeypatch.setattr(pb, "setPhysicsEngineParameter", set_params)
+    assert np.array_equal(explicit, engine_default)  # 0.02 is Bullet's default: declaring it changed nothing
+    assert not np.array_equal(_pushed_state(contact_breaking_threshold=0.001), explicit)  # and it is applied
+
+
+def test_scenario_refuses_a_contact_breaking_threshold_out_of_range():
+    with pytest.raises(scenario.ScenarioError, match="contact_breaking_threshold"):
+        scenario.load("standing_quiet", ["sim.contact_breaking_threshold=0"])

@@ -91,6 +91,7 @@ class SimBridge(Node):
         self.metrics_file = P.declare("metrics_file")
         self.scenario_name = P.declare("scenario")
         friction = P.declare("friction")
+        contact = {"contact_breaking_threshold": P.declare("contact_breaking_threshold")}
         tf_rate = P.declare("tf_rate")
         gt_rate = P.declare("ground_truth_rate")
         self.service_period = 1.0 / P.declare("service_rate")
@@ -113,6 +114,8 @@ class SimBridge(Node):
                                        ("lockstep", "lockstep", bool(sim["lockstep"])),
                                        ("real_time_factor", "rtf_target", float(sim["real_time_factor"])),
                                        ("friction", None, float(sim["friction"])),
+                                       ("contact_breaking_threshold", "contact_breaking_threshold",
+                                        float(sim["contact_breaking_threshold"])),
                                        ("end_time", "end_time", float(self.scenario["duration"]))):
                 if param in P.overridden:
                     if P.values[param] != value:
@@ -121,12 +124,15 @@ class SimBridge(Node):
                     continue
                 if attr is None:
                     friction = value
+                elif attr in contact:
+                    contact[attr] = value
                 else:
                     setattr(self, attr, value)
         posture = None
         if self.scenario["robot"]["initial_posture"]:
             posture = {**STANDING_POSTURE, **self.scenario["robot"]["initial_posture"]}
-        self.world = SimWorld(self.physics_rate, self.control_rate, friction=friction, initial_posture=posture)
+        self.world = SimWorld(self.physics_rate, self.control_rate, friction=friction, initial_posture=posture,
+                              **contact)
         self.model = self.world.model
         self.sensors = Sensors(self.world, SensorNoise(**noise, seed=noise_seed))
         self.joint_index = {n: i for i, n in enumerate(self.model.joint_names)}

@@ -56,7 +56,7 @@ class SimWorld:
     def __init__(self, physics_rate: float = 1000.0, control_rate: float = 500.0,
                  friction: float = 0.9, position_gain: float = 0.3, velocity_gain: float = 1.0,
                  model: HumanoidModel | None = None, initial_posture: dict | None = None,
-                 enforce_velocity_limits: bool = True):
+                 enforce_velocity_limits: bool = True, contact_breaking_threshold: float = 0.02):
         if physics_rate % control_rate:
             raise ValueError("physics_rate must be an integer multiple of control_rate")
         self.physics_rate = float(physics_rate)
@@ -64,6 +64,9 @@ class SimWorld:
         self.substeps = int(round(physics_rate / control_rate))
         self.dt = 1.0 / physics_rate
         self.friction = friction
+        # Bullet's persistent contact points are dropped when their two witness points drift apart
+        # sideways by more than this [m] (Bullet's default 0.02): see config/sim_bridge.yaml
+        self.contact_breaking_threshold = float(contact_breaking_threshold)
         self.position_gain = position_gain
         self.velocity_gain = velocity_gain
         self.enforce_velocity_limits = enforce_velocity_limits
@@ -80,7 +83,8 @@ class SimWorld:
         c = self.client
         pb.resetSimulation(physicsClientId=c)
         pb.setPhysicsEngineParameter(fixedTimeStep=self.dt, numSolverIterations=50,
-                                     deterministicOverlappingPairs=1, physicsClientId=c)
+                                     deterministicOverlappingPairs=1,
+                                     contactBreakingThreshold=self.contact_breaking_threshold, physicsClientId=c)
         pb.setGravity(0, 0, -GRAVITY, physicsClientId=c)
         plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=c)
         self.ground = pb.createMultiBody(0, plane, physicsClientId=c)
