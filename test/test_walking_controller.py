@@ -11,7 +11,7 @@ from humfall_ros.control.contract import CentroidalObservation, Observation
 from humfall_ros.model.humanoid import load_model
 from humfall_ros.params import ParamError
 from humfall_ros.walking.config import LocomotionConfig
-from humfall_ros.walking.controller import LocomotionController
+from humfall_ros.walking.controller import LocomotionController, WalkingState
 
 
 @pytest.fixture(scope="module")
@@ -141,3 +141,39 @@ def test_per_foot_measurements_reach_the_stabiliser_up_to_the_gate_speed(model):
     assert got["foot_forces"] == {"l": 300.0, "r": 260.0} and got["contacts"] == {"l": True, "r": True}
     c.command = WalkCommand((gate + 0.1) / 3.6, 0.0)
     assert c._foot_measurements(st) == {}
+
+
+def _is_idle_default(state) -> bool:
+    """The state is WalkingState's defaults but for its stamp and `released` (what the locomotion node caches)."""
+    ref = dataclasses.replace(WalkingState(), stamp_ns=state.stamp_ns, released=state.released)
+    for f in dataclasses.fields(WalkingState):
+        a, b = getattr(state, f.name), getattr(ref, f.name)
+        if isinstance(a, np.ndarray):
+            if not np.array_equal(a, b, equal_nan=True):
+                return False
+        elif a != b:
+            return False
+    return True
+
+
+def test_a_state_that_is_not_walking_carries_only_released(model):
+    """locomotion builds walking/state's message once for a non-walking state: standing, released (fall event,
+    e-stop) and standing again after a walk must all be the defaults, or the node would publish stale content."""
+    c = LocomotionController(model, dataclasses.replace(LocomotionConfig(), dcm_gain=0.0, cop_damping_gain=0.0))
+    q = c.reference_configuration(c.standing_posture, 0.0, (0.0, 0.0))
+    c.step(observe(model, q, 0.0))
+    assert not c.state.walking and _is_idle_default(c.state)
+    assert c.set_walk_command(1.0 / 3.6, 0.0, n_steps=1) is None
+    t, seen_walking = 0.002, False
+    for _ in range(4000):
+        c.step(observe(model, q if c.q_ik is None else c.q_ik, t))
+        t += c.dt
+        seen_walking |= c.state.walking
+        if seen_walking and not c.state.walking:
+            break
+    assert seen_walking and not c.state.walking and _is_idle_default(c.state)   # stands again after the walk
+    assert not _is_idle_default(dataclasses.replace(c.state, speed=0.1))        # the check can fail
+    c.step(observe(model, q, t, {"fall_event": True}))
+    assert c.state.released and not c.state.walking and _is_idle_default(c.state)
+    c.step(observe(model, q, t + c.dt, {"estop": True}))
+    assert c.state.released and _is_idle_default(c.state)

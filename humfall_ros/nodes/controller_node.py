@@ -180,24 +180,35 @@ class ControllerNode(Node):
             return
         self.tick_outputs = []
         stamp = tick.inputs["centroidal_state"].header.stamp
+        stepped = None
         try:
             obs = self.observation(tick.stamp_ns, tick.inputs)
             targets = self.controller.step(obs)
             cmd = self._command(targets)
-            self.after_step(obs, targets)
+            stepped = (obs, targets)
         except Exception as e:  # noqa: BLE001 - never die on a bad tick; never leave a taken-over robot
             if not self.context.ok():
                 return  # shutting down (a signal arrived mid-tick): nothing to answer, nothing failed
-            self.failures += 1
-            self.get_logger().error(f"tick {tick.stamp_ns * 1e-9:.3f} s failed: {e!r}; "
-                                    + ("repeating the last targets" if self.engaged else "releasing"),
-                                    throttle_duration_sec=1.0)
+            self._failed(tick.stamp_ns, e)
             cmd = JointState(name=list(self.last_cmd.name), position=list(self.last_cmd.position)) \
                 if self.engaged and self.last_cmd is not None else JointState()
         cmd.header.stamp = stamp
-        self.pub.publish(cmd)
+        self.pub.publish(cmd)  # first: in lockstep the bridge waits for it, not for the outputs below
         self.last_cmd = cmd
         self.engaged = bool(cmd.name)
+        if stepped is not None:
+            try:
+                self.after_step(*stepped)
+            except Exception as e:  # noqa: BLE001
+                if self.context.ok():
+                    self._failed(tick.stamp_ns, e, "its per-tick outputs")
+
+    def _failed(self, stamp_ns: int, e: Exception, what: str | None = None) -> None:
+        self.failures += 1
+        then = what and f"no {what} this tick"
+        self.get_logger().error(f"tick {stamp_ns * 1e-9:.3f} s failed: {e!r}; "
+                                + (then or ("repeating the last targets" if self.engaged else "releasing")),
+                                throttle_duration_sec=1.0)
 
     def _command(self, targets: JointTargets | None) -> JointState:
         if targets is None:

@@ -112,9 +112,18 @@ class Locomotion(ControllerNode):
         self.state_pub = self.create_publisher(WalkingStateMsg, "walking/state", QOS_RELIABLE,
                                                event_callbacks=NO_PUB_EVENTS)
         self._logged = 0
+        self._idle_msgs: dict[bool, WalkingStateMsg] = {}
 
     def after_step(self, observation: Observation, targets: JointTargets | None) -> None:
-        msg = walking_state_to_msg(self.controller.state)
+        state = self.controller.state
+        if state.walking:
+            msg = walking_state_to_msg(state)
+        else:
+            # standing or released: the state is WalkingState's defaults but for `released` (tested), so its
+            # message is built once; building it each tick was a quarter of the node's CPU while standing
+            msg = self._idle_msgs.get(state.released)
+            if msg is None:
+                msg = self._idle_msgs[state.released] = walking_state_to_msg(state)
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(observation.stamp_ns), 1_000_000_000)
         self.publish_tick(self.state_pub, msg)
         log = self.controller.messages
