@@ -17,6 +17,7 @@ once the lockstep sources have answered the first tick (or ``start_timeout`` pas
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import sys
@@ -178,6 +179,7 @@ class SimBridge(Node):
             JointState, f"joint_command/{s}", lambda msg, s=s: self._on_command(s, msg), QOS_RELIABLE,
             event_callbacks=no_events) for s in self.sources}
         self._can_take = True
+        self._command_wait = None   # (held handles, subscriptions, wait set): _wait_commands
         # the fall controller's event and decision, for the run metrics (alpha2, lead time, prediction)
         self.create_subscription(FallEvent, "fall_event", self._on_fall_event, QOS_LATCHED)
         self.create_subscription(SafeFallDecision, "safe_fall/decision", self._on_decision, QOS_LATCHED)
@@ -241,6 +243,35 @@ class SimBridge(Node):
                 "touchdown_time": msg.touchdown_time})
         except Exception as e:  # noqa: BLE001 - a bad message never stops the bridge
             self.get_logger().warning(f"safe_fall/decision not usable for the metrics: {e}")
+
+    def _wait_commands(self, command_executor, timeout: float) -> None:
+        """Wait up to ``timeout`` [s] for a command (then ``take_commands`` takes it).
+
+        A wait set on the command subscriptions alone, kept between ticks, as the hot loops of the other nodes
+        do: the executor's ``spin_once`` rebuilt its wait set on every call, inside the lockstep round trip.
+        If rclpy's internals are not what this expects, the executor path."""
+        if self._can_take:
+            try:
+                if self._command_wait is None:
+                    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+
+                    held = contextlib.ExitStack()
+                    subs = list(self.command_subs.values())
+                    for sub in subs:
+                        held.enter_context(sub.handle)
+                    ctx = self.command_node.context
+                    held.enter_context(ctx.handle)
+                    self._command_wait = (held, subs, _rclpy.WaitSet(len(subs), 0, 0, 0, 0, 0, ctx.handle))
+                _, subs, ws = self._command_wait
+                ws.clear_entities()
+                for sub in subs:
+                    ws.add_subscription(sub.handle)
+                ws.wait(int(timeout * 1e9))
+                return
+            except (AttributeError, TypeError, ImportError) as e:  # rclpy internals changed
+                self.get_logger().warning(f"command wait set unusable ({e}); spinning the executor")
+                self._can_take = False
+        command_executor.spin_once(timeout_sec=timeout)
 
     def take_commands(self) -> None:
         """Take queued commands without a wait (cheap when they are already here).
@@ -363,13 +394,8 @@ class SimBridge(Node):
     def publish_sensors(self) -> None:
         w = self.world
         st = stamp_of(w.time)
-        self._pub(self.pub_clock, Clock(clock=st))
-        mux = self._mux_msg
-        mux.header.stamp = st
-        mux.active, mux.holding = self.decision.source or "none", self.decision.holding
-        mux.engaged = [s for s in self.mux.sources if self.mux.engaged[s]]
-        mux.targets = w.targets.tolist()
-        self._pub(self.pub_mux, mux)
+        # the estimator's inputs first (joint states, IMU, wrenches): in lockstep its answer starts the
+        # controllers' tick, so what only they and the recorder read (mux/state, /clock) goes after
         r = self.sensors.read()
         js = self._js
         js.header.stamp = st
@@ -391,6 +417,13 @@ class SimBridge(Node):
             m.wrench.force.x, m.wrench.force.y, m.wrench.force.z = f.tolist()
             m.wrench.torque.x, m.wrench.torque.y, m.wrench.torque.z = t.tolist()
             self._pub(pub, m)
+        mux = self._mux_msg
+        mux.header.stamp = st
+        mux.active, mux.holding = self.decision.source or "none", self.decision.holding
+        mux.engaged = [s for s in self.mux.sources if self.mux.engaged[s]]
+        mux.targets = w.targets.tolist()
+        self._pub(self.pub_mux, mux)
+        self._pub(self.pub_clock, Clock(clock=st))
         tick = w.step_count // w.substeps
         if tick % self.odom_every == 0:
             pos, orn_b, lin, ang = w.base_state()
@@ -485,7 +518,7 @@ class SimBridge(Node):
                     self.take_commands()
                     if set(self.lockstep_sources) <= self.answered:
                         break
-                    command_executor.spin_once(timeout_sec=0.01)
+                    self._wait_commands(command_executor, 0.01)
                     now = time.monotonic()
                     if now - last_send > self.retransmit_period:
                         self.publish_sensors()
@@ -568,6 +601,9 @@ class SimBridge(Node):
                 raise
 
     def close(self) -> None:
+        if self._command_wait is not None:
+            self._command_wait[0].close()
+            self._command_wait = None
         self.world.close()
 
 
