@@ -666,6 +666,8 @@ def main(argv=None) -> int:
     ap.add_argument("--fallback", default="")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="estop_planner parameter overrides (numbers parsed), e.g. crouch_min_cog_height=0.699")
+    ap.add_argument("--scenario-set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="scenario overrides, e.g. sim.contact_breaking_threshold=0.05")
     ap.add_argument("--step", type=int, default=5, help="estop.at.step (default 5: after the 5th step)")
     ap.add_argument("--fit", action="store_true", help="fit omega_f on each trial's walking part")
     ap.add_argument("--save", default="", help="folder for one .npz trace per trial (humfall_ros.estop.plots)")
@@ -705,7 +707,7 @@ def main(argv=None) -> int:
             over[k] = v
     for v in a.speeds:
         for ph in a.phases.split(","):
-            tr = run_trial(v, ph, step=a.step, **over)
+            tr = run_trial(v, ph, step=a.step, overrides=a.scenario_set, **over)
             m = tr.metrics
             if a.fit:
                 m.update(fit_omega_f(tr.trace))
