@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/fall_closed_loop.py push [SCALE] [KINDS] [OUT] [KEY=VALUE ...]  # standing_push
         (KEY=VALUE: scenario overrides, e.g. params.safe_fall_controller.balance_kd=0.1)
-    .venv/bin/python benchmarks/fall_closed_loop.py ftb                         # 0.9x / 1.1x per direction
+    .venv/bin/python benchmarks/fall_closed_loop.py ftb [KEY=VALUE ...]         # 0.9x / 1.1x per direction
     .venv/bin/python benchmarks/fall_closed_loop.py quiet [SECONDS]             # standing_quiet, exact + noise
     .venv/bin/python benchmarks/fall_closed_loop.py small                       # small_push in 8 directions: FTB quiet?
     .venv/bin/python benchmarks/fall_closed_loop.py noise [SCALE]               # stepping_inertia, seeds 1-3
@@ -59,14 +59,14 @@ def standing_push(kinds, scale: float = 1.0, out: str | None = "runs/fall_figure
     return {"scale": scale, "overrides": ov, **res}
 
 
-def ftb_check(duration: float = 2.5) -> dict:
+def ftb_check(duration: float = 2.5, overrides: list[str] | None = None) -> dict:
     th = sweep.load_thresholds()
     rows = []
     for angle in (0, 30, 60, 90, 120, 150, 180, 270):
         if angle not in th:
             continue
         for factor in (0.9, 1.1):
-            sc = sweep.push_scenario(factor * th[angle]["threshold_n"], angle)
+            sc = sweep.push_scenario(factor * th[angle]["threshold_n"], angle, extra=overrides)
             r = runs.run(sc, "none", duration=duration)
             m = r.metrics
             rows.append({"angle_deg": angle, "factor": factor, "force_n": round(factor * th[angle]["threshold_n"], 1),
@@ -294,7 +294,7 @@ def main(argv: list[str]) -> None:
         out = standing_push(kinds, scale, folders[0] if folders else "runs/fall_figures",
                             [a for a in rest if "=" in a])
     elif what == "ftb":
-        out = ftb_check()
+        out = ftb_check(overrides=[a for a in argv[1:] if "=" in a])
     elif what == "small":
         out = small_pushes()
     elif what == "quiet":
