@@ -110,7 +110,7 @@ def shutting_down() -> bool:
 
 
 @contextlib.contextmanager
-def _profiled(node: Node):
+def profiled(node: Node):
     """With ``HUMFALL_PROFILE_DIR`` set (a developer's switch, off by default), the node's spin runs under
     cProfile and its statistics go to ``DIR/<node name>.prof`` when it stops (``python -m pstats`` reads them)."""
     out = os.environ.get("HUMFALL_PROFILE_DIR")
@@ -143,7 +143,7 @@ def run_node(factory: Callable[[], Node], args=None, use_sim_time: bool = True,
             node.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, True)])
         executor = executor_factory() if executor_factory else rclpy.executors.SingleThreadedExecutor()
         executor.add_node(node)
-        with _profiled(node):
+        with profiled(node):
             hot = getattr(node, "hot_loop", None)
             if isinstance(hot, HotLoop):
                 hot.spin(executor)
@@ -204,6 +204,40 @@ NO_SUB_EVENTS = SubscriptionEventCallbacks(use_default_callbacks=False)
 NO_PUB_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
 
 
+class KeptWaitSet:
+    """A wait set on a fixed list of subscriptions, kept between waits (rclpy's executor builds a new one on every
+    spin): the subscriptions' and the context's handles are held until :meth:`close`. Raises AttributeError,
+    TypeError or ImportError when rclpy's internals are not what this expects (callers then use an executor)."""
+
+    def __init__(self, subscriptions, context):
+        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+
+        self.subs = list(subscriptions)
+        self._held = contextlib.ExitStack()
+        try:
+            for sub in self.subs:
+                self._held.enter_context(sub.handle)
+            self._held.enter_context(context.handle)
+            self._wait_set = _rclpy.WaitSet(len(self.subs), 0, 0, 0, 0, 0, context.handle)
+            self._pointers = [sub.handle.pointer for sub in self.subs]
+        except BaseException:
+            self._held.close()
+            raise
+
+    def wait(self, timeout_ns: int) -> list[bool]:
+        """Wait up to ``timeout_ns`` for a message; per subscription (in order), whether one is ready."""
+        ws = self._wait_set
+        ws.clear_entities()
+        for sub in self.subs:
+            ws.add_subscription(sub.handle)
+        ws.wait(timeout_ns)
+        ready = ws.get_ready_entities("subscription")
+        return [p in ready for p in self._pointers]
+
+    def close(self) -> None:
+        self._held.close()
+
+
 class HotLoop:
     """Spin a node whose work comes in per-tick messages, without rclpy's executor cost.
 
@@ -244,65 +278,31 @@ class HotLoop:
         self.subs.append((sub, msg_type, callback, with_info))
         return sub
 
-    def take_all(self) -> int:
-        """Run the callbacks of every queued hot message; returns how many."""
-        n = 0
-        progress = True
-        while progress:
-            progress = False
-            for sub, msg_type, callback, with_info in self.subs:
-                with sub.handle:
-                    taken = sub.handle.take_message(msg_type, sub.raw)
-                if taken is not None:
-                    progress = True
-                    n += 1
-                    if with_info:
-                        callback(taken[0], taken[1])
-                    else:
-                        callback(taken[0])
-        return n
-
     def spin(self, executor) -> None:
-        try:
-            from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-        except ImportError:
-            executor.spin()
-            return
         ctx = self.node.context
         next_service = 0.0
         self.batching = True
         timeout_ns = int(self.service_period * 1e9)
-        # the wait set and the held handles are kept while the subscriptions stay the same; only the
-        # subscriptions the wait reports ready are taken from. Polling every subscription until all were
-        # empty took ~27 takes per tick for 4 messages, ~0.9 ms a tick of the locomotion node (profiled).
-        held: contextlib.ExitStack | None = None
+        # the wait set is kept while the subscriptions stay the same, and only the subscriptions it reports
+        # ready are taken from. Polling every subscription until all were empty took ~27 takes per tick for
+        # 4 messages, ~0.9 ms a tick of the locomotion node (profiled).
+        kept: KeptWaitSet | None = None
         subs: tuple = ()
         try:
             while ctx.ok():
                 if self.pace > 0:
                     time.sleep(self.pace)
                 if len(self.subs) != len(subs):  # a callback may add one (the recorder's discovery)
-                    if held is not None:
-                        held.close()
+                    if kept is not None:
+                        kept.close()
                     subs = tuple(self.subs)
-                    held = contextlib.ExitStack()
-                    for sub, *_ in subs:
-                        held.enter_context(sub.handle)
-                    held.enter_context(ctx.handle)
-                    wait_set = _rclpy.WaitSet(len(subs), 0, 0, 0, 0, 0, ctx.handle)
-                    pointers = [sub.handle.pointer for sub, *_ in subs]
-                if not subs:  # rcl refuses to wait on an empty wait set
+                    kept = KeptWaitSet([sub for sub, *_ in subs], ctx) if subs else None
+                taken = 0
+                if kept is None:  # rcl refuses to wait on an empty wait set
                     time.sleep(self.service_period)
-                    taken = 0
                 else:
-                    wait_set.clear_entities()
-                    for sub, *_ in subs:
-                        wait_set.add_subscription(sub.handle)
-                    wait_set.wait(timeout_ns)
-                    ready = wait_set.get_ready_entities("subscription")
-                    taken = 0
-                    for ptr, (sub, msg_type, callback, with_info) in zip(pointers, subs):
-                        if ptr not in ready:
+                    for (sub, msg_type, callback, with_info), ready in zip(subs, kept.wait(timeout_ns)):
+                        if not ready:
                             continue
                         # drain it: a node that fell behind answers only the newest tick (on_batch)
                         while (msg := sub.handle.take_message(msg_type, sub.raw)) is not None:
@@ -318,13 +318,13 @@ class HotLoop:
                     taken += 1
                 if taken and self.on_batch is not None:
                     self.on_batch()
-        except (AttributeError, TypeError) as e:  # rclpy internals changed
+        except (AttributeError, TypeError, ImportError) as e:  # rclpy internals changed (KeptWaitSet)
             self.node.get_logger().warning(f"hot loop disabled ({e}); spinning the executor")
             self.batching = False
             executor.spin()
         finally:
-            if held is not None:
-                held.close()
+            if kept is not None:
+                kept.close()
 
 
 class Composition:

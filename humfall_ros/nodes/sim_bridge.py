@@ -17,7 +17,6 @@ once the lockstep sources have answered the first tick (or ``start_timeout`` pas
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import sys
@@ -46,8 +45,9 @@ from humfall_ros.nodes.common import (
     QOS_CLOCK,
     QOS_LATCHED,
     QOS_RELIABLE,
-    _profiled,
+    KeptWaitSet,
     Params,
+    profiled,
     shutting_down,
     stamp_key,
 )
@@ -91,8 +91,8 @@ class SimBridge(Node):
         self.wait_timeout = P.declare("wait_timeout")
         self.metrics_file = P.declare("metrics_file")
         self.scenario_name = P.declare("scenario")
-        friction = P.declare("friction")
-        contact = {"contact_breaking_threshold": P.declare("contact_breaking_threshold")}
+        # SimWorld's own settings (friction, contact threshold), from the parameters or the scenario's sim section
+        world_kw = {k: P.declare(k) for k in ("friction", "contact_breaking_threshold")}
         tf_rate = P.declare("tf_rate")
         gt_rate = P.declare("ground_truth_rate")
         self.service_period = 1.0 / P.declare("service_rate")
@@ -115,8 +115,7 @@ class SimBridge(Node):
                                        ("lockstep", "lockstep", bool(sim["lockstep"])),
                                        ("real_time_factor", "rtf_target", float(sim["real_time_factor"])),
                                        ("friction", None, float(sim["friction"])),
-                                       ("contact_breaking_threshold", "contact_breaking_threshold",
-                                        float(sim["contact_breaking_threshold"])),
+                                       ("contact_breaking_threshold", None, float(sim["contact_breaking_threshold"])),
                                        ("end_time", "end_time", float(self.scenario["duration"]))):
                 if param in P.overridden:
                     if P.values[param] != value:
@@ -124,16 +123,13 @@ class SimBridge(Node):
                                                f"{'duration' if param == 'end_time' else 'sim.' + param}={value!r}")
                     continue
                 if attr is None:
-                    friction = value
-                elif attr in contact:
-                    contact[attr] = value
+                    world_kw[param] = value
                 else:
                     setattr(self, attr, value)
         posture = None
         if self.scenario["robot"]["initial_posture"]:
             posture = {**STANDING_POSTURE, **self.scenario["robot"]["initial_posture"]}
-        self.world = SimWorld(self.physics_rate, self.control_rate, friction=friction, initial_posture=posture,
-                              **contact)
+        self.world = SimWorld(self.physics_rate, self.control_rate, initial_posture=posture, **world_kw)
         self.model = self.world.model
         self.sensors = Sensors(self.world, SensorNoise(**noise, seed=noise_seed))
         self.joint_index = {n: i for i, n in enumerate(self.model.joint_names)}
@@ -179,7 +175,7 @@ class SimBridge(Node):
             JointState, f"joint_command/{s}", lambda msg, s=s: self._on_command(s, msg), QOS_RELIABLE,
             event_callbacks=no_events) for s in self.sources}
         self._can_take = True
-        self._command_wait = None   # (held handles, subscriptions, wait set): _wait_commands
+        self._command_wait: KeptWaitSet | None = None   # _wait_commands
         # the fall controller's event and decision, for the run metrics (alpha2, lead time, prediction)
         self.create_subscription(FallEvent, "fall_event", self._on_fall_event, QOS_LATCHED)
         self.create_subscription(SafeFallDecision, "safe_fall/decision", self._on_decision, QOS_LATCHED)
@@ -247,26 +243,14 @@ class SimBridge(Node):
     def _wait_commands(self, command_executor, timeout: float) -> None:
         """Wait up to ``timeout`` [s] for a command (then ``take_commands`` takes it).
 
-        A wait set on the command subscriptions alone, kept between ticks, as the hot loops of the other nodes
-        do: the executor's ``spin_once`` rebuilt its wait set on every call, inside the lockstep round trip.
-        If rclpy's internals are not what this expects, the executor path."""
+        A wait set on the command subscriptions alone, kept between ticks (``KeptWaitSet``, as the other nodes'
+        hot loops): the executor's ``spin_once`` built its wait set on every call, inside the lockstep round
+        trip. If rclpy's internals are not what this expects, the executor path."""
         if self._can_take:
             try:
                 if self._command_wait is None:
-                    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-
-                    held = contextlib.ExitStack()
-                    subs = list(self.command_subs.values())
-                    for sub in subs:
-                        held.enter_context(sub.handle)
-                    ctx = self.command_node.context
-                    held.enter_context(ctx.handle)
-                    self._command_wait = (held, subs, _rclpy.WaitSet(len(subs), 0, 0, 0, 0, 0, ctx.handle))
-                _, subs, ws = self._command_wait
-                ws.clear_entities()
-                for sub in subs:
-                    ws.add_subscription(sub.handle)
-                ws.wait(int(timeout * 1e9))
+                    self._command_wait = KeptWaitSet(self.command_subs.values(), self.command_node.context)
+                self._command_wait.wait(int(timeout * 1e9))
                 return
             except (AttributeError, TypeError, ImportError) as e:  # rclpy internals changed
                 self.get_logger().warning(f"command wait set unusable ({e}); spinning the executor")
@@ -602,7 +586,7 @@ class SimBridge(Node):
 
     def close(self) -> None:
         if self._command_wait is not None:
-            self._command_wait[0].close()
+            self._command_wait.close()
             self._command_wait = None
         self.world.close()
 
@@ -620,7 +604,7 @@ def main(args=None) -> int:
         executor.add_node(node)
         command_executor = rclpy.executors.SingleThreadedExecutor()
         command_executor.add_node(node.command_node)
-        with _profiled(node):
+        with profiled(node):
             node.run(executor, command_executor)
         # linger briefly so latched results reach late subscribers
         end = time.monotonic() + 0.3
