@@ -23,7 +23,7 @@ from sensor_msgs.msg import Imu, JointState
 from humfall_ros.control.contract import CentroidalObservation, Controller, JointTargets, Observation, Obstacle
 from humfall_ros.control.tick_gate import Action, TickGate
 from humfall_ros.model.humanoid import HumanoidModel, load_model
-from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_LATCHED, QOS_RELIABLE, HotLoop, Params, stamp_key
+from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_LATCHED, QOS_RELIABLE, HotLoop, Params, ros_stamp, stamp_key
 
 
 @dataclasses.dataclass
@@ -113,11 +113,13 @@ class ControllerNode(Node):
         self.gate = TickGate({"centroidal_state", "joint_states", "mux", *(i.name for i in per_tick)},
                              trigger="centroidal_state")
         self.hot_loop = HotLoop(self, on_batch=self._on_batch)
-        self.hot_loop.subscribe(CentroidalState, "centroidal_state", lambda m: self._offer("centroidal_state", m))
-        self.hot_loop.subscribe(JointState, "joint_states", lambda m: self._offer("joint_states", m))
-        self.hot_loop.subscribe(MuxState, "mux/state", lambda m: self._offer("mux", m))
+        self.hot_loop.subscribe(CentroidalState, "centroidal_state", lambda m: self._offer("centroidal_state", m),
+                                decoded=True)
+        self.hot_loop.subscribe(JointState, "joint_states", lambda m: self._offer("joint_states", m), decoded=True)
+        self.hot_loop.subscribe(MuxState, "mux/state", lambda m: self._offer("mux", m), decoded=True)
         for i in per_tick:
-            self.hot_loop.subscribe(i.msg_type, i.topic, lambda m, i=i: self._offer(i.name, m), i.qos)
+            self.hot_loop.subscribe(i.msg_type, i.topic, lambda m, i=i: self._offer(i.name, m), i.qos,
+                                    decoded=True)
         self.latched: dict[str, Any] = {}
         for i in self.extra:
             if not i.per_tick:
@@ -179,7 +181,7 @@ class ControllerNode(Node):
         if tick is None:
             return
         self.tick_outputs = []
-        stamp = tick.inputs["centroidal_state"].header.stamp
+        stamp = ros_stamp(tick.inputs["centroidal_state"].header.stamp)
         stepped = None
         try:
             obs = self.observation(tick.stamp_ns, tick.inputs)

@@ -28,7 +28,8 @@ from std_srvs.srv import Trigger
 from humfall_ros.control.contract import Observation
 from humfall_ros.control.tick_gate import Action, TickGate
 from humfall_ros.fall import ftb as core
-from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_LATCHED, QOS_RELIABLE, HotLoop, Params, run_node, stamp_key
+from humfall_ros.nodes.common import (NO_PUB_EVENTS, QOS_LATCHED, QOS_RELIABLE, HotLoop, Params, ros_stamp, run_node,
+                                     stamp_key)
 from humfall_ros.nodes.controller_node import centroidal_from_msg
 from rclpy.node import Node
 
@@ -151,15 +152,18 @@ class FtbMonitorNode(Node):
                  | ({"estop/status"} if self.config.use_estop_status else set()))
         self.gate = TickGate(kinds, trigger="centroidal_state")
         self.hot_loop = HotLoop(self, on_batch=self._on_batch)
-        self.hot_loop.subscribe(CentroidalState, "centroidal_state", lambda m: self._offer("centroidal_state", m))
+        self.hot_loop.subscribe(CentroidalState, "centroidal_state", lambda m: self._offer("centroidal_state", m),
+                                decoded=True)
         if self.config.use_walking_state:
             from humfall_interfaces.msg import WalkingState
 
-            self.hot_loop.subscribe(WalkingState, "walking/state", lambda m: self._offer("walking/state", m))
+            self.hot_loop.subscribe(WalkingState, "walking/state", lambda m: self._offer("walking/state", m),
+                                    decoded=True)
         if self.config.use_estop_status:
             from humfall_interfaces.msg import EstopStatus
 
-            self.hot_loop.subscribe(EstopStatus, "estop/status", lambda m: self._offer("estop/status", m))
+            self.hot_loop.subscribe(EstopStatus, "estop/status", lambda m: self._offer("estop/status", m),
+                                    decoded=True)
         self.create_service(Trigger, "ftb/reset", self._on_reset)
         self.msg = FtbStatus()
         self.msg.header.frame_id = "odom"
@@ -201,7 +205,7 @@ class FtbMonitorNode(Node):
             self.msg.event_tick = False
             self.msg.reason = f"tick failed: {e!r}"
             st = None
-        self.msg.header.stamp = cs.header.stamp
+        self.msg.header.stamp = ros_stamp(cs.header.stamp)
         if st is not None and st.event is not None:
             self.pub_event.publish(event_to_msg(st.event))  # once, on the edge (latched)
             d = st.event.control_duration

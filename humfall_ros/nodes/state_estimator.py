@@ -64,12 +64,12 @@ class StateEstimator(Node):
         self.pub_markers = publisher(MarkerArray, "centroidal_state/markers")
         # one tick's sensor messages arrive together: the hot loop takes them in one go
         self.hot_loop = sensors = HotLoop(self, on_batch=self._on_batch)
-        sensors.subscribe(JointState, "joint_states", lambda m: self._add("js", m))
-        sensors.subscribe(Imu, "imu", lambda m: self._add("imu", m))
+        sensors.subscribe(JointState, "joint_states", lambda m: self._add("js", m), decoded=True)
+        sensors.subscribe(Imu, "imu", lambda m: self._add("imu", m), decoded=True)
         for s, topic in SIDE_TOPIC.items():
-            sensors.subscribe(WrenchStamped, topic, lambda m, s=s: self._add(s, m))
+            sensors.subscribe(WrenchStamped, topic, lambda m, s=s: self._add(s, m), decoded=True)
         if self.use_ground_truth:
-            sensors.subscribe(Odometry, "ground_truth/odom", lambda m: self._add("odom", m))
+            sensors.subscribe(Odometry, "ground_truth/odom", lambda m: self._add("odom", m), decoded=True)
         # a start-up line, as the other nodes give (launchers and tests wait for one)
         self.get_logger().info(f"estimating from {'ground truth' if self.use_ground_truth else 'the sensors'}; "
                                f"tick inputs {sorted(self.gate.required)}")
@@ -135,7 +135,7 @@ class StateEstimator(Node):
         t = k * 1e-9
         e = self.estimator.update(t, qj, vj, quat, gyro, wrenches, base_truth=truth)
         msg = self.msg  # refilled each tick (publish copies it): cheaper than a new message
-        msg.header.stamp = js.header.stamp
+        msg.header.stamp.sec, msg.header.stamp.nanosec = int(js.header.stamp.sec), int(js.header.stamp.nanosec)
         fill_xyz(msg.com, e.com)
         fill_xyz(msg.com_velocity, e.com_velocity)
         fill_xyz(msg.cop, e.cop)
