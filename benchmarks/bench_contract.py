@@ -8,7 +8,7 @@ tick with a release), as separate processes and composed (``--compose``). Prints
 JSON object: real-time factors (free-run as fast as it goes, at a 1.0 target, lockstep),
 late ticks, CPU per simulated second per node.
 
-    python benchmarks/bench_contract.py [--base cc14160] [--seconds 10] [--repeats 2] [--rounds 1]
+    python benchmarks/bench_contract.py [--base cc14160] [--seconds 10] [--repeats 2] [--rounds 1] [--no-headroom]
 """
 from __future__ import annotations
 
@@ -50,6 +50,7 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--rounds", type=int, default=1, help="base/head alternations")
+    ap.add_argument("--no-headroom", action="store_true", help="only base vs head (no stand-in runs)")
     a = ap.parse_args()
     out: dict = {"benchmark": "contract", "cpu_count": os.cpu_count(), "base": a.base, "base_vs_head": []}
     with tempfile.TemporaryDirectory() as tmp:
@@ -62,6 +63,9 @@ def main() -> int:
                                             "head": suite(REPO, a.seconds, a.repeats, [])})
         finally:
             subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(wt)], capture_output=True)
+    if a.no_headroom:
+        print(json.dumps(out, indent=2))
+        return 0
     out["head_3_standins_separate"] = suite(REPO, a.seconds, a.repeats, ["--standins", "3"])
     out["head_3_standins_composed"] = suite(REPO, a.seconds, a.repeats, ["--standins", "3", "--compose"])
     out["head_composed"] = suite(REPO, a.seconds, a.repeats, ["--compose"])

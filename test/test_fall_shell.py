@@ -196,6 +196,35 @@ def test_metrics_alpha2_at_the_measured_p2_and_prediction():
     assert r["predicted_avoidance_deg"] == pytest.approx(90.0) and r["captured"] is False
 
 
+def test_metrics_with_lazy_poses_and_cop_equal_the_eager_ones_and_compute_them_rarely():
+    """The bridge passes the feet's poses and the CoP as functions (foot_state(world, lazy=True)): the same
+    result, and the functions are called on the touchdown tick and in the CoP window only."""
+    eager, lazy = _metrics_after_a_step_right_decision(), _metrics_after_a_step_right_decision()
+    calls = {"poses": 0, "cop": 0}
+    for k in range(1000):
+        t = 0.002 * k
+        down = {"l": True, "r": not (0.61 <= t < 1.04)}
+        poses = {"l": (0.0, 0.1, 0.0, 0.0), "r": (0.31, -0.1, 0.21, 1.0) if t >= 1.04 else (0.0, -0.1, 0.0, 0.0)}
+        cop = [0.3, -0.3, 0.0] if t >= 1.04 else [0.14, 0.0, 0.0]
+
+        def poses_fn(poses=poses):
+            calls["poses"] += 1
+            return poses
+
+        def cop_fn(cop=cop):
+            calls["cop"] += 1
+            return cop
+
+        eager.update_feet(t, cop, down, poses)
+        lazy.update_feet(t, cop_fn, down, poses_fn)
+        for m in (eager, lazy):
+            m.update(t, [0.1, 0, 0.75], 0.1, 0.8, 0.5, False)
+    assert lazy.result() == eager.result() and lazy.result()["measured_p2"] == pytest.approx([0.3, -0.3])
+    assert calls["poses"] == 1  # the right foot's one touchdown (the left never lifts)
+    window = lazy._touchdown_log["r"][-1][3]  # the CoPs of P2, 0.05-0.15 s after that touchdown
+    assert len(window) > 40 and calls["cop"] == len(window)  # once a tick, in that window only
+
+
 def test_metrics_take_the_step_after_the_fall_event_not_a_walking_step_before_it():
     # walking: the right foot steps at 0.2-0.6 s (a walk step, CoP there (0.15, 0)); the FTB fires at 1.0 s; the
     # protective step lands at 1.3 s with the CoP at (0.6, -0.2): P2 and the prediction are that step's,

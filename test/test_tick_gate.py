@@ -55,3 +55,21 @@ def test_bad_kinds_and_config_are_refused():
         TickGate({"a"}, trigger="b")
     with pytest.raises(KeyError):
         TickGate({"a"}).offer("b", 0, None)
+
+
+def test_gathering_says_when_a_trigger_waits_for_the_rest_of_its_tick():
+    """What the hot loop asks before sleeping on the trigger topic alone (trigger-first waiting)."""
+    g = TickGate({"centroidal_state", "joint_states", "mux"}, trigger="centroidal_state")
+    assert not g.gathering()
+    g.offer("joint_states", 10, 0)  # the tick's early inputs: keep sleeping on the trigger
+    g.offer("mux", 10, 0)
+    assert not g.gathering()
+    g.offer("centroidal_state", 10, 0)
+    assert not g.gathering()  # complete: poll takes it
+    assert g.poll().stamp_ns == 10
+    g.offer("centroidal_state", 12, 0)  # a trigger before its tick's joint_states (topics are not ordered)
+    assert g.gathering() and not g.gathering("mux")
+    g.offer("joint_states", 12, 0)
+    assert g.gathering()
+    g.offer("mux", 12, 0)
+    assert not g.gathering() and g.poll().stamp_ns == 12

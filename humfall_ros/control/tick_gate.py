@@ -92,6 +92,11 @@ class TickGate:
         self.last_stamp = k
         return Tick(k, inputs)
 
+    def gathering(self, kind: str | None = None) -> bool:
+        """Whether some tick has its input ``kind`` (default: the trigger) but not yet all the others."""
+        kind = kind or self.trigger
+        return any(kind in slot and not self.required <= slot.keys() for slot in self.pending.values())
+
     def reset(self) -> None:
         self.pending.clear()
         self.last_stamp = -1

@@ -112,9 +112,11 @@ class ControllerNode(Node):
         per_tick = [i for i in self.extra if i.per_tick]
         self.gate = TickGate({"centroidal_state", "joint_states", "mux", *(i.name for i in per_tick)},
                              trigger="centroidal_state")
-        self.hot_loop = HotLoop(self, on_batch=self._on_batch)
+        # the tick's last input is centroidal_state (the estimator answers the bridge's joint_states, mux/state
+        # and imu): the loop sleeps on it and takes the others then
+        self.hot_loop = HotLoop(self, on_batch=self._on_batch, gathering=self.gate.gathering)
         self.hot_loop.subscribe(CentroidalState, "centroidal_state", lambda m: self._offer("centroidal_state", m),
-                                decoded=True)
+                                decoded=True, trigger=True)
         self.hot_loop.subscribe(JointState, "joint_states", lambda m: self._offer("joint_states", m), decoded=True)
         self.hot_loop.subscribe(MuxState, "mux/state", lambda m: self._offer("mux", m), decoded=True)
         for i in per_tick:

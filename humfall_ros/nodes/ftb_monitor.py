@@ -151,9 +151,9 @@ class FtbMonitorNode(Node):
         kinds = ({"centroidal_state"} | ({"walking/state"} if self.config.use_walking_state else set())
                  | ({"estop/status"} if self.config.use_estop_status else set()))
         self.gate = TickGate(kinds, trigger="centroidal_state")
-        self.hot_loop = HotLoop(self, on_batch=self._on_batch)
+        self.hot_loop = HotLoop(self, on_batch=self._on_batch, gathering=self.gate.gathering)
         self.hot_loop.subscribe(CentroidalState, "centroidal_state", lambda m: self._offer("centroidal_state", m),
-                                decoded=True)
+                                decoded=True, trigger=True)
         if self.config.use_walking_state:
             from humfall_interfaces.msg import WalkingState
 

@@ -63,13 +63,17 @@ class StateEstimator(Node):
         self.pub_poly = publisher(PolygonStamped, "centroidal_state/support_polygon")
         self.pub_markers = publisher(MarkerArray, "centroidal_state/markers")
         # one tick's sensor messages arrive together: the hot loop takes them in one go
-        self.hot_loop = sensors = HotLoop(self, on_batch=self._on_batch)
+        # the loop sleeps on the input the bridge publishes last in a tick (the right ankle's wrench, or the
+        # ground-truth odometry) and then takes the others; if one of them is late it waits on all
+        last = "odom" if self.use_ground_truth else "r"
+        self.hot_loop = sensors = HotLoop(self, on_batch=self._on_batch, gathering=lambda: self.gate.gathering(last))
         sensors.subscribe(JointState, "joint_states", lambda m: self._add("js", m), decoded=True)
         sensors.subscribe(Imu, "imu", lambda m: self._add("imu", m), decoded=True)
         for s, topic in SIDE_TOPIC.items():
-            sensors.subscribe(WrenchStamped, topic, lambda m, s=s: self._add(s, m), decoded=True)
+            sensors.subscribe(WrenchStamped, topic, lambda m, s=s: self._add(s, m), decoded=True, trigger=s == last)
         if self.use_ground_truth:
-            sensors.subscribe(Odometry, "ground_truth/odom", lambda m: self._add("odom", m), decoded=True)
+            sensors.subscribe(Odometry, "ground_truth/odom", lambda m: self._add("odom", m), decoded=True,
+                              trigger=True)
         # a start-up line, as the other nodes give (launchers and tests wait for one)
         self.get_logger().info(f"estimating from {'ground truth' if self.use_ground_truth else 'the sensors'}; "
                                f"tick inputs {sorted(self.gate.required)}")

@@ -41,4 +41,5 @@ class GroundTruth:
         dist = w.distance_to(self.target.name) if self.target is not None else None
         self.metrics.update(w.time, w.model.com(q), w.trunk_tilt(), w.base_state()[0][2], dist,
                             w.non_foot_contact())
-        self.metrics.update_feet(w.time, *foot_state(w))  # touchdowns and the CoP after them (alpha2)
+        # touchdowns and the CoP after them (alpha2); poses and CoP only computed on the ticks that use them
+        self.metrics.update_feet(w.time, *foot_state(w, lazy=True))

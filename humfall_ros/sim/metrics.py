@@ -86,9 +86,13 @@ class FallMetrics:
                          "alpha2": float(get("alpha2", math.nan)), "captured": bool(get("captured", False)),
                          "touchdown_time": float(get("touchdown_time", math.nan))}
 
-    def update_feet(self, t: float, cop, down: dict, poses: dict) -> None:
+    def update_feet(self, t: float, cop, down: dict, poses) -> None:
         """Per tick: ground-truth CoP (None airborne), soles touching {side: bool}, sole poses
-        {side: (x, y, yaw [rad], tilt from flat [deg])}. A repeated ``t`` is ignored."""
+        {side: (x, y, yaw [rad], tilt from flat [deg])}. A repeated ``t`` is ignored.
+
+        ``cop`` and ``poses`` may also be zero-argument callables giving them: they are then called only on
+        the ticks that use them (a touchdown, the CoP window after it), at most once each
+        (``foot_state(world, lazy=True)``: the bridge's per-tick cost)."""
         if self._feet_t is not None and t <= self._feet_t:
             return
         self._feet_t = t
@@ -98,11 +102,16 @@ class FallMetrics:
                 self._lifted[side] = True
             elif self._lifted.get(side):
                 self._lifted[side] = False
+                if callable(poses):
+                    poses = poses()
                 x, y, yaw, tilt = poses[side]
                 log.append((float(t), (float(x), float(y), float(yaw)), float(tilt), []))
             # P2 is the CoP on the new support: only while the step's sole is down
-            if is_down and log and cop is not None and log[-1][0] + 0.05 - 1e-9 <= t <= log[-1][0] + 0.15 + 1e-9:
-                log[-1][3].append(np.asarray(cop, float)[:2].copy())
+            if is_down and log and log[-1][0] + 0.05 - 1e-9 <= t <= log[-1][0] + 0.15 + 1e-9:
+                if callable(cop):
+                    cop = cop()
+                if cop is not None:
+                    log[-1][3].append(np.asarray(cop, float)[:2].copy())
 
     @property
     def touchdowns(self) -> dict[str, tuple]:
@@ -222,19 +231,27 @@ class FallMetrics:
         return out
 
 
-def foot_state(world) -> tuple:
+def foot_state(world, lazy: bool = False) -> tuple:
     """(ground-truth CoP or None, {side: sole touches the ground}, {side: (x, y, yaw, tilt [deg])}) of a SimWorld.
 
-    What ``FallMetrics.update_feet`` takes (GroundTruth.track may pass ``*foot_state(world)``).
+    What ``FallMetrics.update_feet`` takes (GroundTruth.track may pass ``*foot_state(world)``). ``lazy``: the
+    CoP and the poses as functions of no argument, for ``update_feet`` to call on the ticks it needs them
+    (the poses take a forward kinematics pass; the same numbers either way, from the world as it is now).
     """
-    m = world.model
-    m.forward(world.pinocchio_configuration())
     contacts = world.ground_contacts()
-    down, poses = {}, {}
-    for side, link in world.foot_links.items():
-        down[side] = any(cp[3] == link for cp in contacts)
-        M = m.frame_placement(m.sole_frame[side])
-        R = M.rotation
-        tilt = math.degrees(math.acos(float(np.clip(R[2, 2], -1.0, 1.0))))
-        poses[side] = (float(M.translation[0]), float(M.translation[1]), math.atan2(R[1, 0], R[0, 0]), tilt)
-    return world.ground_truth_cop(), down, poses
+    down = {side: any(cp[3] == link for cp in contacts) for side, link in world.foot_links.items()}
+
+    def poses() -> dict:
+        m = world.model
+        m.forward(world.pinocchio_configuration())
+        out = {}
+        for side in world.foot_links:
+            M = m.frame_placement(m.sole_frame[side])
+            R = M.rotation
+            tilt = math.degrees(math.acos(float(np.clip(R[2, 2], -1.0, 1.0))))
+            out[side] = (float(M.translation[0]), float(M.translation[1]), math.atan2(R[1, 0], R[0, 0]), tilt)
+        return out
+
+    if lazy:
+        return world.ground_truth_cop, down, poses
+    return world.ground_truth_cop(), down, poses()

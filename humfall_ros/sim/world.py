@@ -343,9 +343,13 @@ class SimWorld:
         return self.model.configuration(pos, orn, qj), self.model.velocity(lin, ang, orn, vj)
 
     def pinocchio_configuration(self) -> np.ndarray:
-        """Ground-truth q in the model's convention (no velocity: cheaper, for per-tick metrics)."""
-        pos, orn, _, _ = self.base_state()
-        return self.model.configuration(pos, orn, self.joint_states()[0])
+        """Ground-truth q in the model's convention (no velocity: cheaper, for per-tick metrics); cached per
+        physics step like the readings it is made of (the metrics and the feet ask each tick). A copy."""
+        q = self._readings.get("q")
+        if q is None:
+            pos, orn, _, _ = self.base_state()
+            q = self._readings["q"] = self.model.configuration(pos, orn, self.joint_states()[0])
+        return q.copy()
 
     def robot_link_positions(self) -> np.ndarray:
         """URDF-frame positions of all robot links (n x 3), for fall geometry."""
