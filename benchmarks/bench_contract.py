@@ -44,6 +44,16 @@ def suite(repo: pathlib.Path, seconds: float, repeats: int, extra: list[str]) ->
             "cpu_cores_per_sim_second": d["cpu_cores_per_sim_second"]}
 
 
+def sim_tick(repo: pathlib.Path) -> dict:
+    """The simulator's own CPU per tick in ``repo`` (bench_sim_tick.py, this checkout's copy: the base has none)."""
+    p = subprocess.run([sys.executable, str(REPO / "benchmarks" / "bench_sim_tick.py"), "--ticks", "1500",
+                        "--repo", str(repo)], cwd=repo, capture_output=True, text=True)
+    try:
+        return json.loads(p.stdout[p.stdout.index("{"):])
+    except ValueError:
+        return {"error": f"exit {p.returncode}", "stderr_tail": p.stderr[-1500:]}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--base", default="cc14160")
@@ -61,6 +71,8 @@ def main() -> int:
             for _ in range(a.rounds):
                 out["base_vs_head"].append({"base": suite(wt, a.seconds, a.repeats, []),
                                             "head": suite(REPO, a.seconds, a.repeats, [])})
+            # the simulator alone (physics, sensing, metrics), base and here: what of the difference is not the graph
+            out["sim_tick_base"], out["sim_tick_head"] = sim_tick(wt), sim_tick(REPO)
         finally:
             subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(wt)], capture_output=True)
     if a.no_headroom:
