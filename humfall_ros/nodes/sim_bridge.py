@@ -21,6 +21,7 @@ import json
 import math
 import sys
 import time
+import types
 
 import numpy as np
 import rclpy
@@ -40,12 +41,14 @@ from tf2_msgs.msg import TFMessage
 
 from humfall_ros import scenario as scenario_mod
 from humfall_ros.control.mux import CommandMux, JointCommand, MuxDecision, validate_command
+from humfall_ros.recording import cdr
 from humfall_ros.nodes.common import (
     NO_PUB_EVENTS,
     QOS_CLOCK,
     QOS_LATCHED,
     QOS_RELIABLE,
     KeptWaitSet,
+    decoding,
     Params,
     profiled,
     shutting_down,
@@ -171,9 +174,13 @@ class SimBridge(Node):
         self.command_node = rclpy.create_node("sim_bridge_commands", start_parameter_services=False,
                                               enable_rosout=False)
         no_events = SubscriptionEventCallbacks(use_default_callbacks=False)
+        # raw: taken as bytes and decoded by recording/cdr.py (rclpy building a 31-name JointState is ~3x dearer);
+        # the executor's path (when the direct take is unusable) decodes the same way
+        self._decode_command = cdr.decoder(JointState)
         self.command_subs = {s: self.command_node.create_subscription(
-            JointState, f"joint_command/{s}", lambda msg, s=s: self._on_command(s, msg), QOS_RELIABLE,
-            event_callbacks=no_events) for s in self.sources}
+            JointState, f"joint_command/{s}", decoding(self, JointState, f"joint_command/{s}",
+                                                       lambda msg, s=s: self._on_command(s, msg)),
+            QOS_RELIABLE, event_callbacks=no_events, raw=True) for s in self.sources}
         self._can_take = True
         self._command_wait: KeptWaitSet | None = None   # _wait_commands
         # the fall controller's event and decision, for the run metrics (alpha2, lead time, prediction)
@@ -209,13 +216,14 @@ class SimBridge(Node):
         self.truth = GroundTruth(self.world, self.scenario)
 
     # ------------------------------------------------------------ callbacks
-    def _on_command(self, source: str, msg: JointState) -> None:
+    def _on_command(self, source: str, msg) -> None:
+        """A command (a JointState decoded by recording/cdr.py: a read-only namespace with its fields)."""
         reason = validate_command(msg.name, msg.position, msg.velocity, self.joint_index)
         if reason:
             self.rejected_commands += 1
             self.get_logger().warning(f"joint_command/{source} refused: {reason}",
                                       throttle_duration_sec=1.0)
-            msg = JointState(header=msg.header)  # counts as a release for this tick
+            msg = types.SimpleNamespace(header=msg.header, name=[], position=[], velocity=[])  # a release this tick
         why = self.mux.update(source, JointCommand(seconds(msg.header.stamp), list(msg.name), list(msg.position),
                                                    list(msg.velocity)), now=self.world.time)
         if why:
@@ -269,10 +277,17 @@ class SimBridge(Node):
             for s, sub in self.command_subs.items():
                 while True:
                     with sub.handle:
-                        taken = sub.handle.take_message(JointState, False)
+                        taken = sub.handle.take_message(JointState, True)
                     if taken is None:
                         break
-                    self._on_command(s, taken[0])
+                    try:
+                        msg = self._decode_command(taken[0])
+                    except Exception as e:  # noqa: BLE001 - struct.error, ValueError: malformed bytes
+                        self.rejected_commands += 1
+                        self.get_logger().warning(f"joint_command/{s}: undecodable message dropped ({e})",
+                                                  throttle_duration_sec=1.0)
+                        continue
+                    self._on_command(s, msg)
         except Exception as e:  # noqa: BLE001
             self._can_take = False
             self.get_logger().warning(f"direct take disabled ({e}); using the executor only")
