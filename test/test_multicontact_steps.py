@@ -298,12 +298,10 @@ def test_40J_paper_objective_steps_and_its_stop_passes_the_check():
 
     Without the 10 s wall-time cut of one NLP, as the library test does (the machine may be
     shared): with the defaults this test once found no plan in 240 s at load ~4.5 (session 11;
-    session 7 saw the stop's ~400 iterations cut by that wall at load 4). The search's budget is
-    the request's maximum, 600 s: the plan took 247 s on a quiet but slower machine (session 13),
-    past the 240 s this test gave it; how fast the planner is belongs to bench_multicontact.py,
-    this test is about what it finds (the search ends as soon as it has the plan)."""
+    session 7 saw the stop's ~400 iterations cut by that wall at load 4); the search's own
+    budget stays."""
     planner = FallPlanner.from_params(nlp_max_wall_time=60.0)
-    r = planner.plan({"kinetic_energy": 40.0, "direction": 1.0, "time_budget": planner.cfg.max_time_budget})
+    r = planner.plan({"kinetic_energy": 40.0, "direction": 1.0, "time_budget": 240.0})
     assert r["success"], r["reason"]
     seq = r["contact_sequence"]
     assert seq[0] == "LF/RF" and seq[1] in ("LF", "RF") and seq[2] == "LF/RF" and len(seq) == 3, seq
