@@ -48,7 +48,6 @@ from humfall_ros.nodes.common import (
     QOS_LATCHED,
     QOS_RELIABLE,
     KeptWaitSet,
-    decoding,
     Params,
     profiled,
     shutting_down,
@@ -175,12 +174,11 @@ class SimBridge(Node):
                                               enable_rosout=False)
         no_events = SubscriptionEventCallbacks(use_default_callbacks=False)
         # raw: taken as bytes and decoded by recording/cdr.py (rclpy building a 31-name JointState is ~3x dearer);
-        # the executor's path (when the direct take is unusable) decodes the same way
+        # the direct take and the executor's path (when that is unusable) both go through _on_command_bytes
         self._decode_command = cdr.decoder(JointState)
         self.command_subs = {s: self.command_node.create_subscription(
-            JointState, f"joint_command/{s}", decoding(self, JointState, f"joint_command/{s}",
-                                                       lambda msg, s=s: self._on_command(s, msg)),
-            QOS_RELIABLE, event_callbacks=no_events, raw=True) for s in self.sources}
+            JointState, f"joint_command/{s}", lambda data, s=s: self._on_command_bytes(s, data), QOS_RELIABLE,
+            event_callbacks=no_events, raw=True) for s in self.sources}
         self._can_take = True
         self._command_wait: KeptWaitSet | None = None   # _wait_commands
         # the fall controller's event and decision, for the run metrics (alpha2, lead time, prediction)
@@ -216,6 +214,17 @@ class SimBridge(Node):
         self.truth = GroundTruth(self.world, self.scenario)
 
     # ------------------------------------------------------------ callbacks
+    def _on_command_bytes(self, source: str, data: bytes) -> None:
+        """A command's serialized bytes: decoded, or counted as rejected and dropped when malformed."""
+        try:
+            msg = self._decode_command(data)
+        except Exception as e:  # noqa: BLE001 - struct.error, ValueError: malformed bytes
+            self.rejected_commands += 1
+            self.get_logger().warning(f"joint_command/{source}: undecodable message dropped ({e})",
+                                      throttle_duration_sec=1.0)
+            return
+        self._on_command(source, msg)
+
     def _on_command(self, source: str, msg) -> None:
         """A command (a JointState decoded by recording/cdr.py: a read-only namespace with its fields)."""
         reason = validate_command(msg.name, msg.position, msg.velocity, self.joint_index)
@@ -280,14 +289,7 @@ class SimBridge(Node):
                         taken = sub.handle.take_message(JointState, True)
                     if taken is None:
                         break
-                    try:
-                        msg = self._decode_command(taken[0])
-                    except Exception as e:  # noqa: BLE001 - struct.error, ValueError: malformed bytes
-                        self.rejected_commands += 1
-                        self.get_logger().warning(f"joint_command/{s}: undecodable message dropped ({e})",
-                                                  throttle_duration_sec=1.0)
-                        continue
-                    self._on_command(s, msg)
+                    self._on_command_bytes(s, taken[0])
         except Exception as e:  # noqa: BLE001
             self._can_take = False
             self.get_logger().warning(f"direct take disabled ({e}); using the executor only")
