@@ -32,8 +32,11 @@ variable and constraint bounds, so no rebuild is needed.
 """
 from __future__ import annotations
 
+import ctypes
 import dataclasses
+import glob
 import math
+import os
 import threading
 import time
 
@@ -53,6 +56,26 @@ from humfall_ros.multicontact.modes import (
 )
 
 TRANSITION_OBJECTIVES = ("pre_impact", "post_impact")
+
+
+def set_blas_threads(n: int) -> bool:
+    """Set the thread count of the OpenBLAS that casadi ships and loads with itself (MUMPS, so
+    IPOPT, runs on it; numpy's OpenBLAS is another library). Its default is a thread per core:
+    on the 2-core machine an NLP then took both cores for the wall time of one (the 40 J root's
+    stop: 2.4-2.7 s wall and 4.8-5.4 s CPU on two threads, 2.7 s and 2.7 s on one), beside the
+    simulator and nodes, and the plan depended on the machine's core count through the summation
+    order. False if that library is not found."""
+    if n <= 0:
+        return False
+    for path in glob.glob(os.path.join(os.path.dirname(ca.__file__), "libcasadi-tp-openblas.so*")):
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        if hasattr(lib, "openblas_set_num_threads"):
+            lib.openblas_set_num_threads(ctypes.c_int(int(n)))
+            return True
+    return False
 
 
 @dataclasses.dataclass
@@ -99,6 +122,8 @@ class OptConfig:
     contact_pos_tol: float = 0.002   # m, eq. 3 at the knots (drift bound)
     contact_vel_tol: float = 0.02    # m/s, eq. 4 at the knots
     nlp_max_wall_time: float = 10.0
+    # threads of casadi's own OpenBLAS under IPOPT's MUMPS (0: the library's default, one per core)
+    blas_threads: int = 1
     # Objective of a transition that adds a contact (Sec. III-A): 'pre_impact' (the
     # paper: E_K just before the impact) or 'post_impact' (departure, the energy the
     # child node starts with: makes the rigid impact of eq. 10 a free energy sink).
@@ -727,6 +752,7 @@ class TrajectoryOptimizer:
     def __init__(self, model: PlanarModel, cfg: OptConfig | None = None):
         self.model = model
         self.cfg = cfg or OptConfig()
+        set_blas_threads(self.cfg.blas_threads)
         self._nlps: dict[StructureKey, SegmentNLP] = {}
         self._proj: dict[tuple, SeedProjector] = {}
         self._lock = threading.Lock()

@@ -45,6 +45,8 @@ class PlannerConfig:
     max_depth: int = 4
     time_budget: float = 120.0        # s, default when the request gives <= 0
     max_time_budget: float = 600.0
+    # NLP calls per plan (0: none): a budget that ends the search at the same node on any machine
+    max_nlps: int = 0
     max_kinetic_energy: float = 1000.0  # J, refuse requests beyond this
     contact_tolerance: float = 0.005   # m, |phi| of a contact in the given state
     velocity_tolerance: float = 0.01   # m/s, |J v| of a contact in the given state
@@ -259,7 +261,8 @@ class FallPlanner:
                      frontier_order=self.cfg.frontier_order, landing_policy=self.cfg.landing_policy,
                      lookahead=self.cfg.frontier_lookahead, step_lookahead=self.cfg.frontier_lookahead_steps,
                      check_retry_seeds=self.cfg.check_retry_seeds,
-                     polish_acc_max=self.cfg.check_polish_acc_max if check is not None else 0.0)
+                     polish_acc_max=self.cfg.check_polish_acc_max if check is not None else 0.0,
+                     max_nlps=self.cfg.max_nlps)
         out = result_dict(self.model, res, vr)
         out["total_time_s"] = time.perf_counter() - t0
         return out

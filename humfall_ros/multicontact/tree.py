@@ -181,7 +181,7 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
            symmetry_cut: bool = True, check_plan=None, frontier_order: str = "pre_impact",
            landing_policy: str = "rank_last", lookahead: bool = False,
            step_lookahead: bool = False, check_retry_seeds: bool = False,
-           polish_acc_max: float = 0.0) -> SearchResult:
+           polish_acc_max: float = 0.0, max_nlps: int = 0) -> SearchResult:
     """Algorithm 1: grow the tree by least kinetic energy until a node's
     self-motion ends with E_K < eps_KE, the frontier empties or the budget ends.
 
@@ -225,7 +225,11 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
     ``acc_max``; the node is terminal if the polished one stops and passes. Why: the
     40 J step's stop flails the light arms (elbows 0 <-> -2.5 rad from knot to knot)
     in ways eq. 1-8 allow at 8 knots and the re-simulation does not reproduce; the
-    same stop with |qddot| <= 100 at the knots passes (session 11)."""
+    same stop with |qddot| <= 100 at the knots passes (session 11).
+    ``max_nlps`` > 0: a budget in NLP calls (each entry of the log: one line-5 or line-13
+    optimisation with its seeds) besides ``time_budget``; unlike wall time it ends the search
+    at the same node on any machine and load, so campaigns and tests that set it are
+    reproducible (the search itself is deterministic for given NLP results)."""
     if frontier_order not in FRONTIER_ORDERS:
         raise ValueError(f"frontier_order {frontier_order!r}: one of {', '.join(FRONTIER_ORDERS)}")
     if landing_policy not in ("rank_last", "refuse", "ignore"):
@@ -233,6 +237,8 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
     limits = opt.cfg.landing_limits
     model = opt.model
     eps_ke = opt.cfg.eps_ke if eps_ke is None else eps_ke
+    if max_nlps < 0:
+        raise ValueError(f"max_nlps {max_nlps}: >= 0 (0: no NLP budget)")
     t0 = time.perf_counter()
     deadline = t0 + time_budget
     q0 = np.asarray(q0, float)
@@ -247,6 +253,17 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
     g_mass = model.total_mass * 9.81
     log: list[dict] = []
     deepest = 0
+
+    def spent() -> bool:
+        """The wall-time or NLP budget is used up."""
+        return time.perf_counter() >= deadline or (max_nlps > 0 and len(log) >= max_nlps)
+
+    def out_of_budget():
+        if max_nlps > 0 and len(log) >= max_nlps:
+            return result(False, f"no solution within the budget of {max_nlps} NLPs "
+                                 f"(deepest tree depth reached: {deepest})", [])
+        return result(False, f"no solution within the time budget of {time_budget:.1f} s "
+                             f"(deepest tree depth reached: {deepest})", [])
 
     def result(success, reason, path):
         for n in nodes:
@@ -293,10 +310,10 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
             d.status = "terminal"
             return True
 
-        if rejected is not None and polish_acc_max > 0 and time.perf_counter() < deadline:
+        if rejected is not None and polish_acc_max > 0 and not spent():
             if accept(opt.warm_solve(d.q, d.v, y, env, acc_max=polish_acc_max), "polish_acc_max", polish_acc_max):
                 return True
-        if rejected is not None and check_retry_seeds and time.perf_counter() < deadline:
+        if rejected is not None and check_retry_seeds and not spent():
             try:
                 y2 = opt.opt_self_motion(d.q, d.v, d.mode, env, deadline=deadline,
                                          skip_seeds=sum(1 for a in y.attempt_log if a.get("seed_T") != "warm"))
@@ -311,9 +328,8 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         return False
 
     while frontier:
-        if time.perf_counter() >= deadline:
-            return result(False, f"no solution within the time budget of {time_budget:.1f} s "
-                                 f"(deepest tree depth reached: {deepest})", [])
+        if spent():
+            return out_of_budget()
         *_, nid = heapq.heappop(frontier)
         d = nodes[nid]
         deepest = max(deepest, d.depth)
@@ -342,7 +358,7 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
                 # (the limb lands somewhere else) and is kept
                 continue
             tried.add(sigma_j)
-            if time.perf_counter() >= deadline:
+            if spent():
                 break
             try:
                 y_ij = opt.opt_transition_motion(d.q, d.v, d.mode, sigma_j, env, deadline=deadline)  # line 13
@@ -379,7 +395,7 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
             d.children.append(child.id)
             deepest = max(deepest, child.depth)
             early = lookahead or (step_lookahead and change == "add" and ext in FEET)
-            if early and not child.over_limits and time.perf_counter() < deadline:
+            if early and not child.over_limits and not spent():
                 try:
                     y_c = opt.opt_self_motion(qj, vj, sigma_j, env, deadline=deadline)   # line 5, early
                 except TimeoutError:
@@ -395,7 +411,6 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
                         cls = 0 if y_c.success else 1
                         child.priority = key = y_c.final_ke if y_c.success else key
             heapq.heappush(frontier, (child.over_limits, cls, key, next(counter), child.id))   # line 20
-    if time.perf_counter() >= deadline:   # the last NLPs were cut by the budget: not a complete search
-        return result(False, f"no solution within the time budget of {time_budget:.1f} s "
-                             f"(deepest tree depth reached: {deepest})", [])
+    if spent():   # the last NLPs were cut by the budget: not a complete search
+        return out_of_budget()
     return result(False, f"no solution found: tree exhausted (deepest tree depth reached: {deepest})", [])
