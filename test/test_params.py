@@ -96,3 +96,42 @@ def test_config_from_refuses_unknown_keys_and_drops_only_the_ignored():
     with pytest.raises(ValueError):  # ParamError is a ValueError: callers' except clauses still hold
         params.config_from(Cfg, {"gain": 1.0, "extra": 0})
 
+
+
+# config dataclass -> its node's declaration, and the fields whose dataclass default is deliberately not the
+# declared one (why)
+CONFIG_CLASSES = {
+    "humfall_ros.fall.controller:SafeFallConfig": ("safe_fall_controller", {}),
+    "humfall_ros.fall.ftb:FtbConfig": ("ftb_monitor", {}),
+    "humfall_ros.walking.config:LocomotionConfig": ("locomotion", {}),
+    "humfall_ros.estop.config:EstopConfig": ("estop_planner", {}),
+    # the node resolves start_time < 0 to the plan file's take-over time; in process there is no file
+    "humfall_ros.multicontact.executor:ExecutorConfig": ("multicontact_executor", {"start_time"}),
+}
+
+
+@pytest.mark.parametrize("path", sorted(CONFIG_CLASSES))
+def test_config_dataclass_defaults_do_not_drift_from_the_declaration(path):
+    """In-process users that build a config with its defaults (``SafeFallConfig()``) run the
+    controller the node runs: every field the node's yaml declares has the declared default
+    (compared by value: an enum field against its declared string)."""
+    import dataclasses
+    import enum
+
+    module, name = path.split(":")
+    cls = getattr(importlib.import_module(module), name)
+    node, exempt = CONFIG_CLASSES[path]
+    decl = params.defaults(node)
+    inst = cls()
+    shared = [f.name for f in dataclasses.fields(cls) if f.name in decl and f.name not in exempt]
+    assert len(shared) >= 5, shared    # the comparison is not vacuous
+    for field in shared:
+        got, want = getattr(inst, field), decl[field]
+        if isinstance(got, enum.Enum):
+            got = got.value
+        if isinstance(want, list):
+            want = tuple(want)
+        if isinstance(got, list):
+            got = tuple(got)
+        assert got == want or (isinstance(got, float) and math.isnan(got) and math.isnan(want)), \
+            f"{name}.{field}: dataclass {got!r}, config/{node}.yaml {want!r}"
