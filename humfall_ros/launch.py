@@ -22,16 +22,9 @@ import yaml
 
 from humfall_ros import params as params_mod
 from humfall_ros import scenario as scenario_mod
+from humfall_ros.scenario import CONTROLLER_NODES, CONTROLLER_PARAMS
 from humfall_ros.control.mux import DEFAULT_PRIORITIES, mux_order
 
-# Which nodes serve which fall controller (`controller:` of a scenario).
-CONTROLLER_NODES: dict[str, list[str]] = {"none": [], "stepping": ["ftb_monitor", "safe_fall_controller"],
-                                          "stepping_inertia": ["ftb_monitor", "safe_fall_controller"]}
-# Parameters a controller choice sets on its nodes (params.<node>.<name> may not override them).
-CONTROLLER_PARAMS: dict[str, dict[str, dict]] = {
-    "stepping": {"safe_fall_controller": {"inertia_shaping": False}},
-    "stepping_inertia": {"safe_fall_controller": {"inertia_shaping": True}},
-}
 # The mux source each built-in controller node commands (joint_command/<source>), in lockstep.
 NODE_SOURCE = {"locomotion": "locomotion", "safe_fall_controller": "safe_fall", "estop_planner": "estop"}
 # Bridge parameters that come from the scenario file itself (its sim section and duration).

@@ -48,6 +48,15 @@ class ScenarioError(ValueError):
 
 
 CONTROLLERS = ("none", "stepping", "stepping_inertia")
+# What each fall controller choice (`controller:` of a scenario) runs, in one place for the launcher (processes)
+# and the in-process suite: the nodes that serve it, and the parameters it sets on them (params.<node>.<name>
+# may not override these).
+CONTROLLER_NODES: dict[str, list[str]] = {"none": [], "stepping": ["ftb_monitor", "safe_fall_controller"],
+                                          "stepping_inertia": ["ftb_monitor", "safe_fall_controller"]}
+CONTROLLER_PARAMS: dict[str, dict[str, dict]] = {
+    "stepping": {"safe_fall_controller": {"inertia_shaping": False}},
+    "stepping_inertia": {"safe_fall_controller": {"inertia_shaping": True}},
+}
 # Mux priorities of the built-in command sources (higher wins): a scenario's extra controllers must not reuse them.
 BUILTIN_PRIORITIES = {"locomotion": 10, "estop": 20, "safe_fall": 30}
 # Gait phases a push or an e-stop can be timed to (walking pattern: double support, then single support).

@@ -18,8 +18,7 @@ from humfall_ros.control.contract import Controller, Observation
 from humfall_ros.control.standing import StandingController
 from humfall_ros.fall.controller import SafeFallConfig, SafeFallController
 from humfall_ros.fall.ftb import FtbConfig, FtbMonitor
-
-CONTROLLERS = ("none", "stepping", "stepping_inertia")
+from humfall_ros.scenario import CONTROLLER_PARAMS, CONTROLLERS
 
 
 def node_params(sc: dict, node: str) -> dict:
@@ -112,7 +111,6 @@ def standing_controller(sc: dict, model) -> StandingController:
 
 def controllers_for(sc: dict, kind: str, model=None):
     """(controllers, monitors) of the run, as the launcher would start them for ``kind``."""
-    from humfall_ros.launch import CONTROLLER_PARAMS
     from humfall_ros.model.humanoid import load_model
     if kind not in CONTROLLERS:
         raise ValueError(f"controller must be one of {CONTROLLERS}, got {kind!r}")

@@ -275,3 +275,17 @@ def test_the_fixed_trigger_gets_the_push_end_on_both_paths(tmp_path):
     assert node_params(sc, "ftb_monitor")["push_end_time_s"] == pytest.approx(end)
     quiet = scenario.load("standing_quiet", ["controller=stepping"])
     assert not quiet["push"] and node_params(quiet, "ftb_monitor")["push_end_time_s"] < 0
+
+
+def test_every_controller_choice_says_which_nodes_serve_it():
+    """The controller choices, their nodes and their parameters are one table (scenario.py) that the
+    launcher and the in-process suite both read: every choice has its nodes, parameters only for
+    choices and nodes that exist, and both users see the same objects."""
+    from humfall_ros import launch, scenario, suite
+
+    assert set(scenario.CONTROLLER_NODES) == set(scenario.CONTROLLERS)
+    for kind, per_node in scenario.CONTROLLER_PARAMS.items():
+        assert kind in scenario.CONTROLLERS
+        assert set(per_node) <= set(scenario.CONTROLLER_NODES[kind]), (kind, per_node)
+    assert launch.CONTROLLER_NODES is scenario.CONTROLLER_NODES and suite.CONTROLLERS is scenario.CONTROLLERS
+    assert launch.CONTROLLER_PARAMS is scenario.CONTROLLER_PARAMS
