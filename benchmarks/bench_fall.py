@@ -38,7 +38,7 @@ def _stats(xs: list[float]) -> dict:
 def capture_takeover(name: str = "standing_push", overrides: list[str] | None = None, sc: dict | None = None):
     """(observations of the run up to the trigger, the trigger observation, the event), on ClosedLoop
     (the scenario ``name`` with ``overrides``, or the validated scenario ``sc``)."""
-    from humfall_ros.fall import runs
+    from humfall_ros.sim import fall_runs as runs
     from humfall_ros.sim.closed_loop import ClosedLoop
 
     sc = sc if sc is not None else scenario.load(name, overrides)
@@ -161,7 +161,7 @@ def record(path: pathlib.Path) -> dict:
     """
     import fall_closed_loop as fcl
     from humfall_ros.control.contract import CentroidalObservation
-    from humfall_ros.fall import sweep
+    from humfall_ros.sim import fall_sweep as sweep
     from humfall_ros.fall.ftb import features_of
 
     cases = {"push1.0": _capture_until_trigger(scenario.load("standing_push")),

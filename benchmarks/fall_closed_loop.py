@@ -1,4 +1,4 @@
-"""Safe fall in one process (``humfall_ros.fall.runs`` on the suite's ClosedLoop): issue 11's experiments.
+"""Safe fall in one process (``humfall_ros.sim.fall_runs`` on the suite's ClosedLoop): issue 11's experiments.
 
     .venv/bin/python benchmarks/fall_closed_loop.py push [SCALE] [KINDS] [OUT] [KEY=VALUE ...]  # standing_push
         (KEY=VALUE: scenario overrides, e.g. params.safe_fall_controller.balance_kd=0.1)
@@ -28,7 +28,7 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from humfall_ros import scenario  # noqa: E402
-from humfall_ros.fall import runs, sweep  # noqa: E402
+from humfall_ros.sim import fall_runs as runs, fall_sweep as sweep  # noqa: E402
 
 
 def _push_overrides(scale: float) -> list[str]:

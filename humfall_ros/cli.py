@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == "plan-fall":
         return _cmd_plan_fall(None, argv[1:])
     # subcommands with their own argument parsers: everything after the name is theirs
-    delegated = {"campaign": "humfall_ros.campaign.cli", "sweep": "humfall_ros.fall.sweep",
+    delegated = {"campaign": "humfall_ros.campaign.cli", "sweep": "humfall_ros.sim.fall_sweep",
                  "estop": "humfall_ros.nodes.estop_cli"}
     if argv and argv[0] in delegated:
         import importlib

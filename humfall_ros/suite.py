@@ -1,7 +1,7 @@
 """What a scenario runs, in process: the controllers and monitors ``humfall up`` would start for it.
 
 One place for the suite's composition, used by the in-process loop (``sim.closed_loop.ClosedLoop``),
-the fall experiments (``fall.runs``), benchmarks and tests: every node's parameters from its
+the fall experiments (``sim.fall_runs``), benchmarks and tests: every node's parameters from its
 declaration (``config/<node>.yaml``) plus what the scenario implies and its ``params.<node>``
 (``node_params``); locomotion; with a fall controller the FTB monitor and the safe-fall controller;
 the e-stop when the scenario walks or schedules a trigger. The wrappers give a controller or a

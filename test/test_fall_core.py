@@ -444,7 +444,7 @@ def test_shaping_recruit_sets_name_the_joints_shaping_may_move():
 def test_sweep_summary_counts_steps_that_land_as_predicted():
     """``humfall sweep``'s summary: per controller, the steps whose touchdown (50 ms), landing (3 cm / 5 deg) and
     flatness (3 deg) are within issue 11's goals, and the worst of each; runs without a step are left out."""
-    from humfall_ros.fall import sweep
+    from humfall_ros.sim import fall_sweep as sweep
 
     def row(kind, angle, pred, fell=True):
         return {"controller": kind, "push_angle_deg": angle, "push_n": 300.0, "fell": fell, "fall_direction_deg": 0.0,

@@ -2,7 +2,7 @@
 
 ``humfall up standing_push --controller stepping_inertia``: the FTB fires, the fall controller
 takes over through the mux, publishes its decision, steps and does not touch the target; the
-joint states are bit-identical to the in-process run (``fall.runs`` on ``ClosedLoop``).
+joint states are bit-identical to the in-process run (``sim.fall_runs`` on ``ClosedLoop``).
 Each test runs in its own ROS_DOMAIN_ID on localhost (conftest.in_ros_domain).
 """
 import math
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from humfall_ros import launch, scenario
-from humfall_ros.fall import runs
+from humfall_ros.sim import fall_runs as runs
 
 from test_suite_graph import joint_states_from_bag
 

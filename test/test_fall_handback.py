@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from humfall_ros import scenario
-from humfall_ros.fall import runs
+from humfall_ros.sim import fall_runs as runs
 
 
 @pytest.fixture(scope="module")

@@ -96,7 +96,7 @@ def test_no_trigger_in_normal_walking():
     no trigger, the walk completes; the standing boundary's energy margin does go positive in these steps (the
     reference is what keeps it quiet)."""
     from humfall_ros import scenario
-    from humfall_ros.fall import runs
+    from humfall_ros.sim import fall_runs as runs
     from humfall_ros.sim.closed_loop import ClosedLoop
 
     sc = scenario.load("walking", ["walk.steps=3", "duration=5.0", "params.ftb_monitor.use_walking_state=true"])
@@ -172,7 +172,7 @@ def test_walking_push_capture_does_not_hang_on_the_replan_window(replan_s):
     hysteresis (``replan_keep_capture``) a landing that still captures is kept, so the outcome no longer depends on
     which tick the window ends at (measured without it: 0.05 s fell 0.19 m from the target, 0.08 s captured)."""
     from humfall_ros import scenario
-    from humfall_ros.fall import runs
+    from humfall_ros.sim import fall_runs as runs
 
     sc = scenario.load("walking_push", [f"params.safe_fall_controller.replan_single_support_s={replan_s}"])
     r = runs.run(sc, "stepping", stop_after_landing_s=1.0)

@@ -261,7 +261,7 @@ def test_a_walking_scenario_gives_the_fall_trigger_the_gait_reference_on_both_pa
 
 
 def test_the_fixed_trigger_gets_the_push_end_on_both_paths(tmp_path):
-    # paper 1 sec. V-A's fixed mode needs the push end: humfall up and the in-process loop (fall.runs, the
+    # paper 1 sec. V-A's fixed mode needs the push end: humfall up and the in-process loop (sim.fall_runs, the
     # benchmarks) both take it from the scenario's first push; the in-process loop once had none and never fired
     from humfall_ros import launch
     from humfall_ros.scenario import push_time

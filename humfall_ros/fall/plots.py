@@ -1,7 +1,7 @@
 """Safe-fall figures like paper 1's: Fig. 9 (support polygons, CoP and reference points per phase),
 Fig. 11 (CoM paths and the avoidance angle over time, per controller) and the sweep's polar plot.
 
-Inputs are ``fall.runs.FallRun`` objects (run with ``keep_trace=True``) and ``fall.sweep`` rows.
+Inputs are ``sim.fall_runs.FallRun`` objects (run with ``keep_trace=True``) and ``sim.fall_sweep`` rows.
 Matplotlib with the Agg backend; each function writes one PNG and returns its path.
 """
 from __future__ import annotations

@@ -10,7 +10,7 @@ commands nothing) so the uncontrolled runs have trigger and lead times.
 
 The ground-truth metrics are ``sim.metrics.FallMetrics`` fed with the fall event, the
 decision and the feet (``FallMetrics.update_feet``) each tick. Imports the simulator: this
-module is for experiments (``fall.sweep``, benchmarks, tests), not for nodes.
+module is for experiments (``sim.fall_sweep``, benchmarks, tests), not for nodes.
 """
 from __future__ import annotations
 
@@ -201,14 +201,15 @@ def summary(r: FallRun) -> dict:
 __all__ = ["CONTROLLERS", "FallRun", "controllers_for", "handback_run", "run", "summary"]
 
 
-if __name__ == "__main__":  # python -m humfall_ros.fall.runs handback SCENARIO KIND DURATION [walk_at=S] [KEY=VALUE ..]
+# python -m humfall_ros.sim.fall_runs handback SCENARIO KIND DURATION [walk_at=S] [KEY=VALUE ..]
+if __name__ == "__main__":
     import json
     import sys
 
     from humfall_ros import scenario
 
     if len(sys.argv) < 5 or sys.argv[1] != "handback":
-        raise SystemExit("usage: python -m humfall_ros.fall.runs handback SCENARIO KIND DURATION [walk_at=S] "
+        raise SystemExit("usage: python -m humfall_ros.sim.fall_runs handback SCENARIO KIND DURATION [walk_at=S] "
                          "[KEY=VALUE ..]")
     extra = sys.argv[5:]
     walk_at = next((float(a.split("=", 1)[1]) for a in extra if a.startswith("walk_at=")), None)

@@ -7,7 +7,7 @@ on ``standing_push`` (0.1 s on the chest). The thresholds differ by direction (m
 by bisection (:func:`bisect_threshold`, standing balance only, no target) and stored in
 ``config/fall_thresholds.yaml`` with each direction's uncontrolled fall heading at
 ``factor`` x threshold. The target box is put 1.2 m from the initial CoP along that heading,
-facing the robot. Every run is in process on the suite's ``ClosedLoop`` (``fall.runs``), the
+facing the robot. Every run is in process on the suite's ``ClosedLoop`` (``sim.fall_runs``), the
 same ticks a ``humfall up`` run would give.
 
 Output: a per-direction table (fall direction, the three avoidance angles, min target
@@ -58,7 +58,7 @@ def push_scenario(magnitude: float, angle_deg: float, target_heading_deg: float 
 
 def falls(magnitude: float, angle_deg: float, duration: float = 2.5) -> tuple[bool, dict]:
     """Does the standing robot fall from this push (no fall controller, no target)?"""
-    from humfall_ros.fall import runs
+    from humfall_ros.sim import fall_runs as runs
 
     sc = push_scenario(magnitude, angle_deg)
     r = runs.run(sc, "none", duration=duration, stop_after_landing_s=0.0)
@@ -86,7 +86,7 @@ def bisect_threshold(angle_deg: float, lo: float = 150.0, hi: float = 600.0, tol
 
 def compute_thresholds(directions=DIRECTIONS, factor: float = 1.2, tol: float = 5.0, log=print) -> dict:
     """Thresholds and the uncontrolled fall heading at ``factor`` x threshold, per direction."""
-    from humfall_ros.fall import runs
+    from humfall_ros.sim import fall_runs as runs
 
     out = {}
     for a in directions:
@@ -111,7 +111,7 @@ def thresholds_path() -> pathlib.Path:
 
 def save_thresholds(data: dict, path: pathlib.Path, factor: float, tol: float) -> None:
     doc = {"description": ("per-direction fall thresholds of standing_push (0.1 s on the chest, standing balance, "
-                           "no target), by bisection (humfall_ros/fall/sweep.py); angle clockwise from +x; "
+                           "no target), by bisection (humfall_ros/sim/fall_sweep.py); angle clockwise from +x; "
                            f"fall_heading_deg: uncontrolled fall at {factor} x threshold"),
            "factor": factor, "tolerance_n": tol, "directions": data}
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
@@ -124,8 +124,8 @@ def load_thresholds(path: pathlib.Path | None = None) -> dict:
 
 def sweep(thresholds: dict, controllers=("none", "stepping", "stepping_inertia"), factor: float = 1.2,
           directions=None, duration: float = 3.5, log=print) -> list[dict]:
-    """One row per direction and controller (``fall.runs.summary`` plus the push)."""
-    from humfall_ros.fall import runs
+    """One row per direction and controller (``sim.fall_runs.summary`` plus the push)."""
+    from humfall_ros.sim import fall_runs as runs
 
     rows = []
     for a in directions or sorted(thresholds):
@@ -208,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="runs/sweep", help="folder for sweep.json and sweep_polar.png")
     a = ap.parse_args(argv)
     kinds = [k.strip() for k in a.controller.split(",") if k.strip()]
-    from humfall_ros.fall.runs import CONTROLLERS
+    from humfall_ros.sim.fall_runs import CONTROLLERS
 
     bad = [k for k in kinds if k not in CONTROLLERS]
     if bad:
