@@ -19,7 +19,8 @@ excludes it (what a warmed-up node pays per NLP).
 
 ``--jobs 2`` (default) runs the sweep cases in two worker processes, one case
 at a time each, largest energies first (the machine has 2 cores and one IPOPT
-run uses one); every worker builds its own structures. ``--jobs 1`` runs the
+run uses one: ``blas_threads`` 1 since session 14; before, casadi's OpenBLAS ran a
+thread per core, so two workers ran four threads); every worker builds its own structures. ``--jobs 1`` runs the
 cases in order in this process. Every returned plan is re-simulated
 independently with pinocchio (``resim.py``) unless ``--no-resim``.
 """
