@@ -254,12 +254,15 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
     log: list[dict] = []
     deepest = 0
 
+    def nlps_spent() -> bool:
+        return max_nlps > 0 and len(log) >= max_nlps
+
     def spent() -> bool:
         """The wall-time or NLP budget is used up."""
-        return time.perf_counter() >= deadline or (max_nlps > 0 and len(log) >= max_nlps)
+        return time.perf_counter() >= deadline or nlps_spent()
 
     def out_of_budget():
-        if max_nlps > 0 and len(log) >= max_nlps:
+        if nlps_spent():
             return result(False, f"no solution within the budget of {max_nlps} NLPs "
                                  f"(deepest tree depth reached: {deepest})", [])
         return result(False, f"no solution within the time budget of {time_budget:.1f} s "
