@@ -61,14 +61,22 @@ def make_controller(p: dict, model) -> TakeoverController:
 
 
 def make_node(name: str):
+    from sensor_msgs.msg import JointState
+
     from humfall_ros.nodes.common import stamp_key
     from humfall_ros.nodes.controller_node import ControllerNode
+    from humfall_ros.recording import cdr
 
     node = ControllerNode(name, make_controller, declarations=DECLARATIONS)
     mute_ns = int(round(node.params["mute_time"] * 1e9))
     if mute_ns >= 0:  # a hung source: the answers of every tick from mute_time on are never sent
-        publish = node.pub.publish
-        node.pub.publish = lambda msg: None if stamp_key(msg.header.stamp) >= mute_ns else publish(msg)
+        publish, decode = node.pub.publish, cdr.decoder(JointState)  # the node publishes commands encoded
+
+        def muted(data: bytes) -> None:
+            if stamp_key(decode(data).header.stamp) < mute_ns:
+                publish(data)
+
+        node.pub.publish = muted
     return node
 
 

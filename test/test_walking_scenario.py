@@ -110,7 +110,12 @@ def test_node_builds_the_in_process_controller_and_converts_messages():
                      com_ref=np.array([0.1, 0.02, 0.7]), com_velocity_ref=np.array([0.3, 0.0, 0.0]),
                      zmp_ref=np.array([0.12, 0.09, 0.0]), left_foot=(0.1, 0.09, 0.0, 0.2),
                      right_foot=(0.0, -0.09, 0.03, -0.1), next_footsteps=[("r", 0.3, -0.09, 0.0, 4, False)])
-    back = walking_state_from_msg(walking_state_to_msg(s))  # what the e-stop node reads
+    from humfall_interfaces.msg import WalkingState as WalkingStateMsg
+
+    from humfall_ros.recording import cdr
+
+    # what the e-stop node reads: the bytes the node publishes, decoded
+    back = walking_state_from_msg(cdr.decoder(WalkingStateMsg)(cdr.encoder(WalkingStateMsg)(walking_state_to_msg(s))))
     assert back.support == "single_left" and back.step_index == 3 and back.phase_fraction == 0.25
     np.testing.assert_allclose(back.com_ref, s.com_ref)
     np.testing.assert_allclose(back.left_foot, s.left_foot, atol=1e-12)

@@ -13,6 +13,7 @@ without a command), one that had not releases.
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 from typing import Any, Callable
 
 import numpy as np
@@ -23,7 +24,16 @@ from sensor_msgs.msg import Imu, JointState
 from humfall_ros.control.contract import CentroidalObservation, Controller, JointTargets, Observation, Obstacle
 from humfall_ros.control.tick_gate import Action, TickGate
 from humfall_ros.model.humanoid import HumanoidModel, load_model
-from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_LATCHED, QOS_RELIABLE, HotLoop, Params, ros_stamp, stamp_key
+from humfall_ros.nodes.common import (
+    NO_PUB_EVENTS,
+    QOS_LATCHED,
+    QOS_RELIABLE,
+    HotLoop,
+    Params,
+    publish_encoded,
+    ros_stamp,
+    stamp_key,
+)
 
 
 @dataclasses.dataclass
@@ -89,6 +99,12 @@ FALL_EVENT = Input("fall_event", FallEvent, "fall_event", fall_event_input)
 IMU = Input("imu", Imu, "imu", imu_from_msg, per_tick=True)  # for controllers that read the IMU each tick
 
 
+def joint_command(names=(), positions=(), velocities=None) -> SimpleNamespace:
+    """A JointState's fields as a namespace, for ``publish_encoded`` (empty: a release)."""
+    return SimpleNamespace(header=SimpleNamespace(stamp=None, frame_id=""), name=names, position=positions,
+                           velocity=() if velocities is None else velocities, effort=())
+
+
 class ControllerNode(Node):
     """Runs one contract controller as a lockstep source.
 
@@ -131,8 +147,9 @@ class ControllerNode(Node):
                 # gave a tick with no engaged source in a fresh-clone run
                 self.hot_loop.subscribe(i.msg_type, i.topic, lambda m, i=i: self._on_latched(i, m),
                                         i.qos or QOS_LATCHED)
-        self.last_cmd: JointState | None = None
-        self.tick_outputs: list[tuple[Any, Any]] = []  # (publisher, message) of the last tick, see publish_tick
+        self.last_cmd: SimpleNamespace | None = None  # the last command (a JointState's fields) ...
+        self.last_cmd_data = b""  # ... and its bytes as published
+        self.tick_outputs: list[tuple[Any, bytes]] = []  # (publisher, bytes) of the last tick, see publish_tick
         self.engaged = False
         self.failures = 0
         self.get_logger().info(f"controller {type(self.controller).__name__} as source {self.source!r}; "
@@ -149,7 +166,7 @@ class ControllerNode(Node):
         action = self.gate.offer(kind, stamp_key(msg.header.stamp), msg)
         if action is Action.RETRANSMIT:
             if self.last_cmd is not None:
-                self.pub.publish(self.last_cmd)  # the bridge resent the tick: answer it again
+                self.pub.publish(self.last_cmd_data)  # the bridge resent the tick: answer it again
             for pub, out in self.tick_outputs:  # and the tick's other outputs (a reader may have missed them)
                 pub.publish(out)
             return
@@ -194,10 +211,11 @@ class ControllerNode(Node):
             if not self.context.ok():
                 return  # shutting down (a signal arrived mid-tick): nothing to answer, nothing failed
             self._failed(tick.stamp_ns, e)
-            cmd = JointState(name=list(self.last_cmd.name), position=list(self.last_cmd.position)) \
-                if self.engaged and self.last_cmd is not None else JointState()
+            cmd = joint_command(self.last_cmd.name, self.last_cmd.position) \
+                if self.engaged and self.last_cmd is not None else joint_command()
         cmd.header.stamp = stamp
-        self.pub.publish(cmd)  # first: in lockstep the bridge waits for it, not for the outputs below
+        # first: in lockstep the bridge waits for it, not for the outputs below
+        self.last_cmd_data = publish_encoded(self.pub, cmd)
         self.last_cmd = cmd
         self.engaged = bool(cmd.name)
         if stepped is not None:
@@ -214,23 +232,20 @@ class ControllerNode(Node):
                                 + (then or ("repeating the last targets" if self.engaged else "releasing")),
                                 throttle_duration_sec=1.0)
 
-    def _command(self, targets: JointTargets | None) -> JointState:
+    def _command(self, targets: JointTargets | None) -> SimpleNamespace:
         if targets is None:
-            return JointState()
+            return joint_command()
         q = np.asarray(targets.positions, float)
         if q.shape != (self.model.njoints,) or not np.all(np.isfinite(q)):
             raise ValueError(f"controller returned bad positions (shape {q.shape})")
-        cmd = JointState(name=self.model.joint_names, position=q.tolist())
-        if targets.velocities is not None:
-            cmd.velocity = np.asarray(targets.velocities, float).tolist()
-        return cmd
+        v = None if targets.velocities is None else np.asarray(targets.velocities, float)
+        return joint_command(self.model.joint_names, q, v)
 
     def publish_tick(self, pub, msg) -> None:
         """Publish a per-tick output of this tick (walking/state, estop/status): sent again with the command
         when the tick is retransmitted, since a reader that matched late (start-up) would otherwise wait for it
         for ever in lockstep."""
-        pub.publish(msg)
-        self.tick_outputs.append((pub, msg))
+        self.tick_outputs.append((pub, publish_encoded(pub, msg)))
 
     def after_step(self, observation: Observation, targets: JointTargets | None) -> None:
         """Hook for subclasses: publish the controller's own per-tick state (e.g. walking/state) with

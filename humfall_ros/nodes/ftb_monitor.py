@@ -28,7 +28,8 @@ from std_srvs.srv import Trigger
 from humfall_ros.control.contract import Observation
 from humfall_ros.control.tick_gate import Action, TickGate
 from humfall_ros.fall import ftb as core
-from humfall_ros.nodes.common import (NO_PUB_EVENTS, QOS_LATCHED, QOS_RELIABLE, HotLoop, Params, ros_stamp, run_node,
+from humfall_ros.nodes.common import (NO_PUB_EVENTS, QOS_LATCHED, QOS_RELIABLE, HotLoop, Params, publish_encoded,
+                                     ros_stamp, run_node,
                                      stamp_key)
 from humfall_ros.nodes.controller_node import centroidal_from_msg
 from rclpy.node import Node
@@ -167,7 +168,8 @@ class FtbMonitorNode(Node):
         self.create_service(Trigger, "ftb/reset", self._on_reset)
         self.msg = FtbStatus()
         self.msg.header.frame_id = "odom"
-        self.last: FtbStatus | None = None
+        self.last: bytes | None = None  # the last status as published (encoded: rclpy's conversion of FtbStatus was
+        # the node's largest per-tick cost)
         self.failures = 0
         self.get_logger().info(f"FTB mode {self.config.mode.value}; tick inputs {sorted(kinds)}")
 
@@ -215,8 +217,7 @@ class FtbMonitorNode(Node):
             self.pub_event.publish(cleared_msg(st.cleared, tick.stamp_ns, st.reason))  # latched: the event is over
             self.get_logger().info(f"fall event of {st.cleared.time:.3f} s cleared at {tick.stamp_ns * 1e-9:.3f} s: "
                                    f"{st.reason}")
-        self.pub_status.publish(self.msg)
-        self.last = self.msg
+        self.last = publish_encoded(self.pub_status, self.msg)
 
     def _on_reset(self, request, response):
         before = self.monitor.state.value
