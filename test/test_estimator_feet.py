@@ -5,11 +5,13 @@ import pytest
 import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import WrenchStamped
+from humfall_interfaces.msg import CentroidalState
 from sensor_msgs.msg import Imu, JointState
 
 from humfall_ros.control.contract import centroidal_from_estimate
 from humfall_ros.model.estimation import CentroidalEstimator
 from humfall_ros.model.humanoid import SIDES, load_model
+from humfall_ros.recording import cdr
 
 QUAT = [0.0, 0.0, 0.0, 1.0]
 
@@ -67,7 +69,8 @@ def test_the_message_carries_the_per_foot_fields_bit_for_bit(in_ros_domain, mode
     rclpy.init()
     node = StateEstimator()
     published = []
-    node.pub.publish = published.append
+    decode = cdr.decoder(CentroidalState)
+    node.pub.publish = lambda data: published.append(decode(data))  # the bytes it sends, as a subscriber reads them
     node.hot_loop.batching = True
     try:
         joints = model.joint_vector(model.standing_posture)

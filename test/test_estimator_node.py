@@ -4,11 +4,13 @@ import pytest
 import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import WrenchStamped
+from humfall_interfaces.msg import CentroidalState
 from sensor_msgs.msg import Imu, JointState
 
 from humfall_ros.nodes.common import stamp_key
 from humfall_ros.control.tick_gate import MAX_PENDING_TICKS
 from humfall_ros.nodes.state_estimator import StateEstimator
+from humfall_ros.recording import cdr
 from humfall_ros.sim.sensors import Sensors
 from humfall_ros.sim.world import SimWorld
 
@@ -18,7 +20,8 @@ def estimator(in_ros_domain):
     rclpy.init()
     node = StateEstimator()
     published = []
-    node.pub.publish = published.append  # what it would send, without a graph
+    decode = cdr.decoder(CentroidalState)
+    node.pub.publish = lambda data: published.append(decode(data))  # what it would send (bytes), without a graph
     node.hot_loop.batching = True        # as when its hot loop spins it
     try:
         yield node, published
@@ -85,7 +88,8 @@ def test_ticks_that_never_complete_do_not_pile_up(estimator):
 def test_a_retransmitted_tick_is_answered_again_and_time_going_back_resets(estimator):
     node, _ = estimator
     stamps = []  # what went out, read at publish time (the node refills one message)
-    node.pub.publish = lambda m: stamps.append((stamp_key(m.header.stamp), m.com.x))
+    decode = cdr.decoder(CentroidalState)
+    node.pub.publish = lambda data: stamps.append((stamp_key(decode(data).header.stamp), decode(data).com.x))
     ticks = simulated_ticks(2, node.model.joint_names)
     for t in ticks:
         for kind, msg in t.items():
