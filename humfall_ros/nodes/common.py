@@ -13,6 +13,7 @@ import os
 import threading
 import sys
 import time
+from types import SimpleNamespace
 from typing import Any, Callable, NoReturn
 
 from humfall_ros import params as params_mod
@@ -256,6 +257,12 @@ def decodable(msg_type) -> bool:
     except cdr.UnsupportedType:
         return False
     return True
+
+
+def xyz(v) -> SimpleNamespace:
+    """A Point's (or Vector3's) fields as a namespace, for :func:`publish_encoded`, from a 2- or 3-vector
+    (z = 0 for a 2-vector)."""
+    return SimpleNamespace(x=float(v[0]), y=float(v[1]), z=float(v[2]) if len(v) > 2 else 0.0)
 
 
 def publish_encoded(pub, msg) -> bytes:

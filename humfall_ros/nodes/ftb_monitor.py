@@ -29,8 +29,7 @@ from humfall_ros.control.contract import Observation
 from humfall_ros.control.tick_gate import Action, TickGate
 from humfall_ros.fall import ftb as core
 from humfall_ros.nodes.common import (NO_PUB_EVENTS, QOS_LATCHED, QOS_RELIABLE, HotLoop, Params, publish_encoded,
-                                     ros_stamp, run_node,
-                                     stamp_key)
+                                     ros_stamp, run_node, stamp_key)
 from humfall_ros.nodes.controller_node import centroidal_from_msg
 from rclpy.node import Node
 

@@ -34,7 +34,7 @@ from humfall_interfaces.msg import WalkingState as WalkingStateMsg
 
 from humfall_ros import params as params_mod
 from humfall_ros.control.contract import JointTargets, Observation
-from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, run_node
+from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, run_node, xyz
 from humfall_ros.nodes.controller_node import FALL_EVENT, IMU, ControllerNode, Input
 from humfall_ros.walking.controller import LocomotionController, WalkingState, from_scenario
 from humfall_ros.walking.footsteps import WalkCommand
@@ -65,13 +65,9 @@ def walk_command_from_twist(msg: Twist) -> WalkCommand:
     return WalkCommand(v, w)
 
 
-def _point(v) -> SimpleNamespace:
-    return SimpleNamespace(x=float(v[0]), y=float(v[1]), z=float(v[2]))
-
-
 def _pose(foot) -> SimpleNamespace:
     x, y, z, yaw = foot
-    return SimpleNamespace(position=SimpleNamespace(x=float(x), y=float(y), z=float(z)),
+    return SimpleNamespace(position=xyz((x, y, z)),
                            orientation=SimpleNamespace(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)))
 
 
@@ -83,15 +79,15 @@ def walking_state_to_msg(s: WalkingState) -> SimpleNamespace:
     for side, x, y, yaw, *rest in s.next_footsteps:
         index, stop = (int(rest[0]), bool(rest[1])) if rest else (0, False)
         steps.append(SimpleNamespace(side=FootstepMsg.LEFT if side == "l" else FootstepMsg.RIGHT,
-                                     position=SimpleNamespace(x=float(x), y=float(y), z=0.0), yaw=float(yaw),
+                                     position=xyz((x, y)), yaw=float(yaw),
                                      index=index, stop=stop))
     return SimpleNamespace(
         header=SimpleNamespace(stamp=SimpleNamespace(sec=0, nanosec=0), frame_id=""),
         walking=bool(s.walking), released=bool(s.released), support=str(s.support),
         phase_fraction=float(s.phase_fraction), step_index=int(s.step_index),
-        com_ref=_point(s.com_ref), com_velocity_ref=_point(s.com_velocity_ref),
-        zmp_ref=_point(s.zmp_ref), capture_point_ref=_point(s.capture_point_ref),
-        multibody_zmp=_point(np.asarray(s.multibody_zmp, float)),
+        com_ref=xyz(s.com_ref), com_velocity_ref=xyz(s.com_velocity_ref),
+        zmp_ref=xyz(s.zmp_ref), capture_point_ref=xyz(s.capture_point_ref),
+        multibody_zmp=xyz(np.asarray(s.multibody_zmp, float)),
         left_foot=_pose(s.left_foot), right_foot=_pose(s.right_foot),
         next_footsteps=steps, speed=float(s.speed), yaw_rate=float(s.yaw_rate))
 

@@ -8,8 +8,6 @@ at ``viz_rate`` for RViz and Foxglove.
 """
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 from geometry_msgs.msg import Point, Point32, PointStamped, PolygonStamped, WrenchStamped
 from humfall_interfaces.msg import CentroidalState
@@ -31,6 +29,7 @@ from humfall_ros.nodes.common import (
     publish_encoded,
     run_node,
     stamp_key,
+    xyz,
 )
 from humfall_ros.recording import cdr
 
@@ -163,8 +162,7 @@ class StateEstimator(Node):
         fill_xyz(msg.cop, e.cop)
         fill_xyz(msg.capture_point, e.capture_point)
         fill_xyz(msg.angular_momentum, e.angular_momentum)
-        msg.support_polygon = [SimpleNamespace(x=float(p[0]), y=float(p[1]), z=float(p[2]) if len(p) > 2 else 0.0)
-                               for p in e.support_polygon]
+        msg.support_polygon = [xyz(p) for p in e.support_polygon]
         fill_xyz(msg.feet_center, e.feet_center)
         msg.lean_angle = float(e.lean_angle)
         msg.lean_direction = float(e.lean_direction)

@@ -275,8 +275,9 @@ class _Compiler(_Generator):
 # CPU per publish: JointState 25 us, CentroidalState 77 us, WalkingState 97 us; the same bytes published
 # raw 9-16 us), and building the message through the classes' checking setters costs as much again.
 # :func:`encoder` compiles, once per class, ``encode(msg) -> bytes`` that reads the fields by attribute
-# from a real message or from a :func:`blank` namespace tree and writes exactly what
-# ``rclpy.serialization.serialize_message`` writes (``test_cdr.py`` compares the bytes).
+# from a real message or from a :func:`blank` namespace tree and writes the same CDR as
+# ``rclpy.serialization.serialize_message`` but for zeroed padding (rclpy leaves its padding bytes
+# uninitialised and may append trailing bytes); ``test_cdr.py`` reads the bytes back with rclpy.
 
 _enc_cache: dict[type, Callable[[Any], bytes]] = {}
 _ZEROS = bytes(8)
@@ -320,6 +321,16 @@ def _to_ns(msg) -> types.SimpleNamespace:
     return out
 
 
+def _put_string(out: bytearray, s: str) -> None:
+    """Append one CDR string at a 4-byte boundary (relative to the encapsulation header): its uint32 length
+    counting the NUL, the UTF-8 bytes, the NUL."""
+    out += _ZEROS[:-(len(out) - 4) % 4]
+    b = s.encode()
+    out += struct.pack("<I", len(b) + 1)
+    out += b
+    out += b"\0"
+
+
 def _u8(v) -> int:
     """byte/char/octet fields: rclpy holds them as 1-byte ``bytes`` or 1-char ``str``."""
     return v[0] if isinstance(v, bytes) else ord(v) if isinstance(v, str) else int(v)
@@ -333,7 +344,8 @@ class _Encoder(_Generator):
 
     def __init__(self):
         self.lines: list[str] = []
-        self.env: dict[str, Any] = {"np": np, "U32": struct.Struct("<I"), "Z": _ZEROS, "u8": _u8}
+        self.env: dict[str, Any] = {"np": np, "U32": struct.Struct("<I"), "Z": _ZEROS, "u8": _u8,
+                                    "put_string": _put_string}
         self.group: list[tuple[str, str]] = []  # (struct code incl. padding, expression)
         self.group_align = 0
         self.group_off = 0
@@ -367,11 +379,7 @@ class _Encoder(_Generator):
 
     def string(self, expr: str) -> None:
         self.flush()
-        self.align(4)
-        self.emit(f"b = {expr}.encode()")
-        self.emit("out += U32.pack(len(b) + 1)")
-        self.emit("out += b")
-        self.emit("out += Z[:1]")
+        self.emit(f"put_string(out, {expr})")
 
     def numbers(self, t: str, expr: str, count_known: int | None) -> None:
         code, size = PRIMITIVES[t]
@@ -419,21 +427,19 @@ class _Encoder(_Generator):
             self.emit(f"    raise ValueError('array of {length} expected, got %d' % len({seq}))")
         if _is_string(base):
             # the joint names of every JointState: the same list each tick, so its bytes are kept and
-            # reused while the list compares equal (one C-level compare instead of 31 encodes)
+            # reused while the list compares equal (one C-level compare instead of 31 encodes); aligned
+            # first, so the kept bytes hold no padding that depends on where the list starts
             memo = self.name("M")
-            self.env[memo] = [None, b"", 0]
+            self.env[memo] = [None, b""]
+            self.align(4)
             self.emit(f"mm = {memo}")
-            self.emit(f"if mm[0] == {seq} and (len(out) - 4) % 4 == mm[2]:")
+            self.emit(f"if mm[0] == {seq}:")
             self.emit("    out += mm[1]")
             self.emit("else:")
             self.emit("    start = len(out)")
             self.emit(f"    for s in {seq}:")
-            self.emit("        out += Z[:-(len(out) - 4) % 4]")
-            self.emit("        b = s.encode()")
-            self.emit("        out += U32.pack(len(b) + 1)")
-            self.emit("        out += b")
-            self.emit("        out += Z[:1]")
-            self.emit(f"    mm[0], mm[1], mm[2] = list({seq}), bytes(out[start:]), (start - 4) % 4")
+            self.emit("        put_string(out, s)")
+            self.emit(f"    mm[0], mm[1] = list({seq}), bytes(out[start:])")
             return None
         helper = self.helper(_msg_class(base))
         self.emit(f"for x in {seq}:")
