@@ -81,6 +81,31 @@ def test_fusion_off_is_leg_odometry_and_on_follows_the_ground_reaction(model):
     assert np.abs(e_gap.com_velocity).max() < 1e-9
 
 
+def test_the_band_holds_the_fused_velocity_near_the_odometry_and_changes_nothing_inside_it(model):
+    """``com_velocity_band``: the fused velocity never strays farther than b from the kinematic one (a push, a
+    force bias, an unmeasured contact), and while it stays within b the result is the plain filter's."""
+    joints, wrenches = _standing(model)
+    still = np.zeros(model.njoints)
+    tau, band = 0.2, 0.05
+
+    def run(a, b, ticks):
+        est = CentroidalEstimator(model, com_velocity_time_constant=tau, com_velocity_band=b)
+        push = {s: (w[0] + model.total_mass * np.asarray(a) / 2, w[1]) for s, w in wrenches.items()}
+        est.update(0.0, joints, still, [0, 0, 0, 1], np.zeros(3), wrenches)
+        out = [est.update(k * DT, joints, still, [0, 0, 0, 1], np.zeros(3), push).com_velocity
+               for k in range(1, ticks + 1)]
+        return np.array(out)
+
+    small = [0.2, -0.1, 0.0]        # bias a tau = 4.5 cm/s: inside the band, bit for bit the plain filter
+    assert np.array_equal(run(small, band, 400), run(small, 0.0, 400))
+    big = [1.0, -0.5, 0.0]          # a tau = 22 cm/s without the band
+    plain, held = run(big, 0.0, 3000), run(big, band, 3000)
+    assert np.linalg.norm(plain[-1][:2]) == pytest.approx(np.hypot(1.0, 0.5) * tau, rel=1e-3)
+    assert np.linalg.norm(held, axis=1).max() <= band + 1e-12
+    assert np.linalg.norm(held[-1]) == pytest.approx(band, rel=1e-9)
+    assert held[-1][:2] / band == pytest.approx(np.array([1.0, -0.5]) / np.hypot(1.0, 0.5), abs=1e-6)  # same way
+
+
 def _walk_cp_error(tau: float) -> float:
     sc = scenario.load("walking", ["walk.speed_kmh=1.35", "walk.steps=4",
                                    f"params.state_estimator.com_velocity_time_constant={tau}"])

@@ -44,10 +44,13 @@ class CentroidalEstimator:
     """Leg-odometry floating-base estimator feeding the centroidal quantities."""
 
     def __init__(self, model: HumanoidModel, contact_force: float = 20.0, corner_tolerance: float = 0.004,
-                 edge_margin: float = 0.005, initial_xy=(0.0, 0.0), com_velocity_time_constant: float = 0.0):
+                 edge_margin: float = 0.005, initial_xy=(0.0, 0.0), com_velocity_time_constant: float = 0.0,
+                 com_velocity_band: float = 0.0):
         self.m = model
         # s; > 0: the CoM velocity fuses the ground reaction (Newton) with kinematics (``_fuse_com_velocity``)
         self.com_velocity_time_constant = float(com_velocity_time_constant)
+        # m/s; > 0: the fused velocity stays within this distance of the kinematic one (``_fuse_com_velocity``)
+        self.com_velocity_band = float(com_velocity_band)
         self.contact_force = contact_force        # N: a foot with less is in the air
         self.corner_tolerance = corner_tolerance  # m: corners this close to the lowest one touch
         self.edge_margin = edge_margin            # m: CoP this close to the hull boundary is "on the edge"
@@ -123,8 +126,15 @@ class CentroidalEstimator:
         of a 1.35 km/h single support, measured) or an impact breaks that for tens of milliseconds, and the
         capture point moves by the velocity error over omega. The ankle wrenches integrate to the CoM velocity
         without the assumption (m c'' = sum f + m g): exact at high frequencies, but drifting with a force
-        bias or with contacts the ankles do not see (hands, knees). First order:
+        bias or with contacts the ankles do not see (hands, knees) and, above all, behind a push: an external
+        force the ankles do not measure reaches the fused velocity only at 1/tau. First order:
         v = v_pred + dt / (tau + dt) (v_kin - v_pred), v_pred = v_last + (sum f / m + g) dt.
+
+        With ``com_velocity_band`` b > 0 the result is then held within b of the kinematic velocity
+        (``v = v_kin + b (v - v_kin) / |v - v_kin|`` when farther; the state carries the held value): the slip the
+        filter is for is a few cm/s, a push makes the two differ by its whole velocity change. So slips are
+        filtered as without the band, while a push (or a force bias, or an unmeasured hand contact) leaves the
+        fused velocity at most b behind the odometry, the capture point at most b / omega.
         """
         tau, last = self.com_velocity_time_constant, self.last
         if tau <= 0.0 or last is None:
@@ -136,7 +146,14 @@ class CentroidalEstimator:
             return kinematic
         force = np.sum([w[1] for w in world_wrenches], axis=0)
         predicted = last.com_velocity + (force / self.m.total_mass + np.array([0.0, 0.0, -GRAVITY])) * dt
-        return predicted + dt / (tau + dt) * (kinematic - predicted)
+        fused = predicted + dt / (tau + dt) * (kinematic - predicted)
+        band = self.com_velocity_band
+        if band > 0.0:
+            off = fused - kinematic
+            n = float(np.linalg.norm(off))
+            if n > band:
+                fused = kinematic + off * (band / n)
+        return fused
 
     def _candidates(self, contacts: dict) -> list[tuple[str, int]]:
         """(name, frame id) of the sole corners of the feet that carry load."""

@@ -59,7 +59,8 @@ class StateEstimator(Node):
         contact_force = P.declare("contact_force")
         self.model = load_model()
         self.estimator = CentroidalEstimator(self.model, contact_force=contact_force,
-                                             com_velocity_time_constant=P.declare("com_velocity_time_constant"))
+                                             com_velocity_time_constant=P.declare("com_velocity_time_constant"),
+                                             com_velocity_band=P.declare("com_velocity_band"))
         self.viz_period = 1.0 / viz_rate if viz_rate > 0 else float("inf")
         self.last_viz = -float("inf")
         self.last_msg: CentroidalState | None = None

@@ -102,7 +102,8 @@ class ClosedLoop:
         self.sensors = Sensors(self.world, sensor_noise(sc) if noise is None else noise)
         est = node_params(sc, "state_estimator")
         self.estimator = CentroidalEstimator(self.model, contact_force=est["contact_force"],
-                                             com_velocity_time_constant=est["com_velocity_time_constant"])
+                                             com_velocity_time_constant=est["com_velocity_time_constant"],
+                                             com_velocity_band=est["com_velocity_band"])
         if controllers is None:
             controllers, default_monitors = suite(sc, self.model)
             monitors = default_monitors if monitors is None else monitors
