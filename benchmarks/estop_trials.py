@@ -76,37 +76,6 @@ class Trial:
     messages: list
 
 
-def average_cop_per_tick(world) -> dict:
-    """Measure the CoP averaged over the physics substeps of each control tick (normal-force weighted).
-
-    The rubber-sole contact chatters between PyBullet substeps (measured: the horizontal ground force jumps
-    by a median 370 N from one 1 kHz substep to the next), and the sensors read the last substep only, which
-    biases the measured CoP by centimetres while the tick-averaged one obeys Newton-Euler with the
-    centroidal momentum rate (residual < 2 N). The world is stepped exactly as before (the same
-    stepSimulation calls and pushes, one substep per call); returns a dict whose ``"cop"`` is updated
-    every tick (world xy, z = 0; NaN when airborne)."""
-    n_sub = world.substeps
-    step = world.step_control
-    out = {"cop": np.full(3, np.nan)}
-
-    def step_averaged() -> None:
-        world.substeps = 1
-        m, fz = np.zeros(2), 0.0
-        try:
-            for _ in range(n_sub):
-                step()
-                for cp in world.ground_contacts():
-                    f = cp[9] * cp[7][2]
-                    fz += f
-                    m += f * np.asarray(cp[6][:2])
-        finally:
-            world.substeps = n_sub
-        out["cop"] = np.array([m[0] / fz, m[1] / fz, 0.0]) if fz > 1.0 else np.full(3, np.nan)
-
-    world.step_control = step_averaged
-    return out
-
-
 def estop_config(sc: dict, **overrides) -> EstopConfig:
     """The e-stop's settings of scenario ``sc``: declared defaults, ``params.estop_planner``, the trigger."""
     p = node_params(sc, "estop_planner")
@@ -145,7 +114,6 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
                 obs.inputs["cmd_walk"] = c    # the same object every tick: acted on once
 
     loop.inputs = inputs
-    tick_cop = average_cop_per_tick(loop.world)
     tr = {k: [] for k in ("t", "com", "com_velocity", "cop", "margin", "zmp_ref", "com_ref", "support", "state",
                           "estop_com_ref", "estop_zmp_ref", "active", "cop_truth", "walking",
                           "angular_momentum", "com_truth", "sole_truth", "corners_truth", "yaw_truth",
@@ -178,7 +146,8 @@ def run_trial(speed_kmh: float, phase: str = "ds_start", step: int = 5, after: f
             tr["estop_com_ref"].append(np.array(es.com_ref))
             tr["estop_zmp_ref"].append(np.array(es.zmp_ref))
             tr["active"].append(loop.active)
-            tr["cop_truth"].append(tick_cop["cop"].copy())
+            cop_truth = loop.world.ground_truth_cop()      # the tick's mean over its physics substeps
+            tr["cop_truth"].append(np.full(3, np.nan) if cop_truth is None else cop_truth)
             q_true = loop.world.pinocchio_configuration()
             tr["com_truth"].append(pin.centerOfMass(model.model, data, q_true).copy())
             pin.updateFramePlacements(model.model, data)
