@@ -15,7 +15,7 @@ from humfall_ros.sim import fall_runs as runs
 
 from test_suite_graph import joint_states_from_bag
 
-DURATION = 2.6  # s: trigger 0.61 s, captured: FTB recovered and hand-back 2.42 s (2.37 s before the CoM velocity filter)
+DURATION = 2.6  # s: trigger 0.60 s, touchdown 0.85 s, captured: FTB recovered 2.35 s, hand-back 2.37 s (2.42 s with the CoM velocity filter)
 
 
 def bag_messages(bag, topic):
@@ -74,7 +74,7 @@ def test_stepping_inertia_standing_push_over_ros_equals_in_process(run_up):
     assert r["metrics"]["min_target_distance_m"] >= 0.05
 
 
-HANDBACK_DURATION = 3.5  # s: trigger 0.61 s, hand-back 2.42 s (balance_kd 0.1)
+HANDBACK_DURATION = 3.5  # s: trigger 0.60 s, touchdown 0.85 s, FTB recovered 2.35 s, hand-back 2.37 s (balance_kd 0.1)
 
 
 def test_captured_push_handed_back_to_locomotion_over_ros_equals_in_process(run_up):
