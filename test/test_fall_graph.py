@@ -15,7 +15,7 @@ from humfall_ros.sim import fall_runs as runs
 
 from test_suite_graph import joint_states_from_bag
 
-DURATION = 2.6  # s: trigger 0.60 s, touchdown 0.85 s, captured: FTB recovered 2.35 s, hand-back 2.37 s (2.42 s with the CoM velocity filter)
+DURATION = 2.6  # s: trigger 0.60 s, touchdown 0.85 s, hand-back 2.37 s (2.42 s with the CoM velocity filter)
 
 
 def bag_messages(bag, topic):
