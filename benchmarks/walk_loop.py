@@ -48,7 +48,8 @@ class WalkResult:
     peak_speed_ratio: float      # max |joint velocity| / URDF limit
     peak_speed_joint: str
     est_com_err: float           # m, feet relative, max while walking
-    est_cp_err: float
+    est_cp_err: float            # the odometry's capture point (the fall trigger's), feet relative, max
+    est_cp_fused_err: float      # capture_point_fused (the complementary filter's: walking, e-stop), max
     contact_delay_ms: float      # estimator contact flag vs ground truth (sole > 30 N), largest at touchdown [ms]
     contact_delay_liftoff_ms: float  # and at lift-off
     tick_ms_median: float        # controller step only
@@ -194,12 +195,14 @@ def run_walk(speed_kmh: float = 1.0, steps: int = 20, overrides: list[str] | Non
         delay_td, delay_lo = _contact_delays(truth_ev, est_ev)
         est_com = loop.errors.get("com_error_feet_relative", float("nan"))  # max over the run (ClosedLoop)
         est_cp = loop.errors.get("capture_point_error_feet_relative", float("nan"))
+        est_cp_fused = loop.errors.get("capture_point_fused_error_feet_relative", float("nan"))
         res = WalkResult(fell, sc["walk"]["speed_kmh"], sc["walk"]["steps"], float(np.sqrt(np.mean(zr ** 2))),
                          float(np.max(zr)), float(np.sqrt(np.mean(ze ** 2))),
                          float(np.sqrt(np.mean(zf ** 2))), float(np.max(zf)), margin_ok / max(margin_n, 1),
                          float(np.hypot(d[0], d[1]) if turning else d[0]), planned,
                          float("nan") if turning else float(abs(d[1])), math.degrees(yaw1) - planned_yaw,
-                         max_slip, td, float(ratio[j]), model.joint_names[j], est_com, est_cp, delay_td, delay_lo,
+                         max_slip, td, float(ratio[j]), model.joint_names[j], est_com, est_cp, est_cp_fused,
+                         delay_td, delay_lo,
                          float(np.median(ts)), float(np.percentile(ts, 99)), world.time, list(ctl.messages))
         return res, tr
     finally:

@@ -131,7 +131,7 @@ def test_never_releases_while_moving_and_releases_when_held_still():
         t = k * DT
     assert ctl.state == EstopState.HOLDING
     still = obs(t, estop=True, estop_release=True, **{"walking/state": Pattern()})
-    still.state.com_velocity = np.zeros(3)
+    still.state.com_velocity = still.state.com_velocity_fused = np.zeros(3)   # the release reads the fused one
     assert ctl.step(still) is None and ctl.state == EstopState.IDLE and not ctl.status.active
 
 
@@ -211,7 +211,7 @@ def test_topic_events_trigger_and_release_once_each():
         t = k * DT
         assert t < ctl.plan.end_time + 1.0
     still = obs(t, estop=trig, estop_release=rel, **{"walking/state": Pattern()})
-    still.state.com_velocity = np.zeros(3)
+    still.state.com_velocity = still.state.com_velocity_fused = np.zeros(3)   # the release reads the fused one
     assert ctl.step(still) is not None and ctl.state == EstopState.HOLDING    # the old release is not re-used
     still.inputs["estop_release"] = TopicEvent(2)
     still.stamp_ns += stamp_ns_of(DT)

@@ -48,6 +48,10 @@ class CentroidalObservation:
         left_normal_force, right_normal_force: vertical ground reaction under each foot [N] (its own ankle
             wrench).
         left_cop, right_cop: each foot's own centre of pressure [m], (3,), z = 0 (below its ankle when unloaded).
+        com_velocity_fused, capture_point_fused: the estimator's complementary-filter CoM velocity and its
+            capture point [m/s], [m] (3,): robust to stance-foot slip, late behind an unmeasured push (walking and
+            the e-stop read them; the fall trigger and the safe fall read ``com_velocity`` / ``capture_point``).
+            None: the same as those.
     """
 
     com: np.ndarray
@@ -67,6 +71,14 @@ class CentroidalObservation:
     right_normal_force: float = 0.0
     left_cop: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
     right_cop: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    com_velocity_fused: np.ndarray | None = None
+    capture_point_fused: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.com_velocity_fused is None:
+            self.com_velocity_fused = np.asarray(self.com_velocity, float).copy()
+        if self.capture_point_fused is None:
+            self.capture_point_fused = np.asarray(self.capture_point, float).copy()
 
     @property
     def contacts(self) -> dict[str, bool]:
@@ -98,7 +110,9 @@ def centroidal_from_estimate(e) -> CentroidalObservation:
         left_contact=bool(e.contacts["l"]), right_contact=bool(e.contacts["r"]),
         cop_on_edge=bool(e.cop_on_edge),
         left_normal_force=float(e.foot_normal_force["l"]), right_normal_force=float(e.foot_normal_force["r"]),
-        left_cop=np.asarray(e.foot_cop["l"], float).copy(), right_cop=np.asarray(e.foot_cop["r"], float).copy())
+        left_cop=np.asarray(e.foot_cop["l"], float).copy(), right_cop=np.asarray(e.foot_cop["r"], float).copy(),
+        com_velocity_fused=np.asarray(e.com_velocity_fused, float).copy(),
+        capture_point_fused=np.asarray(e.capture_point_fused, float).copy())
 
 
 @dataclasses.dataclass

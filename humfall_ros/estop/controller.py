@@ -458,7 +458,7 @@ class EstopController:
         if self.state in (EstopState.STOPPING, EstopState.STOPPED, EstopState.ALIGNING, EstopState.HOLDING):
             out = self._play(observation)
             if release:
-                speed = float(np.hypot(*observation.state.com_velocity[:2]))
+                speed = float(np.hypot(*observation.state.com_velocity_fused[:2]))
                 if self.state == EstopState.HOLDING and speed < self.cfg.settle_speed:
                     self.taken_over = False
                     self._set(EstopState.IDLE, stamp, reason="")
@@ -533,7 +533,7 @@ class EstopController:
             feet = feet_from_joints(self.m, observation.joint_position, st.feet_center[:2],
                                     imu_orientation=None if imu is None else imu[0])
         ground = float(np.mean([feet[s].sole_corners(self.m, s)[:, 2].mean() for s in SIDES]))
-        return PatternState(np.asarray(st.com, float).copy(), np.asarray(st.com_velocity, float).copy(),
+        return PatternState(np.asarray(st.com, float).copy(), np.asarray(st.com_velocity_fused, float).copy(),
                             np.asarray(st.cop, float).copy(), feet, float(st.com[2] - ground))
 
     def _begin(self, observation: Observation, ws) -> None:
@@ -652,7 +652,7 @@ class EstopController:
         if not c.align_feet or self.align is not None:
             self._set(EstopState.HOLDING, self.status.stamp_ns, reason=self.status.reason)
             return
-        speed = float(np.hypot(*self._obs_state.com_velocity[:2])) if self._obs_state is not None else 0.0
+        speed = float(np.hypot(*self._obs_state.com_velocity_fused[:2])) if self._obs_state is not None else 0.0
         if speed >= c.align_max_speed:
             if not self._align_wait_logged:
                 self._align_wait_logged = True
@@ -733,7 +733,7 @@ class EstopController:
         # yawed 11-17 deg off its pattern, which read the CoG 0.2 m from the feet centre as 4-6 cm of error)
         Ry = _yaw_matrix(-self._yaw_off(observation.inputs.get("imu"), r.q))
         err = Ry @ (np.asarray(st.com, float) - np.asarray(st.feet_center, float)) - (ref.com - mid)
-        verr = Ry @ np.asarray(st.com_velocity, float) - ref.com_velocity
+        verr = Ry @ np.asarray(st.com_velocity_fused, float) - ref.com_velocity
         R = _yaw_matrix(yaw)
         e_l, v_l = R.T @ err, R.T @ verr                      # in the feet's heading frame
         d_pitch = float(np.clip(c.ankle_kp * e_l[0] + c.ankle_kd * v_l[0], -c.ankle_max_offset, c.ankle_max_offset))

@@ -38,6 +38,15 @@ class CentroidalEstimate:
     # per foot, from that ankle's wrench alone (foot force difference control, walking/stabilizer.py loop 4):
     foot_normal_force: dict = dataclasses.field(default_factory=lambda: {s: 0.0 for s in SIDES})  # side -> N
     foot_cop: dict = dataclasses.field(default_factory=lambda: {s: np.zeros(3) for s in SIDES})   # side -> m, z = 0
+    # the complementary filter's velocity and its capture point (``_fuse_com_velocity``); None: the kinematic ones
+    com_velocity_fused: np.ndarray | None = None
+    capture_point_fused: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.com_velocity_fused is None:
+            self.com_velocity_fused = np.asarray(self.com_velocity, float).copy()
+        if self.capture_point_fused is None:
+            self.capture_point_fused = np.asarray(self.capture_point, float).copy()
 
 
 class CentroidalEstimator:
@@ -105,17 +114,18 @@ class CentroidalEstimator:
             p_s, foot_fz[s] = cop_from_wrenches([w])
             foot_cop[s] = p_s if p_s is not None else np.array([M.translation[0], M.translation[1], 0.0])
         cop, fz = cop_from_wrenches(world_wrenches)
-        if base_truth is None:
-            com_vel = self._fuse_com_velocity(t, com_vel, world_wrenches)
+        # two velocities: the kinematic one (no lag: the fall trigger and the safe fall) and the fused one
+        com_vel_fused = com_vel if base_truth is not None else self._fuse_com_velocity(t, com_vel, world_wrenches)
         touching = self._touching({n: d.oMf[fid].translation for n, fid in self._candidates(contacts)})
         poly = support_polygon(list(touching.values())) if touching else np.zeros((0, 2))
         if cop is None:  # airborne or unloaded: fall back to the CoM projection
             cop = np.array([com[0], com[1], 0.0])
         cp = capture_point(com, com_vel)
+        cp_fused = cp if com_vel_fused is com_vel else capture_point(com, com_vel_fused)
         lean, heading = lean_angle(com, cop)
         on_edge = len(poly) > 0 and point_in_polygon_margin(cop, poly) < self.edge_margin
         est = CentroidalEstimate(t, q, v, com, com_vel, ang_mom, cop, cp, poly, lean, heading, fz, contacts,
-                                 bool(on_edge), feet_center, foot_fz, foot_cop)
+                                 bool(on_edge), feet_center, foot_fz, foot_cop, com_vel_fused.copy(), cp_fused.copy())
         self.last = est
         return est
 
@@ -141,11 +151,11 @@ class CentroidalEstimator:
             return kinematic
         dt = t - last.time
         if dt == 0.0:  # the same tick again (a retransmission): the same answer
-            return last.com_velocity.copy()
+            return last.com_velocity_fused.copy()
         if not 0.0 < dt <= 0.05:  # a gap or time going back: start again from kinematics
             return kinematic
         force = np.sum([w[1] for w in world_wrenches], axis=0)
-        predicted = last.com_velocity + (force / self.m.total_mass + np.array([0.0, 0.0, -GRAVITY])) * dt
+        predicted = last.com_velocity_fused + (force / self.m.total_mass + np.array([0.0, 0.0, -GRAVITY])) * dt
         fused = predicted + dt / (tau + dt) * (kinematic - predicted)
         band = self.com_velocity_band
         if band > 0.0:
@@ -236,7 +246,11 @@ def estimate_error(est: CentroidalEstimate, truth: CentroidalEstimate) -> dict:
             "com_velocity_error": float(np.linalg.norm(est.com_velocity - truth.com_velocity)),
             "com_error_feet_relative": float(np.linalg.norm(est.com - truth.com - rel)),
             "capture_point_error_feet_relative": float(np.linalg.norm(est.capture_point[:2] - truth.capture_point[:2]
-                                                                      - rel[:2]))}
+                                                                      - rel[:2])),
+            # the complementary filter's (equal to the above when it is off)
+            "com_velocity_fused_error": float(np.linalg.norm(est.com_velocity_fused - truth.com_velocity)),
+            "capture_point_fused_error_feet_relative": float(np.linalg.norm(
+                est.capture_point_fused[:2] - truth.capture_point[:2] - rel[:2]))}
 
 
 __all__ = ["CentroidalEstimate", "CentroidalEstimator", "estimate_error"]

@@ -69,7 +69,8 @@ def centroidal_from_msg(msg: CentroidalState) -> CentroidalObservation:
         lean_angle=msg.lean_angle, lean_direction=msg.lean_direction, normal_force=msg.normal_force,
         left_contact=msg.left_contact, right_contact=msg.right_contact, cop_on_edge=msg.cop_on_edge,
         left_normal_force=msg.left_normal_force, right_normal_force=msg.right_normal_force, left_cop=v(msg.left_cop),
-        right_cop=v(msg.right_cop))
+        right_cop=v(msg.right_cop), com_velocity_fused=v(msg.com_velocity_fused),
+        capture_point_fused=v(msg.capture_point_fused))
 
 
 def obstacles_from_msg(msg: ObstacleArray) -> list[Obstacle]:

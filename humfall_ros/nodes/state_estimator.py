@@ -174,6 +174,8 @@ class StateEstimator(Node):
         msg.right_normal_force = float(e.foot_normal_force["r"])
         fill_xyz(msg.left_cop, e.foot_cop["l"])
         fill_xyz(msg.right_cop, e.foot_cop["r"])
+        fill_xyz(msg.com_velocity_fused, e.com_velocity_fused)
+        fill_xyz(msg.capture_point_fused, e.capture_point_fused)
         self.last_msg = publish_encoded(self.pub, msg)
         if t - self.last_viz >= self.viz_period - 1e-9:
             self.last_viz = t

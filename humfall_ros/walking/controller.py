@@ -471,7 +471,7 @@ class LocomotionController:
             v = self.pattern.zmp_reference(sample.tick + 1) - sample.zmp[:2]
             if float(np.linalg.norm(v)) > 1e-7:
                 transfer_to = max(SIDES, key=lambda side: float((centres[side] - sample.zmp[:2]) @ v))
-        st = self.stabilizer.update(s.capture_point, s.cop, s.feet_center, sample.capture_point, sample.zmp,
+        st = self.stabilizer.update(s.capture_point_fused, s.cop, s.feet_center, sample.capture_point, sample.zmp,
                                     ref_feet_center, stance, stance_yaw, centres, transfer_to,
                                     swing_loaded=stance is not None and bool(s.contacts["r" if stance == "l" else "l"]),
                                     **self._foot_measurements(s))
