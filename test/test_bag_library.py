@@ -75,6 +75,7 @@ def centroidal(i: int, n: int) -> CentroidalState:
     m.com_velocity = Vector3(x=0.8 * math.cos(th), z=-0.8 * math.sin(th))
     m.cop = Point(x=min(0.12, 0.2 * th))
     m.capture_point = Point(x=m.com.x + 0.3 * m.com_velocity.x)
+    m.capture_point_fused = Point(x=m.capture_point.x - 0.01)   # the estimator's filtered one
     m.support_polygon = [Point(x=0.12, y=0.17), Point(x=-0.12, y=0.17), Point(x=-0.12, y=-0.17),
                          Point(x=0.12, y=-0.17)]
     m.lean_angle = th
@@ -185,3 +186,14 @@ def test_plots_from_bag(tmp_path):
     empty.close()
     assert plot_main(tmp_path / "empty") == 1
     assert plot_main(tmp_path / "missing") == 1
+
+
+def test_plots_read_both_capture_points(tmp_path):
+    """The top view draws the leg odometry's capture point and, where it differs, the fused one."""
+    from humfall_ros.recording.plots import load_series
+    write_run(tmp_path / "bag.mcap", n=50).close()
+    cs = load_series(tmp_path / "bag.mcap")["centroidal"]
+    assert len(cs["cp"]) == len(cs["cpf"]) == 50
+    for i, (cp, cpf) in enumerate(zip(cs["cp"], cs["cpf"])):
+        assert cp[0] == pytest.approx(centroidal(i, 50).capture_point.x)
+        assert cpf[0] == pytest.approx(cp[0] - 0.01)

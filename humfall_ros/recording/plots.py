@@ -49,7 +49,7 @@ def _stride(n: int) -> int:
 def load_series(bag: pathlib.Path) -> dict[str, Any]:
     """One pass over the bag: centroidal samples, last obstacle set, joint positions."""
     errors = DecodeErrors()
-    cs: dict[str, list] = {k: [] for k in ("t", "com", "vel", "cop", "cp", "poly", "lean")}
+    cs: dict[str, list] = {k: [] for k in ("t", "com", "vel", "cop", "cp", "cpf", "poly", "lean")}
     obstacles: list[Any] = []
     js_t: list[float] = []
     js_pos: dict[str, list[tuple[float, float]]] = {}
@@ -63,6 +63,8 @@ def load_series(bag: pathlib.Path) -> dict[str, Any]:
                 cs["vel"].append((msg.com_velocity.x, msg.com_velocity.y, msg.com_velocity.z))
                 cs["cop"].append((msg.cop.x, msg.cop.y))
                 cs["cp"].append((msg.capture_point.x, msg.capture_point.y))
+                cpf = getattr(msg, "capture_point_fused", None)   # bags before session 17 lack it
+                cs["cpf"].append((cpf.x, cpf.y) if cpf is not None else (math.nan, math.nan))
                 cs["poly"].append([(p.x, p.y) for p in msg.support_polygon])
                 cs["lean"].append(msg.lean_angle)
             elif raw.topic == OBSTACLES_TOPIC:
@@ -113,8 +115,12 @@ def plot_top_view(cs: dict[str, list], obstacles: list[Any], path: pathlib.Path)
 
     fig, (ax,) = _figure(size=(8, 7))
     k = _stride(len(cs["t"]))
-    for key, label, style, width in (("com", "CoM (ground projection)", "-", 1.6), ("cop", "CoP", "-", 0.7),
-                                     ("cp", "capture point", "--", 1.0)):
+    curves = [("com", "CoM (ground projection)", "-", 1.6), ("cop", "CoP", "-", 0.7),
+              ("cp", "capture point (leg odometry)", "--", 1.0)]
+    # the estimator's filtered capture point, where it differs from the odometry's (walking: foot slip)
+    if any(math.hypot(f[0] - c[0], f[1] - c[1]) > 1e-4 for f, c in zip(cs.get("cpf", []), cs["cp"])):
+        curves.append(("cpf", "capture point (fused)", ":", 1.0))
+    for key, label, style, width in curves:
         xs = [p[0] for p in cs[key][::k]]
         ys = [p[1] for p in cs[key][::k]]
         ax.plot(xs, ys, style, label=label, linewidth=width)
