@@ -38,15 +38,10 @@ class CentroidalEstimate:
     # per foot, from that ankle's wrench alone (foot force difference control, walking/stabilizer.py loop 4):
     foot_normal_force: dict = dataclasses.field(default_factory=lambda: {s: 0.0 for s in SIDES})  # side -> N
     foot_cop: dict = dataclasses.field(default_factory=lambda: {s: np.zeros(3) for s in SIDES})   # side -> m, z = 0
-    # the complementary filter's velocity and its capture point (``_fuse_com_velocity``); None: the kinematic ones
-    com_velocity_fused: np.ndarray | None = None
-    capture_point_fused: np.ndarray | None = None
-
-    def __post_init__(self):
-        if self.com_velocity_fused is None:
-            self.com_velocity_fused = np.asarray(self.com_velocity, float).copy()
-        if self.capture_point_fused is None:
-            self.capture_point_fused = np.asarray(self.capture_point, float).copy()
+    # the complementary filter's velocity and its capture point (``_fuse_com_velocity``; the kinematic ones when
+    # it is off): ``update`` always fills them
+    com_velocity_fused: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    capture_point_fused: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
 
 
 class CentroidalEstimator:
