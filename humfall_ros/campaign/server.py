@@ -296,9 +296,7 @@ class TrialServer:
         """Stop the server and everything it started (found by its tag)."""
         if self.proc is not None and self.proc.poll() is None:
             if graceful:  # graph mode: launch.up stops its nodes on SIGINT; the closed socket then ends the server
-                if self.conn is not None:
-                    self.conn.close()
-                    self.conn = None
+                self._close_conn()
                 self.proc.send_signal(signal.SIGINT)
                 try:
                     self.proc.wait(GRAPH_STOP_GRACE_S)
@@ -312,9 +310,19 @@ class TrialServer:
                     os.kill(pid, signal.SIGKILL)
                 except OSError:
                     pass
-        if self.conn is not None:
-            self.conn.close()
-        self.proc, self.conn = None, None
+        self._close_conn()
+        self.proc = None
+
+    def _close_conn(self) -> None:
+        # taken first, closed once, an already closed handle ignored: on Ctrl-C the runner's shutdown closed a
+        # handle that was no longer open (EBADF; once in a fresh-clone make test, likely a kill() re-entered from
+        # the interrupt) and the campaign exited 1 instead of 130
+        conn, self.conn = self.conn, None
+        if conn is not None:
+            try:
+                conn.close()
+            except OSError:
+                pass
 
     def close(self) -> None:
         if self.alive():
