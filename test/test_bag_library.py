@@ -189,7 +189,8 @@ def test_plots_from_bag(tmp_path):
 
 
 def test_plots_read_both_capture_points(tmp_path):
-    """The top view draws the leg odometry's capture point and, where it differs, the fused one."""
+    """The bag's series carry the leg odometry's capture point and the fused one (the top view draws the fused one
+    where the two differ)."""
     from humfall_ros.recording.plots import load_series
     write_run(tmp_path / "bag.mcap", n=50).close()
     cs = load_series(tmp_path / "bag.mcap")["centroidal"]
