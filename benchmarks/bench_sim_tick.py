@@ -32,7 +32,8 @@ def main() -> int:
     out_repo = str(pathlib.Path(sys.modules["humfall_ros"].__file__).resolve().parents[1])
     sc = scenario_mod.load("standing_quiet")
     s = sc["sim"]
-    world = SimWorld(s["physics_rate"], s["control_rate"], friction=s["friction"])
+    world = SimWorld(s["physics_rate"], s["control_rate"], friction=s["friction"],
+                     contact_breaking_threshold=s["contact_breaking_threshold"])
     sensors, truth = Sensors(world), GroundTruth(world, sc)
     targets = world.targets.copy()
     out: dict = {"benchmark": "sim_tick", "repo": out_repo, "ticks": a.ticks, "physics_ms": [], "sensing_ms": [],

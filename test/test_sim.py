@@ -108,10 +108,18 @@ def _pushed_state(**kw):
         w.close()
 
 
-def test_contact_breaking_threshold_default_is_bullets_own_and_reaches_the_engine(monkeypatch):
+def test_contact_breaking_threshold_default_comes_from_the_yaml_and_reaches_the_engine(monkeypatch):
+    """The world's default is config/sim_bridge.yaml's (0.05, not Bullet's own 0.02, which drops loaded sole
+    corners mid-stance), it reaches the engine, and 0.02 is what Bullet does without the setting."""
     import pybullet as pb
 
-    explicit = _pushed_state(contact_breaking_threshold=0.02)
+    from humfall_ros import params
+
+    declared = params.defaults("sim_bridge")["contact_breaking_threshold"]
+    assert declared == 0.05
+    default = _pushed_state()
+    assert np.array_equal(default, _pushed_state(contact_breaking_threshold=declared))
+    explicit_bullet = _pushed_state(contact_breaking_threshold=0.02)
     set_params = pb.setPhysicsEngineParameter
 
     def without_threshold(**kw):  # what the world did before the parameter existed
@@ -121,8 +129,8 @@ def test_contact_breaking_threshold_default_is_bullets_own_and_reaches_the_engin
     monkeypatch.setattr(pb, "setPhysicsEngineParameter", without_threshold)
     engine_default = _pushed_state()
     monkeypatch.setattr(pb, "setPhysicsEngineParameter", set_params)
-    assert np.array_equal(explicit, engine_default)  # 0.02 is Bullet's default: declaring it changed nothing
-    assert not np.array_equal(_pushed_state(contact_breaking_threshold=0.001), explicit)  # and it is applied
+    assert np.array_equal(explicit_bullet, engine_default)  # 0.02 is Bullet's own default
+    assert not np.array_equal(_pushed_state(contact_breaking_threshold=0.001), explicit_bullet)  # it is applied
 
 
 def test_scenario_refuses_a_contact_breaking_threshold_out_of_range():

@@ -14,6 +14,7 @@ import math
 import numpy as np
 import pybullet as pb
 
+from humfall_ros import params as params_mod
 from humfall_ros.control.contract import Obstacle
 from humfall_ros.dynamics.pendulum import GRAVITY
 from humfall_ros.model.humanoid import SIDES, HumanoidModel, load_model, quat_matrix
@@ -56,7 +57,7 @@ class SimWorld:
     def __init__(self, physics_rate: float = 1000.0, control_rate: float = 500.0,
                  friction: float = 0.9, position_gain: float = 0.3, velocity_gain: float = 1.0,
                  model: HumanoidModel | None = None, initial_posture: dict | None = None,
-                 enforce_velocity_limits: bool = True, contact_breaking_threshold: float = 0.02):
+                 enforce_velocity_limits: bool = True, contact_breaking_threshold: float | None = None):
         if physics_rate % control_rate:
             raise ValueError("physics_rate must be an integer multiple of control_rate")
         self.physics_rate = float(physics_rate)
@@ -65,7 +66,10 @@ class SimWorld:
         self.dt = 1.0 / physics_rate
         self.friction = friction
         # Bullet's persistent contact points are dropped when their two witness points drift apart
-        # sideways by more than this [m] (Bullet's default 0.02): see config/sim_bridge.yaml
+        # sideways by more than this [m] (Bullet's own default 0.02 drops loaded sole corners; None: the
+        # declared default of config/sim_bridge.yaml)
+        if contact_breaking_threshold is None:
+            contact_breaking_threshold = params_mod.defaults("sim_bridge")["contact_breaking_threshold"]
         self.contact_breaking_threshold = float(contact_breaking_threshold)
         self.position_gain = position_gain
         self.velocity_gain = velocity_gain
