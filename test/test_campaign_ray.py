@@ -27,7 +27,9 @@ def spec_dict(out: pathlib.Path, n: int, duration: float) -> dict:
     return {"name": "ray_test", "base_scenario": "standing_push", "set": ["obstacles=[]", f"duration={duration}"],
             "design": {"random": {"n": n, "seed": 5, "keys": {"push.0.direction_deg": {"uniform": [0, 360]},
                                                               "push.0.magnitude_n": {"uniform": [150, 450]}}}},
-            "trial": {"time_limit_s": 60}, "output": {"dir": str(out)}}
+            # generous: a time limit is not what these tests measure, and a loaded 2-core machine took a Ray worker's
+            # first 1.5 s trial past 60 s (a fresh-clone run beside three simulations)
+            "trial": {"time_limit_s": 300}, "output": {"dir": str(out)}}
 
 
 def _cmdline(pid: int) -> str:

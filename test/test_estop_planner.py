@@ -210,6 +210,29 @@ def test_result_section_from_the_plan_played_back(planner):
     assert res["min_cop_margin_m"] >= plan.min_zmp_margin - 2e-3 and res["feasible"] and not res["fell"]
 
 
+def test_result_stop_time_is_not_moved_by_a_small_step_of_the_odometry(planner):
+    """A 60 um jump of the estimated CoG (a leg-odometry contact switch) 2 s after the stop is 0.015 m/s over two
+    ticks: the stop time reads the CoG's displacement over 20 ms, so it stays the plan's; a real slow
+    drift above the settle speed still counts as moving."""
+    from humfall_ros.estop.metrics import estop_result
+
+    plan = planner.plan(walking_state(0.22, 0.28))
+    t = np.arange(0.0, plan.end_time + 3.0, 0.002)
+    com = np.array([plan.sample(x).com for x in t])
+    cop = np.array([plan.sample(x).zmp for x in t])
+    margin = np.zeros(len(t))
+    jump = com.copy()
+    jump[t >= plan.stop_time + 2.0, 0] += 6e-5
+    res = estop_result(plan, t, jump, cop, margin, 0.0, False)
+    assert res["stop_time_s"] == pytest.approx(plan.stop_time, abs=0.02)
+    one_tick = estop_result(plan, t, jump, cop, margin, 0.0, False, speed_window=0.0)
+    assert one_tick["stop_time_s"] > plan.stop_time + 1.9          # what the central difference made of it
+    drift = com.copy()
+    late = t >= plan.stop_time + 1.0
+    drift[late, 0] += 0.02 * (t[late] - plan.stop_time - 1.0)       # 2 cm/s from 1 s after the stop on
+    assert math.isnan(estop_result(plan, t, drift, cop, margin, 0.0, False)["stop_time_s"])   # never stopped
+
+
 def test_beta_policy_omega_c_scales_with_the_trigger_height_and_shrinks_the_lipm_zmp_step():
     from humfall_ros.dynamics.pendulum import GRAVITY
 
