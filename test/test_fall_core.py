@@ -462,3 +462,28 @@ def test_sweep_summary_counts_steps_that_land_as_predicted():
     assert p["worst_touchdown_error_s"] == pytest.approx(0.08) and p["worst_landing_error_m"] == pytest.approx(0.16)
     assert "prediction" not in summ["none"] and summ["stepping"]["fell"] == 2
     assert "yes" in sweep.row_line(rows[0]) and "80" in sweep.row_line(rows[1])
+
+
+def test_sweep_set_reaches_every_run_and_a_bad_key_is_refused_before_the_first(monkeypatch, tmp_path, capsys):
+    """``humfall sweep --set KEY=VALUE``: the override is in every run's scenario; an unknown
+    controller parameter ends the command (exit 2, the name in the message) before any run."""
+
+    from humfall_ros.sim import fall_runs as runs, fall_sweep as sweep
+
+    seen = []
+
+    def fake_run(sc, kind, duration=None, **kw):
+        seen.append((kind, sc["params"].get("safe_fall_controller", {}).get("capture_depth_m")))
+        raise StopIteration   # no simulation: what reached the run is the point
+
+    monkeypatch.setattr(runs, "run", fake_run)
+    with pytest.raises(StopIteration):
+        sweep.main(["--directions", "0", "--controller", "stepping", "--out", str(tmp_path),
+                    "--set", "params.safe_fall_controller.capture_depth_m=0.08"])
+    assert seen == [("stepping", 0.08)]
+    with pytest.raises(SystemExit) as e:
+        sweep.main(["--directions", "0", "--controller", "stepping", "--out", str(tmp_path),
+                    "--set", "params.safe_fall_controller.capture_depht_m=0.08"])
+    assert e.value.code == 2 and "capture_depht_m" in capsys.readouterr().err
+    assert len(seen) == 1   # refused before a run
+    assert not (tmp_path / "sweep.json").exists()

@@ -123,8 +123,9 @@ def load_thresholds(path: pathlib.Path | None = None) -> dict:
 
 
 def sweep(thresholds: dict, controllers=("none", "stepping", "stepping_inertia"), factor: float = 1.2,
-          directions=None, duration: float = 3.5, log=print) -> list[dict]:
-    """One row per direction and controller (``sim.fall_runs.summary`` plus the push)."""
+          directions=None, duration: float = 3.5, log=print, overrides=()) -> list[dict]:
+    """One row per direction and controller (``sim.fall_runs.summary`` plus the push); ``overrides``: scenario
+    overrides (``KEY=VALUE``) for every run, e.g. a controller parameter."""
     from humfall_ros.sim import fall_runs as runs
 
     rows = []
@@ -132,7 +133,7 @@ def sweep(thresholds: dict, controllers=("none", "stepping", "stepping_inertia")
         th = thresholds[a]
         heading = th["fall_heading_deg"]
         for kind in controllers:
-            sc = push_scenario(factor * th["threshold_n"], a, heading, th["initial_cop"])
+            sc = push_scenario(factor * th["threshold_n"], a, heading, th["initial_cop"], list(overrides))
             t0 = time.perf_counter()
             r = runs.run(sc, kind, duration=duration)
             s = runs.summary(r)
@@ -206,6 +207,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--thresholds", default=None, help=f"thresholds file (default config/{THRESHOLDS_FILE})")
     ap.add_argument("--recompute-thresholds", action="store_true", help="bisect the thresholds and write the file")
     ap.add_argument("--out", default="runs/sweep", help="folder for sweep.json and sweep_polar.png")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="scenario override for every run (repeatable), e.g. "
+                         "params.safe_fall_controller.capture_depth_m=0.08")
     a = ap.parse_args(argv)
     kinds = [k.strip() for k in a.controller.split(",") if k.strip()]
     from humfall_ros.sim.fall_runs import CONTROLLERS
@@ -223,11 +227,21 @@ def main(argv: list[str] | None = None) -> int:
     if missing:
         ap.error(f"{path} has no threshold for {missing}; run with --recompute-thresholds")
     print(HEADER, flush=True)
-    rows = sweep(th, kinds, a.factor, dirs, log=lambda s: print(s, flush=True))
+    if a.overrides:   # a bad key or value fails here, before the first run
+        from humfall_ros import params as params_mod, scenario
+
+        try:
+            sc = scenario.load("standing_push", list(a.overrides))
+            for node, values in sc["params"].items():
+                params_mod.check_overrides(node, values, prefix=f"params.{node}.")
+        except (scenario.ScenarioError, params_mod.ParamError) as e:
+            ap.error(str(e))
+    rows = sweep(th, kinds, a.factor, dirs, log=lambda s: print(s, flush=True), overrides=a.overrides)
     out = pathlib.Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     summ = summary(rows)
-    (out / "sweep.json").write_text(json.dumps({"rows": rows, "summary": summ}, indent=1, default=str))
+    (out / "sweep.json").write_text(json.dumps({"rows": rows, "summary": summ, "factor": a.factor,
+                                                "overrides": a.overrides}, indent=1, default=str))
     try:
         from humfall_ros.fall import plots
 
