@@ -467,7 +467,6 @@ def test_sweep_summary_counts_steps_that_land_as_predicted():
 def test_sweep_set_reaches_every_run_and_a_bad_key_is_refused_before_the_first(monkeypatch, tmp_path, capsys):
     """``humfall sweep --set KEY=VALUE``: the override is in every run's scenario; an unknown
     controller parameter ends the command (exit 2, the name in the message) before any run."""
-
     from humfall_ros.sim import fall_runs as runs, fall_sweep as sweep
 
     seen = []

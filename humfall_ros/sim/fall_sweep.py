@@ -226,16 +226,17 @@ def main(argv: list[str] | None = None) -> int:
     missing = [d for d in dirs if d not in th]
     if missing:
         ap.error(f"{path} has no threshold for {missing}; run with --recompute-thresholds")
-    print(HEADER, flush=True)
-    if a.overrides:   # a bad key or value fails here, before the first run
+    if a.overrides:   # a bad key or value fails here, before the first run (as the runs' own node_params would)
         from humfall_ros import params as params_mod, scenario
+        from humfall_ros.suite import node_params
 
         try:
             sc = scenario.load("standing_push", list(a.overrides))
-            for node, values in sc["params"].items():
-                params_mod.check_overrides(node, values, prefix=f"params.{node}.")
+            for node in sc["params"]:
+                node_params(sc, node)
         except (scenario.ScenarioError, params_mod.ParamError) as e:
             ap.error(str(e))
+    print(HEADER, flush=True)
     rows = sweep(th, kinds, a.factor, dirs, log=lambda s: print(s, flush=True), overrides=a.overrides)
     out = pathlib.Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
