@@ -5,8 +5,8 @@
     .venv/bin/python benchmarks/fall_closed_loop.py ftb [KEY=VALUE ...]         # 0.9x / 1.1x per direction
     .venv/bin/python benchmarks/fall_closed_loop.py quiet [SECONDS]             # standing_quiet, exact + noise
     .venv/bin/python benchmarks/fall_closed_loop.py small                       # small_push in 8 directions: FTB quiet?
-    .venv/bin/python benchmarks/fall_closed_loop.py noise [SCALE]               # stepping_inertia, seeds 1-3
-    .venv/bin/python benchmarks/fall_closed_loop.py repeat [SCALE]              # two lockstep runs identical?
+    .venv/bin/python benchmarks/fall_closed_loop.py noise [SCALE] [KEY=VALUE ...]   # stepping_inertia, seeds 1-3
+    .venv/bin/python benchmarks/fall_closed_loop.py repeat [SCALE] [KEY=VALUE ...]  # two lockstep runs identical?
     .venv/bin/python benchmarks/fall_closed_loop.py shaping [SCALE] [KEY=VALUE ...]  # stepping_inertia, diagnostics
     .venv/bin/python benchmarks/fall_closed_loop.py shaping_sweep [FACTOR] [VARIANTS]  # sweep pushes, shaping signs
     .venv/bin/python benchmarks/fall_closed_loop.py walk [SPEEDS] [KIND] [KEY=VALUE ...]  # walking.yaml: FTB triggers?
@@ -102,12 +102,12 @@ def small_pushes(duration: float | None = None) -> dict:
     return {"rows": rows, "no_trigger": all(not r["triggered"] for r in rows)}
 
 
-def noise_runs(scale: float = 1.0, kind: str = "stepping_inertia") -> dict:
+def noise_runs(scale: float = 1.0, kind: str = "stepping_inertia", overrides=()) -> dict:
     import dataclasses
 
     from humfall_ros.sim.sensors import TYPICAL_NOISE
 
-    ov = _push_overrides(scale)
+    ov = _push_overrides(scale) + list(overrides)
     exact = runs.summary(runs.run(scenario.load("standing_push", ov), kind))
     keys = ("fell", "avoidance_angle_p2_deg", "min_target_distance_m", "decision_case")
     out = {"exact": {k: exact[k] for k in keys}}
@@ -120,8 +120,8 @@ def noise_runs(scale: float = 1.0, kind: str = "stepping_inertia") -> dict:
     return out
 
 
-def repeat(scale: float = 1.0, kind: str = "stepping_inertia") -> dict:
-    ov = _push_overrides(scale)
+def repeat(scale: float = 1.0, kind: str = "stepping_inertia", overrides=()) -> dict:
+    ov = _push_overrides(scale) + list(overrides)
     a = runs.run(scenario.load("standing_push", ov), kind, stop_after_landing_s=None, duration=2.5)
     b = runs.run(scenario.load("standing_push", ov), kind, stop_after_landing_s=None, duration=2.5)
     return {"identical_joint_states": bool(np.array_equal(a.joint_positions, b.joint_positions)),
@@ -300,9 +300,9 @@ def main(argv: list[str]) -> None:
     elif what == "quiet":
         out = quiet(float(argv[1]) if len(argv) > 1 else 60.0)
     elif what == "noise":
-        out = noise_runs(float(argv[1]) if len(argv) > 1 else 1.0)
+        out = noise_runs(float(argv[1]) if len(argv) > 1 else 1.0, overrides=[a for a in argv[2:] if "=" in a])
     elif what == "repeat":
-        out = repeat(float(argv[1]) if len(argv) > 1 else 1.0)
+        out = repeat(float(argv[1]) if len(argv) > 1 else 1.0, overrides=[a for a in argv[2:] if "=" in a])
     elif what == "shaping_sweep":
         names = argv[2].split(",") if len(argv) > 2 else list(SHAPING_VARIANTS)
         out = shaping_sweep({k: SHAPING_VARIANTS[k] for k in names}, factor=float(argv[1]) if len(argv) > 1 else 1.2)

@@ -9,6 +9,7 @@ landing cell and P2 unless another cell ties in score within 1e-9.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import pathlib
@@ -301,3 +302,55 @@ def test_a_landing_the_ik_cannot_reach_retries_the_cases_next_cells():
             if not plain.decision.captured:
                 assert retry.decision.captured
     assert retried >= 5
+
+
+def _deferral_run(threshold: float, residual_after: float, max_defer: float = 0.04):
+    """A recorded take-over fed 20 ms of history with the capture point running ahead of the LIPM by 2 m/s
+    (a push acting), then the fall event, then ticks with the residual ``residual_after`` [m/s]."""
+    r = DATA["decisions"][0]
+    cfg = SafeFallConfig.from_params({**params.defaults("safe_fall_controller"), **RECORDING,
+                                      "defer_push_residual_mps": threshold, "max_defer_s": max_defer})
+    ctrl = SafeFallController(config=cfg)
+    base = obs_of(r)
+    s = base.state
+    xi0, p = np.asarray(s.capture_point, float)[:2], np.asarray(s.cop, float)[:2]
+    omega = math.sqrt(9.81 / float(s.com[2]))
+    push = np.array([2.0, 0.0])
+
+    def obs_at(k: int, event: bool) -> Observation:
+        """Tick k (0: the event's tick) with the capture point where the residual put it (k < 0: the push)."""
+        dt = 0.002
+        rate = omega * (xi0 - p)
+        xi = xi0 + k * dt * (rate + (push if k < 0 else residual_after * push / 2.0))
+        st = dataclasses.replace(s, capture_point=np.array([*xi, s.capture_point[2]]))
+        inputs = dict(base.inputs)
+        if not event:
+            inputs.pop("fall_event")
+        return dataclasses.replace(base, stamp_ns=base.stamp_ns + k * 2_000_000, state=st, inputs=inputs)
+
+    for k in range(-10, 0):
+        assert ctrl.step(obs_at(k, False)) is None
+    decided_at, outs = None, []
+    for k in range(0, 40):
+        outs.append(ctrl.step(obs_at(k, True)))
+        if ctrl.decision is not None:
+            decided_at = k
+            break
+    return ctrl, decided_at, outs, base
+
+
+def test_the_decision_waits_while_the_push_residual_is_high():
+    # off (0): the decision on the event's tick, as the recording
+    ctrl, k, _, _ = _deferral_run(0.0, 0.0)
+    assert k == 0 and ctrl.deferral is None
+    # on, the push over at the event: the residual leaves the 20 ms window; decided once it reads below 1 m/s
+    ctrl, k, outs, base = _deferral_run(1.0, 0.0)
+    assert 3 <= k <= 10, k
+    for o in outs[:-1]:   # held the posture meanwhile, never without a command
+        assert o is not None and np.array_equal(o.positions, base.joint_position)
+    assert ctrl.deferral["residual_start_mps"] == pytest.approx(2.0, rel=0.05)
+    assert ctrl.deferral["residual_decision_mps"] <= 1.0
+    assert "decision deferred" in ctrl.decision.reason
+    # the push goes on: decided at max_defer_s
+    ctrl, k, _, _ = _deferral_run(1.0, 2.0, max_defer=0.03)
+    assert k == 15 and ctrl.deferral["residual_decision_mps"] > 1.0

@@ -45,6 +45,7 @@ from humfall_ros.dynamics.toppling import FallOutcome, time_to_lean
 from humfall_ros.fall import step_search as ss
 from humfall_ros.fall.ftb import FtbState, features_of
 from humfall_ros.fall.geometry import polygon_margin_xy
+from humfall_ros.fall.push_residual import PushResidual
 from humfall_ros.fall.inertia_shaping import ClearBox, ShapingConfig, shaping_velocities
 from humfall_ros.fall.step_control import (
     StepControlConfig,
@@ -116,6 +117,9 @@ class SafeFallConfig:
     settle_s: float = 0.5
     handback: bool = True
     handback_delay_s: float = 0.02
+    defer_push_residual_mps: float = 0.0
+    push_residual_window_s: float = 0.02
+    max_defer_s: float = 0.04
 
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> SafeFallConfig:
@@ -298,9 +302,15 @@ class SafeFallController:
         self._swept_noted = False
         self.recovered_since: float | None = None
         self.handbacks: list[dict] = []   # one per hand-back: time [s], CoM [m], CoM speed [m/s], feet (x, y, yaw)
+        self.push_residual = PushResidual(self.config.push_residual_window_s)
+        self.deferred: tuple | None = None   # (fall event, time of the take-over) while the decision waits
+        self.deferral: dict | None = None    # the last deferral: its start, decision time, residual at both
 
     # ------------------------------------------------------------------ contract
     def step(self, obs: Observation) -> JointTargets | None:
+        s = obs.state
+        if s is not None:
+            self.push_residual.update(obs.time, s.com, s.capture_point, s.cop)
         if not self.taken_over:
             gait = obs.inputs.get("walking/state")
             if _walking(gait):
@@ -315,6 +325,8 @@ class SafeFallController:
             self.taken_over = True
             self.hold = np.asarray(obs.joint_position, float).copy()
             self.last_command = self.hold.copy()
+            if self._defer(obs, ev):
+                return JointTargets(self.hold.copy())
             try:
                 self._take_over(obs, ev)
             except Exception as exc:  # noqa: BLE001 - never crash a falling robot: hold the posture
@@ -322,6 +334,16 @@ class SafeFallController:
                 self.reasons.append(f"decision failed ({type(exc).__name__}: {exc}); holding the posture")
                 self._note_failure()
         try:
+            if self.deferred is not None:
+                ev = self.deferred[0]
+                if self._defer(obs, ev):
+                    return JointTargets(self.hold.copy())
+                try:
+                    self._take_over(obs, ev)
+                except Exception as exc:  # noqa: BLE001 - as at the take-over
+                    self.phase = "hold"
+                    self.reasons.append(f"decision failed ({type(exc).__name__}: {exc}); holding the posture")
+                    self._note_failure()
             if self._hand_back(obs):
                 return None
             return self._tick(obs)
@@ -330,6 +352,28 @@ class SafeFallController:
             self.reasons.append(f"tick failed ({type(exc).__name__}: {exc}); holding the last command")
             self._note_failure()
             return JointTargets(self.last_command.copy())
+
+    def _defer(self, obs: Observation, ev) -> bool:
+        """Hold the posture and decide later while the push still acts (ours; ``fall.push_residual``): True while
+        the capture point's residual exceeds ``defer_push_residual_mps`` and the deferral is shorter than
+        ``max_defer_s`` (0: off). The step is then chosen from the state the push leaves."""
+        c = self.config
+        if c.defer_push_residual_mps <= 0.0:
+            return False
+        r = self.push_residual.magnitude()
+        if self.deferred is None:
+            self.deferral = {"start_s": obs.time, "residual_start_mps": r}
+            self.deferred = (ev, obs.time)
+            self.phase = "deferred"
+        waited = obs.time - self.deferred[1]
+        wait = math.isfinite(r) and r > c.defer_push_residual_mps and waited < c.max_defer_s - 1e-9
+        if not wait:
+            self.deferred = None
+            self.deferral.update(decision_s=obs.time, residual_decision_mps=r)
+            if waited > 0.0:
+                self.reasons.append(f"decision deferred {waited * 1000:.0f} ms: push residual "
+                                    f"{self.deferral['residual_start_mps']:.2f} -> {r:.2f} m/s")
+        return wait
 
     def _hand_back(self, obs: Observation) -> bool:
         """True on the tick the controller lets go (the module docstring's step 4); the take-over is then over."""
