@@ -226,6 +226,24 @@ def test_delayed_capture_point_is_the_linear_pendulum_with_the_cop_held():
         assert np.linalg.norm(b) / np.linalg.norm(a) == pytest.approx(math.exp(math.sqrt(g / G0[k, 2]) * tau))
 
 
+
+def test_capture_offset_moves_q2_along_the_touchdown_velocity():
+    """predict_touchdown's offset: Q2 moved exactly ``offset`` along the CoM's horizontal velocity at touchdown,
+    G and the velocity untouched; 0 leaves Q2 as it was."""
+    com, vel = np.array([0.03, 0.0, 0.74]), np.array([0.5, -0.1, 0.0])
+    pivots = [np.array([[0.12, 0.07]]), np.array([[0.12, -0.07], [0.12, 0.07]])]
+    G0, V0, Q0 = ss.predict_touchdown(com, vel, pivots, 0.25)
+    G1, V1, Q1 = ss.predict_touchdown(com, vel, pivots, 0.25, offset=0.08)
+    assert np.array_equal(G0, G1) and np.array_equal(V0, V1)
+    for k in range(len(pivots)):
+        d = Q1[k] - Q0[k]
+        u = V0[k, :2] / np.linalg.norm(V0[k, :2])
+        assert np.linalg.norm(d) == pytest.approx(0.08) and d @ u == pytest.approx(0.08)
+    # at rest: no direction, no shift (never NaN)
+    _, _, Qr = ss.predict_touchdown(np.array([0.0, 0.0, 0.74]), np.zeros(3), [np.array([[0.0, 0.0]])], 0.0,
+                                    offset=0.08)
+    assert np.allclose(Qr, 0.0)
+
 def test_crb_inertia_jacobian_against_finite_differences():
     rng = np.random.default_rng(0)
     q = standing_q()

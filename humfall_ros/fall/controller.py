@@ -85,6 +85,7 @@ class SafeFallConfig:
     min_zone_cells: int = 150
     capture_depth_m: float = 0.04
     capture_cop_delay_s: float = 0.0
+    capture_offset_m: float = 0.0
     capture_margin: float = 0.02
     obstacle_clearance: float = 0.03
     swing_clearance: float = 0.05
@@ -130,7 +131,8 @@ class SafeFallConfig:
     def search(self) -> ss.SearchConfig:
         return ss.SearchConfig(self.cell_xy, self.cell_yaw, self.capture_margin,
                                obstacle_clearance=self.obstacle_clearance, min_zone_cells=self.min_zone_cells,
-                               capture_depth=self.capture_depth_m, cop_delay=self.capture_cop_delay_s)
+                               capture_depth=self.capture_depth_m, cop_delay=self.capture_cop_delay_s,
+                               capture_offset=self.capture_offset_m)
 
     @property
     def step(self) -> StepControlConfig:
@@ -535,7 +537,7 @@ class SafeFallController:
         scfg = c.search
         stance_sides, pivots = ss.case_pivots(sit, scfg)
         G, _, Q = ss.predict_touchdown(s.com, s.com_velocity, pivots, touchdown, scfg.rk4_steps,
-                                       cop_delay=scfg.cop_delay)
+                                       cop_delay=scfg.cop_delay, offset=scfg.capture_offset)
         zones = {}
         lift_pred = {}
         for k, stance in enumerate(stance_sides, start=1):
@@ -835,7 +837,7 @@ class SafeFallController:
         u = u / np.linalg.norm(u)
         pivot = ss._pivot(soles, stance, u, c.search.corner_tie)
         G, _, Q = ss.predict_touchdown(s.com, s.com_velocity, [pivot], remaining, c.search.rk4_steps,
-                                       cop_delay=c.search.cop_delay)
+                                       cop_delay=c.search.cop_delay, offset=c.search.capture_offset)
         zone = stepping_zone(self.m, q, swing, remaining, Q[0] - pivot.mean(axis=0), G[0], c.zone_velocity_fraction,
                              c.reach_fraction, hip_drop=c.hip_drop_m, max_yaw_change=c.max_yaw_change_rad,
                              yaw_reference=self.lift_off_yaw)

@@ -81,6 +81,10 @@ class SearchConfig:
         cop_delay: how long after touchdown the CoP stays on the stance pivot before the balance can move it
             into the new polygon (ours; 0: at once, the paper's capture): Q2 is taken that much later on the
             linear pendulum about the pivot, :func:`delayed_capture_point` [s].
+        capture_offset: Q2 is taken this much further along the CoM's horizontal motion at touchdown (ours; 0:
+            the paper's Q2): a capture then needs Q2 this deep plus ``capture_margin`` along the motion, and a
+            fall's alpha2 is measured from the shifted Q2 (a shallow capture is ranked as the fall it becomes
+            when it fails) [m].
     """
 
     cell_xy: float = 0.04
@@ -92,6 +96,7 @@ class SearchConfig:
     min_zone_cells: int = 0
     capture_depth: float = 0.0
     cop_delay: float = 0.0
+    capture_offset: float = 0.0
 
 
 @dataclasses.dataclass
@@ -230,11 +235,14 @@ def _pendulum_start(com, vel, pivots: list[np.ndarray]):
 
 
 def predict_touchdown(com, com_velocity, pivots: list[np.ndarray], duration: float, steps: int = 8,
-                      g: float = GRAVITY, cop_delay: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      g: float = GRAVITY, cop_delay: float = 0.0,
+                      offset: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """CoM, its velocity and the capture point (eq. 1-2) ``duration`` after now, per pivot set.
 
     ``cop_delay`` > 0: the capture point is the one ``cop_delay`` later with the CoP still on the pivot
-    (:func:`delayed_capture_point`). Returns (com (k, 3), velocity (k, 3), capture point (k, 2)).
+    (:func:`delayed_capture_point`). ``offset`` > 0: the capture point moved that far on along the CoM's
+    horizontal velocity at touchdown (``SearchConfig.capture_offset``). Returns (com (k, 3), velocity (k, 3),
+    capture point (k, 2)).
     """
     com = np.asarray(com, float)
     vel = np.asarray(com_velocity, float)
@@ -248,6 +256,9 @@ def predict_touchdown(com, com_velocity, pivots: list[np.ndarray], duration: flo
     Q = G[:, :2] + np.sqrt(z / g)[:, None] * v[:, :2]
     if cop_delay > 0.0:
         Q = delayed_capture_point(Q, com[None, :2] - r0[:, :2], z, cop_delay, g)
+    if offset > 0.0:
+        speed = np.linalg.norm(v[:, :2], axis=1)
+        Q = Q + offset * v[:, :2] / np.maximum(speed, 1e-9)[:, None] * (speed > 1e-9)[:, None]
     return G, v, Q
 
 
@@ -521,7 +532,8 @@ def search(sit: FallSituation, sole_local: np.ndarray, cfg: SearchConfig | None 
     stance_sides, pivots = case_pivots(sit, cfg)
     edge = pivots[0]
     if prediction is None:
-        G, _V, Q = predict_touchdown(com, vel, pivots, sit.touchdown_time, cfg.rk4_steps, cop_delay=cfg.cop_delay)
+        G, _V, Q = predict_touchdown(com, vel, pivots, sit.touchdown_time, cfg.rk4_steps, cop_delay=cfg.cop_delay,
+                                     offset=cfg.capture_offset)
     else:
         G, Q = prediction
     cases: dict[StepCase, CaseResult] = {}
