@@ -1,6 +1,7 @@
 """Safe fall (paper 1), functional core: geometry, FTB, stepping zone, search, inertia shaping, controller."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -159,6 +160,22 @@ def test_stepping_zone_shape():
     assert zr.reach_radius == pytest.approx(z1.reach_radius, abs=1e-3)
     assert zr.center[1] == pytest.approx(-z1.center[1], abs=1e-3)
 
+
+
+def test_zone_cells_within_the_step_length_cap():
+    q = standing_q()
+    z = stepping_zone(M, q, "l", 0.25, [1, 0], M.com(q), hip_drop=0.08)
+    M.forward(q)
+    start = M.frame_placement(M.sole_frame["l"]).translation[:2].copy()   # the swing sole now
+    cfg = ss.SearchConfig(cell_xy=0.03, cell_yaw=0.1)
+    full = ss.zone_cells(z, cfg, [])
+    capped = ss.zone_cells(z, dataclasses.replace(cfg, max_step_length=0.2), [], start)
+    d_full = np.hypot(full[:, 0] - start[0], full[:, 1] - start[1])
+    d_cap = np.hypot(capped[:, 0] - start[0], capped[:, 1] - start[1])
+    assert d_full.max() > 0.2 and 0 < len(capped) < len(full)
+    assert d_cap.max() <= 0.2 + 1e-12
+    assert len(capped) == int(np.sum(d_full <= 0.2))              # exactly the full grid's cells within the cap
+    assert len(ss.zone_cells(z, dataclasses.replace(cfg, max_step_length=0.2), [])) == len(full)   # no start: no cap
 
 # ---------------------------------------------------------------------- search
 def _reference(cells, pivot, q2, target, local):

@@ -86,6 +86,7 @@ class SafeFallConfig:
     capture_depth_m: float = 0.04
     capture_cop_delay_s: float = 0.0
     capture_offset_m: float = 0.0
+    max_step_length_m: float = 0.0
     capture_margin: float = 0.02
     obstacle_clearance: float = 0.03
     swing_clearance: float = 0.05
@@ -132,7 +133,7 @@ class SafeFallConfig:
         return ss.SearchConfig(self.cell_xy, self.cell_yaw, self.capture_margin,
                                obstacle_clearance=self.obstacle_clearance, min_zone_cells=self.min_zone_cells,
                                capture_depth=self.capture_depth_m, cop_delay=self.capture_cop_delay_s,
-                               capture_offset=self.capture_offset_m)
+                               capture_offset=self.capture_offset_m, max_step_length=self.max_step_length_m)
 
     @property
     def step(self) -> StepControlConfig:
@@ -305,6 +306,7 @@ class SafeFallController:
         self.recovered_since: float | None = None
         self.handbacks: list[dict] = []   # one per hand-back: time [s], CoM [m], CoM speed [m/s], feet (x, y, yaw)
         self.push_residual = PushResidual(self.config.push_residual_window_s)
+        self.swing_start_xy: np.ndarray | None = None   # the swing sole's x, y at the decision [m]
         self.deferred: tuple | None = None   # (fall event, time of the take-over) while the decision waits
         self.deferral: dict | None = None    # the last deferral: its start, decision time, residual at both
 
@@ -581,9 +583,9 @@ class SafeFallController:
             # skipping those as near a failed landing as the IK missed it by
             floor = ranked[n + 1].score if n + 1 < len(ranked) else -math.inf
             failed = [(np.asarray(cr.landing[:2], float), err)]
-            cand = ss.ranked_cells(cr.case, ss.zone_cells(zones[swing], scfg, self._obstacle_footprints(obs)), piv,
-                                   Q_td, target, G_td, self._sole_local, scfg,
-                                   start=np.asarray(sit.sole_poses[swing], float)[:2])
+            start = np.asarray(sit.sole_poses[swing], float)[:2]
+            cand = ss.ranked_cells(cr.case, ss.zone_cells(zones[swing], scfg, self._obstacle_footprints(obs), start),
+                                   piv, Q_td, target, G_td, self._sole_local, scfg, start=start)
             tries = 0
             for alt in cand:
                 if alt.score < floor or tries >= c.ik_retry_cells:
@@ -617,6 +619,7 @@ class SafeFallController:
                 z = max(0.10, float(lp.translation[2])) if single else 0.10
                 landing = StepController.landing_placement(lp.translation[0], lp.translation[1], yaw,
                                                            z + self.stepper.config.press_depth)
+            self.swing_start_xy = np.asarray(sit.sole_poses[swing], float)[:2].copy()
             self.stepper.start(q, swing, landing, obs.time, touchdown)
             self.phase = "swing"
             self.lift_off_yaw = math.atan2(placements[swing].rotation[1, 0], placements[swing].rotation[0, 0])
@@ -841,7 +844,8 @@ class SafeFallController:
         zone = stepping_zone(self.m, q, swing, remaining, Q[0] - pivot.mean(axis=0), G[0], c.zone_velocity_fraction,
                              c.reach_fraction, hip_drop=c.hip_drop_m, max_yaw_change=c.max_yaw_change_rad,
                              yaw_reference=self.lift_off_yaw)
-        cells = ss.zone_cells(zone, c.search, self._obstacle_footprints(obs))
+        # (the step length from where the swing sole lifted off, as at the decision)
+        cells = ss.zone_cells(zone, c.search, self._obstacle_footprints(obs), self.swing_start_xy)
         case = self.chosen.case
         if case is ss.StepCase.CONTINUE_STEP:   # re-deciding the planned step over the cells: a re-target
             case = ss.StepCase.STEP_LEFT if swing == "l" else ss.StepCase.STEP_RIGHT
