@@ -521,3 +521,35 @@ def test_sweep_set_reaches_every_run_and_a_bad_key_is_refused_before_the_first(m
     assert e.value.code == 2 and "capture_depht_m" in capsys.readouterr().err
     assert len(seen) == 1   # refused before a run
     assert not (tmp_path / "sweep.json").exists()
+
+
+def test_fall_heading_against_the_edge_and_point_pendulums():
+    """fall.geometry.fall_heading: toppling about an edge (the CoP follows the CoM along it: no acceleration along
+    the edge) and about a corner (the point pendulum), against solve_ivp of the linear pendulum; at a corner and a
+    long horizon it tends to paper 1's P2 -> capture point."""
+    from scipy.integrate import solve_ivp
+
+    from humfall_ros.fall.geometry import fall_heading
+
+    g, z, T = 9.81, 0.74, 0.5
+    w2 = g / z
+    square = np.array([[0.0, -0.1], [0.2, -0.1], [0.2, 0.1], [0.0, 0.1]])   # CCW
+    com, vel = np.array([0.15, 0.02, z]), np.array([0.6, 0.35, 0.0])
+    # P2 on the front edge (x = 0.2): the pendulum acts along +x only
+    p2 = np.array([0.2, 0.03])
+    sol = solve_ivp(lambda t, y: np.r_[y[2:], w2 * (y[0] - p2[0]), 0.0], (0, T), np.r_[com[:2], vel[:2]],
+                    rtol=1e-11, atol=1e-12)
+    want = sol.y[:2, -1] - p2
+    got = fall_heading(p2, square, com, vel, T, g)
+    assert got == pytest.approx(want / np.linalg.norm(want), abs=1e-7)
+    # P2 at the corner (0.2, 0.1): the point pendulum
+    p2 = np.array([0.2, 0.1])
+    sol = solve_ivp(lambda t, y: np.r_[y[2:], w2 * (y[:2] - p2)], (0, T), np.r_[com[:2], vel[:2]],
+                    rtol=1e-11, atol=1e-12)
+    want = sol.y[:2, -1] - p2
+    assert fall_heading(p2, square, com, vel, T, g) == pytest.approx(want / np.linalg.norm(want), abs=1e-7)
+    xi = com[:2] + vel[:2] / math.sqrt(w2)
+    far = fall_heading(p2, square, com, vel, 5.0, g)
+    assert far == pytest.approx((xi - p2) / np.linalg.norm(xi - p2), abs=1e-4)
+    # at rest on P2: no heading
+    assert np.all(np.isnan(fall_heading(p2, square, [0.2, 0.1, z], [0, 0, 0], T, g)))

@@ -354,3 +354,20 @@ def test_the_decision_waits_while_the_push_residual_is_high():
     # the push goes on: decided at max_defer_s
     ctrl, k, _, _ = _deferral_run(1.0, 2.0, max_defer=0.03)
     assert k == 15 and ctrl.deferral["residual_decision_mps"] > 1.0
+
+
+def test_predicted_falls_report_the_edge_fall_angle_and_captures_do_not():
+    cfg = SafeFallConfig.from_params({**params.defaults("safe_fall_controller"), **RECORDING})
+    ctrl = SafeFallController(config=cfg)
+    falls = captures = 0
+    for r in DATA["decisions"]:
+        ctrl.reset()
+        ctrl.step(obs_of(r))
+        d = ctrl.decision
+        if d.captured or not math.isfinite(d.alpha2):
+            assert math.isnan(d.alpha2_edge), d.case
+            captures += 1
+        else:
+            assert 0.0 <= d.alpha2_edge <= math.pi, (d.case, d.alpha2_edge)
+            falls += 1
+    assert falls and captures

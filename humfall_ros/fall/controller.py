@@ -44,7 +44,7 @@ from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.dynamics.toppling import FallOutcome, time_to_lean
 from humfall_ros.fall import step_search as ss
 from humfall_ros.fall.ftb import FtbState, features_of
-from humfall_ros.fall.geometry import polygon_margin_xy
+from humfall_ros.fall.geometry import fall_heading, polygon_margin_xy
 from humfall_ros.fall.push_residual import PushResidual
 from humfall_ros.fall.inertia_shaping import ClearBox, ShapingConfig, shaping_velocities
 from humfall_ros.fall.step_control import (
@@ -87,6 +87,7 @@ class SafeFallConfig:
     capture_cop_delay_s: float = 0.0
     capture_offset_m: float = 0.0
     max_step_length_m: float = 0.0
+    fall_heading_horizon_s: float = 0.5
     capture_margin: float = 0.02
     obstacle_clearance: float = 0.03
     swing_clearance: float = 0.05
@@ -176,6 +177,8 @@ class SafeFallDecision:
         ik_reachable: the eq.-9 IK check passed (True when no IK was needed).
         case_alpha2: best predicted alpha2 per case [rad] (NaN: capture or case absent).
         reason: why this choice (fallbacks, bad input).
+        alpha2_edge: predicted avoidance angle of a predicted fall from the fall about the new support's edge
+            (``fall_heading_horizon_s``; ours) [rad] (NaN for a capture).
         replans: times the landing was re-decided during the swing (``replan_s``); the fields above
             are then the last re-decision's (``replan_stamp_ns``), the case and swing side stay.
     """
@@ -205,6 +208,7 @@ class SafeFallDecision:
     reason: str = ""
     replans: int = 0
     replan_stamp_ns: int = 0
+    alpha2_edge: float = math.nan
 
 
 def _get(o, key, default=None):
@@ -538,13 +542,15 @@ class SafeFallController:
                                planned_landing=planned)
         scfg = c.search
         stance_sides, pivots = ss.case_pivots(sit, scfg)
-        G, _, Q = ss.predict_touchdown(s.com, s.com_velocity, pivots, touchdown, scfg.rk4_steps,
+        G, V, Q = ss.predict_touchdown(s.com, s.com_velocity, pivots, touchdown, scfg.rk4_steps,
                                        cop_delay=scfg.cop_delay, offset=scfg.capture_offset)
         zones = {}
         lift_pred = {}
+        velocity_td = {None: V[0]}   # the CoM velocity at touchdown by swing side (None: no change)
         for k, stance in enumerate(stance_sides, start=1):
             swing = "l" if stance == "r" else "r"
             lift_pred[swing] = (pivots[k], G[k], Q[k])
+            velocity_td[swing] = V[k]
             if c.stepping and target is not None:
                 zones[swing] = stepping_zone(self.m, q, swing, touchdown, Q[k] - pivots[k].mean(axis=0), G[k],
                                              c.zone_velocity_fraction, c.reach_fraction, hip_drop=c.hip_drop_m,
@@ -637,7 +643,20 @@ class SafeFallController:
             np.array(zone.size) if zone else nan2, zone.gamma.copy() if zone else np.full(3, np.nan),
             res.cell_count, search_time, reachable,
             {k.value: v.alpha2 for k, v in res.cases.items()}, "; ".join(self.reasons))
+        self.decision.alpha2_edge = self._alpha2_edge(chosen, velocity_td.get(swing), target)
         self.predicted_touchdown_time = obs.time + touchdown
+
+    def _alpha2_edge(self, chosen, velocity, target) -> float:
+        """The predicted avoidance angle of a predicted fall from the fall about the new support's edge or corner
+        (``geometry.fall_heading`` over ``fall_heading_horizon_s``; ours, beside paper 1's angle(Q2 P2 T)) [rad]
+        (NaN for a capture or without a target)."""
+        if chosen.captured or target is None or velocity is None or not math.isfinite(chosen.alpha2):
+            return math.nan
+        h = fall_heading(chosen.p2, chosen.polygon, chosen.com_touchdown, velocity, self.config.fall_heading_horizon_s)
+        t = np.asarray(target, float)[:2] - np.asarray(chosen.p2, float)[:2]
+        if not np.all(np.isfinite(h)) or np.linalg.norm(t) < 1e-9:
+            return math.nan
+        return math.acos(float(np.clip(h @ t / np.linalg.norm(t), -1.0, 1.0)))
 
     def _swing_of(self, case: ss.StepCase) -> str | None:
         """The sole a case moves: its own for lift / step, the non-stance one for continue (single support)."""

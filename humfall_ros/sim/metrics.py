@@ -84,6 +84,7 @@ class FallMetrics:
                          "swing_side": str(get("swing_side", "")),
                          "landing": [float(x) for x in np.asarray(get("landing", [math.nan] * 3), float)],
                          "alpha2": float(get("alpha2", math.nan)), "captured": bool(get("captured", False)),
+                         "alpha2_edge": float(get("alpha2_edge", math.nan)),
                          "touchdown_time": float(get("touchdown_time", math.nan))}
 
     def update_feet(self, t: float, cop, down: dict, poses) -> None:
@@ -198,6 +199,8 @@ class FallMetrics:
                "avoidance_angle_p2_deg": None, "measured_p2": None,
                "predicted_avoidance_deg": None if not math.isfinite(d.get("alpha2", math.nan))
                else math.degrees(d["alpha2"]),
+               "predicted_avoidance_edge_deg": None if not math.isfinite(d.get("alpha2_edge", math.nan))
+               else math.degrees(d["alpha2_edge"]),
                "predicted_captured": d.get("captured"), "decision_case": d.get("case"),
                "captured": None, "prediction": None}
         side = d.get("swing_side") or None
@@ -227,7 +230,10 @@ class FallMetrics:
                 "landing_tilt_deg": tilt,
                 "alpha2_error_deg": None if out["avoidance_angle_p2_deg"] is None
                 or out["predicted_avoidance_deg"] is None
-                else abs(out["avoidance_angle_p2_deg"] - out["predicted_avoidance_deg"])}
+                else abs(out["avoidance_angle_p2_deg"] - out["predicted_avoidance_deg"]),
+                "alpha2_edge_error_deg": None if out["avoidance_angle_p2_deg"] is None
+                or out["predicted_avoidance_edge_deg"] is None
+                else abs(out["avoidance_angle_p2_deg"] - out["predicted_avoidance_edge_deg"])}
         return out
 
 
