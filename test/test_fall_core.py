@@ -553,3 +553,30 @@ def test_fall_heading_against_the_edge_and_point_pendulums():
     assert far == pytest.approx((xi - p2) / np.linalg.norm(xi - p2), abs=1e-4)
     # at rest on P2: no heading
     assert np.all(np.isnan(fall_heading(p2, square, [0.2, 0.1, z], [0, 0, 0], T, g)))
+
+
+def test_search_alpha_edge_equals_fall_heading_on_the_cells_polygon():
+    """step_search's vectorised alpha of the fall about the new support equals geometry.fall_heading's angle to T
+    on each cell's own hull (edge cells and corner cells alike)."""
+    from humfall_ros.fall.geometry import fall_heading
+
+    local = M.sole_corners_local["l"][:, :2]
+    rng = np.random.default_rng(3)
+    cells = np.column_stack([rng.uniform(0.2, 0.45, 40), rng.uniform(-0.35, 0.1, 40), rng.uniform(-0.3, 0.3, 40)])
+    pivot = np.array([[0.145, -0.03], [0.145, -0.17]])
+    g_td, v_td = np.array([0.2, -0.05, 0.72]), np.array([0.7, -0.4, -0.1])
+    q2 = g_td[:2] + v_td[:2] / math.sqrt(9.81 / g_td[2]) + np.array([0.25, -0.2])   # outside every hull
+    target = np.array([1.3, 0.2])
+    h = ss._hull_core(cells, local, pivot, q2)
+    p2x, p2y = h.p2()
+    verts = np.concatenate([ss.sole_corners_at(cells, local), np.broadcast_to(pivot, (len(cells), 2, 2))], axis=1)
+    got = ss._alpha_edge(p2x, p2y, q2, g_td, v_td, target, verts, 0.5)
+    corners = 0
+    for i, c in enumerate(cells):
+        poly = support_polygon(np.vstack([ss.sole_corners_at(c[None], local)[0], pivot]))
+        p2 = np.array([p2x[i], p2y[i]])
+        hd = fall_heading(p2, poly, g_td, v_td, 0.5)
+        t = target - p2
+        assert got[i] == pytest.approx(math.acos(np.clip(hd @ t / np.linalg.norm(t), -1, 1)), abs=1e-6), i
+        corners += np.min(np.linalg.norm(poly - p2, axis=1)) < 1e-3
+    assert 0 < corners < len(cells)   # both kinds seen

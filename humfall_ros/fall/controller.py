@@ -88,6 +88,7 @@ class SafeFallConfig:
     capture_offset_m: float = 0.0
     max_step_length_m: float = 0.0
     fall_heading_horizon_s: float = 0.5
+    rank_by_fall_heading: bool = False
     capture_margin: float = 0.02
     obstacle_clearance: float = 0.03
     swing_clearance: float = 0.05
@@ -134,7 +135,8 @@ class SafeFallConfig:
         return ss.SearchConfig(self.cell_xy, self.cell_yaw, self.capture_margin,
                                obstacle_clearance=self.obstacle_clearance, min_zone_cells=self.min_zone_cells,
                                capture_depth=self.capture_depth_m, cop_delay=self.capture_cop_delay_s,
-                               capture_offset=self.capture_offset_m, max_step_length=self.max_step_length_m)
+                               capture_offset=self.capture_offset_m, max_step_length=self.max_step_length_m,
+                               fall_heading_horizon=self.fall_heading_horizon_s if self.rank_by_fall_heading else 0.0)
 
     @property
     def step(self) -> StepControlConfig:
@@ -556,7 +558,7 @@ class SafeFallController:
                                              c.zone_velocity_fraction, c.reach_fraction, hip_drop=c.hip_drop_m,
                                              max_yaw_change=c.max_yaw_change_rad)
         sit.zones = zones
-        res = ss.search(sit, self._sole_local, scfg, prediction=(G, Q))
+        res = ss.search(sit, self._sole_local, scfg, prediction=(G, Q, V))
         search_time = time.perf_counter() - t_dec
         self.decision_cpu_s = time.thread_time() - cpu_dec   # the same span in this thread's CPU time [s]
         self.search_result = res
@@ -591,7 +593,8 @@ class SafeFallController:
             failed = [(np.asarray(cr.landing[:2], float), err)]
             start = np.asarray(sit.sole_poses[swing], float)[:2]
             cand = ss.ranked_cells(cr.case, ss.zone_cells(zones[swing], scfg, self._obstacle_footprints(obs), start),
-                                   piv, Q_td, target, G_td, self._sole_local, scfg, start=start)
+                                   piv, Q_td, target, G_td, self._sole_local, scfg, start=start,
+                                   v_td=velocity_td.get(swing))
             tries = 0
             for alt in cand:
                 if alt.score < floor or tries >= c.ik_retry_cells:

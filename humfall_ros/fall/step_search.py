@@ -88,6 +88,8 @@ class SearchConfig:
         max_step_length: landing cells farther than this from the swing sole's position at the decision are
             left out (ours; 0: none). Measured: longer steps than ~0.43 m miss the prediction (side steps land
             early and up to 24 cm short, long forward steps up to 176 ms late) [m].
+        fall_heading_horizon: > 0: falls rank by the avoidance angle of the fall about the new support's edge or
+            corner over this horizon (``geometry.fall_heading``; ours) instead of paper 1's angle(Q2 P2 T) [s].
     """
 
     cell_xy: float = 0.04
@@ -101,6 +103,7 @@ class SearchConfig:
     cop_delay: float = 0.0
     capture_offset: float = 0.0
     max_step_length: float = 0.0
+    fall_heading_horizon: float = 0.0
 
 
 @dataclasses.dataclass
@@ -335,6 +338,35 @@ class _Hull:
         return float(self.cells[i, 0]) + c * bx - s * by, float(self.cells[i, 1]) + s * bx + c * by
 
 
+def _alpha_edge(p2x, p2y, q, g_td, v_td, target, vertices, horizon: float, g: float = GRAVITY,
+                corner_tol: float = 1e-3) -> np.ndarray:
+    """alpha of the fall about the new support (``geometry.fall_heading``, vectorised over cells) [rad].
+
+    P2 is the nearest boundary point to an outside Q2, so inside an edge the edge's outward normal is
+    (Q2 - P2) / |Q2 - P2|; P2 within ``corner_tol`` of one of ``vertices`` (N, V, 2) is a corner (point pendulum).
+    """
+    p = np.column_stack([np.broadcast_to(p2x, np.shape(p2x)), np.broadcast_to(p2y, np.shape(p2y))]).reshape(-1, 2)
+    q = np.broadcast_to(np.asarray(q, float)[..., :2], p.shape)
+    g_td = np.asarray(g_td, float).reshape(-1)
+    w = math.sqrt(g / max(float(g_td[2]), 1e-3))
+    ch, sh = math.cosh(w * horizon), math.sinh(w * horizon)
+    r = g_td[:2][None, :] - p
+    v = np.asarray(v_td, float).reshape(-1)[:2][None, :]
+    n = q - p
+    n = n / np.maximum(np.linalg.norm(n, axis=1), 1e-12)[:, None]
+    e = np.column_stack([-n[:, 1], n[:, 0]])
+    along = np.sum(e * r, axis=1) + np.sum(e * v, axis=1) * horizon
+    across = np.sum(n * r, axis=1) * ch + np.sum(n * v, axis=1) / w * sh
+    h = e * along[:, None] + n * across[:, None]
+    corner = np.min(np.linalg.norm(np.asarray(vertices, float) - p[:, None, :], axis=2), axis=1) < corner_tol
+    h = np.where(corner[:, None], r * ch + v / w * sh, h)
+    t = np.asarray(target, float)[:2][None, :] - p
+    nh, nt = np.linalg.norm(h, axis=1), np.linalg.norm(t, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        alpha = np.arccos(np.clip(np.sum(h * t, axis=1) / (nh * nt), -1.0, 1.0))
+    return np.where((nh < 1e-12) | (nt < 1e-9), np.nan, alpha)
+
+
 def _alpha(p2x, p2y, q, target) -> np.ndarray:
     """alpha = angle(Q2 P2 T) (Fig. 5) per cell [rad] (NaN when P2 is on Q2 or T)."""
     ux, uy = q[0] - p2x, q[1] - p2y
@@ -539,10 +571,13 @@ def search(sit: FallSituation, sole_local: np.ndarray, cfg: SearchConfig | None 
     stance_sides, pivots = case_pivots(sit, cfg)
     edge = pivots[0]
     if prediction is None:
-        G, _V, Q = predict_touchdown(com, vel, pivots, sit.touchdown_time, cfg.rk4_steps, cop_delay=cfg.cop_delay,
-                                     offset=cfg.capture_offset)
+        G, V, Q = predict_touchdown(com, vel, pivots, sit.touchdown_time, cfg.rk4_steps, cop_delay=cfg.cop_delay,
+                                    offset=cfg.capture_offset)
     else:
-        G, Q = prediction
+        G, Q, *rest = prediction
+        V = rest[0] if rest else None
+    if V is None and cfg.fall_heading_horizon > 0.0:
+        V = predict_touchdown(com, vel, pivots, sit.touchdown_time, cfg.rk4_steps)[1]
     cases: dict[StepCase, CaseResult] = {}
     if target is None:
         best = CaseResult(StepCase.NO_TARGET, p1, Q[0], math.nan, False, -math.inf, None, edge, G[0])
@@ -550,7 +585,8 @@ def search(sit: FallSituation, sole_local: np.ndarray, cfg: SearchConfig | None 
                             sit.control_duration, 0, time.perf_counter() - t0, "no target to avoid: no step")
     if not sit.single_support:  # no change: rotate on about the current soles' hull
         poly0 = support_polygon(np.vstack([sit.soles["l"], sit.soles["r"]]).tolist())
-        cases[StepCase.NO_CHANGE] = _single(StepCase.NO_CHANGE, poly0, Q[0], target, G[0], cfg)
+        cases[StepCase.NO_CHANGE] = _single(StepCase.NO_CHANGE, poly0, Q[0], target, G[0], cfg,
+                                            None if V is None else V[0])
     total_cells = 0
     order: list = []      # the cases in the order eq. 4 lists them (ties go to the first)
     steps: list = []      # (case, cells, pivot, Q2, G) of the step cases, evaluated in one batch
@@ -559,18 +595,20 @@ def search(sit: FallSituation, sole_local: np.ndarray, cfg: SearchConfig | None 
         piv = pivots[k]
         lift_case = StepCase.LIFT_LEFT if swing == "l" else StepCase.LIFT_RIGHT
         step_case = StepCase.STEP_LEFT if swing == "l" else StepCase.STEP_RIGHT
-        cases[lift_case] = _single(lift_case, piv, Q[k], target, G[k], cfg)   # single support: keep it lifted
+        cases[lift_case] = _single(lift_case, piv, Q[k], target, G[k], cfg,   # single support: keep it lifted
+                                   None if V is None else V[k])
         order.append(lift_case)
         if sit.single_support and sit.planned_landing is not None:
             plan = np.asarray(sit.planned_landing, float).reshape(1, 3)
-            steps.append((StepCase.CONTINUE_STEP, plan, piv, Q[k], G[k], _sole_xy(sit, swing)))
+            steps.append((StepCase.CONTINUE_STEP, plan, piv, Q[k], G[k], _sole_xy(sit, swing),
+                          None if V is None else V[k]))
             order.append(StepCase.CONTINUE_STEP)
         zone = sit.zones.get(swing)
         if zone is None:
             continue
         cells = zone_cells(zone, cfg, sit.obstacles, _sole_xy(sit, swing))
         total_cells += len(cells)
-        steps.append((step_case, cells, piv, Q[k], G[k], _sole_xy(sit, swing)))
+        steps.append((step_case, cells, piv, Q[k], G[k], _sole_xy(sit, swing), None if V is None else V[k]))
         order.append(step_case)
     for (case, *_), r in zip(steps, _cells_batch(steps, target, sole_local, cfg)):
         if r is not None:
@@ -587,7 +625,7 @@ def _sole_xy(sit: FallSituation, side: str) -> np.ndarray | None:
     return None if pose is None else np.asarray(pose, float)[:2]
 
 
-def _single(case: StepCase, poly, q2, target, g_td, cfg: SearchConfig) -> CaseResult:
+def _single(case: StepCase, poly, q2, target, g_td, cfg: SearchConfig, v_td=None) -> CaseResult:
     """A case without a landing (no change, lift): Q2 against one polygon (or the pivot segment / corner)."""
     poly = np.asarray(poly, float).reshape(-1, 2)
     poly = support_polygon(poly.tolist()) if len(poly) >= 3 else poly
@@ -600,8 +638,12 @@ def _single(case: StepCase, poly, q2, target, g_td, cfg: SearchConfig) -> CaseRe
         px, py = nearest_on_boundary_xy(qx, qy, pts, closed=len(pts) >= 3)
     else:
         px, py = pts[0]
-    return CaseResult(case, np.array([px, py]), q2.copy(),
-                      avoidance_angle_xy(px, py, qx, qy, float(target[0]), float(target[1])), False,
+    if cfg.fall_heading_horizon > 0.0 and v_td is not None:
+        alpha = float(_alpha_edge(np.array([px]), np.array([py]), q2, g_td, v_td, target, poly[None],
+                                  cfg.fall_heading_horizon)[0])
+    else:
+        alpha = avoidance_angle_xy(px, py, qx, qy, float(target[0]), float(target[1]))
+    return CaseResult(case, np.array([px, py]), q2.copy(), alpha, False,
                       -math.sqrt((qx - px) ** 2 + (qy - py) ** 2), None, poly, g_td)
 
 
@@ -655,7 +697,13 @@ def _cells_batch(groups: list, target, sole_local, cfg: SearchConfig) -> list[Ca
             p2, alpha_i = np.array(h.p2(lo + i)), math.nan
         else:
             p2x, p2y = h.p2(slice(lo, hi))
-            alpha = _alpha(p2x, p2y, q2, target)
+            v_td = rest[1] if len(rest) > 1 else None
+            if cfg.fall_heading_horizon > 0.0 and v_td is not None:
+                verts = np.concatenate([sole_corners_at(c, sole_local),
+                                        np.broadcast_to(pivot, (len(c),) + pivot.shape)], axis=1)
+                alpha = _alpha_edge(p2x, p2y, q2, g_td, v_td, target, verts, cfg.fall_heading_horizon)
+            else:
+                alpha = _alpha(p2x, p2y, q2, target)
             i = int(np.argmax(np.where(np.isfinite(alpha), alpha, -1.0)))
             p2, alpha_i = np.array([p2x[i], p2y[i]]), float(alpha[i])
         poly = support_polygon(np.vstack([sole_corners_at(c[i:i + 1], sole_local)[0], pivot]).tolist())
@@ -673,7 +721,7 @@ def _step_lengths(cells: np.ndarray, start) -> np.ndarray:
 
 
 def ranked_cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, target, g_td, sole_local,
-                 cfg: SearchConfig, limit: int = 50, start=None) -> list[CaseResult]:
+                 cfg: SearchConfig, limit: int = 50, start=None, v_td=None) -> list[CaseResult]:
     """One step case's landing cells as candidates, best first (the order :func:`_cells_batch` picks the best by:
     captures by depth, then shallow insides, then falls by alpha2), the first ``limit``.
 
@@ -688,7 +736,12 @@ def ranked_cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, targe
     margin = h.margin
     inside = margin > 0
     p2x, p2y = h.p2(slice(0, len(cells)))
-    alpha = _alpha(p2x, p2y, q2, target)
+    if cfg.fall_heading_horizon > 0.0 and v_td is not None:
+        verts = np.concatenate([sole_corners_at(cells, sole_local),
+                                np.broadcast_to(pivot, (len(cells),) + pivot.shape)], axis=1)
+        alpha = _alpha_edge(p2x, p2y, q2, g_td, v_td, target, verts, cfg.fall_heading_horizon)
+    else:
+        alpha = _alpha(p2x, p2y, q2, target)
     length = _step_lengths(cells, start)
     key = np.where(inside, _capture_key(margin, length, cfg.capture_margin, cfg.capture_depth),
                    np.where(np.isfinite(alpha), alpha, -1.0))
