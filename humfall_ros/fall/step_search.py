@@ -367,6 +367,16 @@ def _alpha_edge(p2x, p2y, q, g_td, v_td, target, vertices, horizon: float, g: fl
     return np.where((nh < 1e-12) | (nt < 1e-9), np.nan, alpha)
 
 
+def _fall_alpha(cells, sole_local, pivot, p2x, p2y, q2, g_td, v_td, target, cfg: SearchConfig) -> np.ndarray:
+    """The landing cells' alpha2 [rad]: paper 1's angle(Q2 P2 T), or with ``cfg.fall_heading_horizon`` > 0 and the
+    touchdown velocity known, :func:`_alpha_edge` on each cell's hull (its sole corners and the pivot)."""
+    if cfg.fall_heading_horizon > 0.0 and v_td is not None:
+        verts = np.concatenate([sole_corners_at(cells, sole_local),
+                                np.broadcast_to(pivot, (len(cells),) + pivot.shape)], axis=1)
+        return _alpha_edge(p2x, p2y, q2, g_td, v_td, target, verts, cfg.fall_heading_horizon)
+    return _alpha(p2x, p2y, q2, target)
+
+
 def _alpha(p2x, p2y, q, target) -> np.ndarray:
     """alpha = angle(Q2 P2 T) (Fig. 5) per cell [rad] (NaN when P2 is on Q2 or T)."""
     ux, uy = q[0] - p2x, q[1] - p2y
@@ -698,12 +708,7 @@ def _cells_batch(groups: list, target, sole_local, cfg: SearchConfig) -> list[Ca
         else:
             p2x, p2y = h.p2(slice(lo, hi))
             v_td = rest[1] if len(rest) > 1 else None
-            if cfg.fall_heading_horizon > 0.0 and v_td is not None:
-                verts = np.concatenate([sole_corners_at(c, sole_local),
-                                        np.broadcast_to(pivot, (len(c),) + pivot.shape)], axis=1)
-                alpha = _alpha_edge(p2x, p2y, q2, g_td, v_td, target, verts, cfg.fall_heading_horizon)
-            else:
-                alpha = _alpha(p2x, p2y, q2, target)
+            alpha = _fall_alpha(c, sole_local, pivot, p2x, p2y, q2, g_td, v_td, target, cfg)
             i = int(np.argmax(np.where(np.isfinite(alpha), alpha, -1.0)))
             p2, alpha_i = np.array([p2x[i], p2y[i]]), float(alpha[i])
         poly = support_polygon(np.vstack([sole_corners_at(c[i:i + 1], sole_local)[0], pivot]).tolist())
@@ -736,12 +741,7 @@ def ranked_cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, targe
     margin = h.margin
     inside = margin > 0
     p2x, p2y = h.p2(slice(0, len(cells)))
-    if cfg.fall_heading_horizon > 0.0 and v_td is not None:
-        verts = np.concatenate([sole_corners_at(cells, sole_local),
-                                np.broadcast_to(pivot, (len(cells),) + pivot.shape)], axis=1)
-        alpha = _alpha_edge(p2x, p2y, q2, g_td, v_td, target, verts, cfg.fall_heading_horizon)
-    else:
-        alpha = _alpha(p2x, p2y, q2, target)
+    alpha = _fall_alpha(cells, sole_local, pivot, p2x, p2y, q2, g_td, v_td, target, cfg)
     length = _step_lengths(cells, start)
     key = np.where(inside, _capture_key(margin, length, cfg.capture_margin, cfg.capture_depth),
                    np.where(np.isfinite(alpha), alpha, -1.0))
