@@ -523,43 +523,69 @@ def test_sweep_set_reaches_every_run_and_a_bad_key_is_refused_before_the_first(m
     assert not (tmp_path / "sweep.json").exists()
 
 
-def test_fall_heading_against_the_edge_and_point_pendulums():
-    """fall.geometry.fall_heading: toppling about an edge (the CoP follows the CoM along it: no acceleration along
-    the edge) and about a corner (the point pendulum), against solve_ivp of the linear pendulum; at a corner and a
-    long horizon it tends to paper 1's P2 -> capture point."""
-    from scipy.integrate import solve_ivp
+def _fall_heading_reference(p2, polygon, com, com_velocity, horizon: float, g: float = 9.81) -> np.ndarray:
+    """Slow reference of step_search._alpha_edge's heading, from the polygon itself: P2 inside an edge topples about
+    that edge (the linear pendulum across it, none along it); P2 at a corner, the point pendulum. Unit (2,), NaN at
+    rest on P2."""
+    p2 = np.asarray(p2, float)[:2]
+    c, v = np.asarray(com, float), np.asarray(com_velocity, float)[:2]
+    w = math.sqrt(g / c[2])
+    r, ch, sh = c[:2] - p2, math.cosh(w * horizon), math.sinh(w * horizon)
+    out = r * ch + v / w * sh
+    edges = polygon_edges(polygon)
+    k = int(np.argmin(np.linalg.norm(np.array([nearest_on_boundary(p2, [a, b]) for a, b in
+                                               zip(edges.start, edges.end)]) - p2, axis=1)))
+    if min(np.linalg.norm(p2 - edges.start[k]), np.linalg.norm(p2 - edges.end[k])) >= 1e-3:
+        n = edges.normal[k]
+        e = np.array([-n[1], n[0]])
+        out = e * (e @ r + (e @ v) * horizon) + n * ((n @ r) * ch + (n @ v) / w * sh)
+    norm = np.linalg.norm(out)
+    return out / norm if norm > 1e-12 else np.full(2, np.nan)
 
-    from humfall_ros.fall.geometry import fall_heading
+
+def _angle_to(h, p2, target) -> float:
+    t = np.asarray(target, float) - p2
+    return math.acos(float(np.clip(h @ t / (np.linalg.norm(h) * np.linalg.norm(t)), -1.0, 1.0)))
+
+
+def test_fall_heading_against_the_edge_and_point_pendulums():
+    """The alpha of the fall about the new support (step_search._alpha_edge) and its slow reference: toppling about
+    an edge (the CoP follows the CoM along it: no acceleration along the edge) and about a corner (the point
+    pendulum), against solve_ivp of the linear pendulum; at a corner and a long horizon, paper 1's P2 -> Q2."""
+    from scipy.integrate import solve_ivp
 
     g, z, T = 9.81, 0.74, 0.5
     w2 = g / z
     square = np.array([[0.0, -0.1], [0.2, -0.1], [0.2, 0.1], [0.0, 0.1]])   # CCW
     com, vel = np.array([0.15, 0.02, z]), np.array([0.6, 0.35, 0.0])
-    # P2 on the front edge (x = 0.2): the pendulum acts along +x only
-    p2 = np.array([0.2, 0.03])
+    target = np.array([0.9, 0.8])
+    # P2 on the front edge (x = 0.2), Q2 beyond it (P2 its nearest point): the pendulum acts along +x only
+    p2, q2 = np.array([0.2, 0.03]), np.array([0.45, 0.03])
     sol = solve_ivp(lambda t, y: np.r_[y[2:], w2 * (y[0] - p2[0]), 0.0], (0, T), np.r_[com[:2], vel[:2]],
                     rtol=1e-11, atol=1e-12)
     want = sol.y[:2, -1] - p2
-    got = fall_heading(p2, square, com, vel, T, g)
-    assert got == pytest.approx(want / np.linalg.norm(want), abs=1e-7)
+    assert _fall_heading_reference(p2, square, com, vel, T, g) == pytest.approx(want / np.linalg.norm(want), abs=1e-7)
+    got = ss._alpha_edge(p2[:1], p2[1:], q2, com, vel, target, square[None], T, g)[0]
+    assert got == pytest.approx(_angle_to(want, p2, target), abs=1e-7)
     # P2 at the corner (0.2, 0.1): the point pendulum
-    p2 = np.array([0.2, 0.1])
+    p2, q2 = np.array([0.2, 0.1]), np.array([0.5, 0.3])
     sol = solve_ivp(lambda t, y: np.r_[y[2:], w2 * (y[:2] - p2)], (0, T), np.r_[com[:2], vel[:2]],
                     rtol=1e-11, atol=1e-12)
     want = sol.y[:2, -1] - p2
-    assert fall_heading(p2, square, com, vel, T, g) == pytest.approx(want / np.linalg.norm(want), abs=1e-7)
+    assert _fall_heading_reference(p2, square, com, vel, T, g) == pytest.approx(want / np.linalg.norm(want), abs=1e-7)
+    got = ss._alpha_edge(p2[:1], p2[1:], q2, com, vel, target, square[None], T, g)[0]
+    assert got == pytest.approx(_angle_to(want, p2, target), abs=1e-7)
     xi = com[:2] + vel[:2] / math.sqrt(w2)
-    far = fall_heading(p2, square, com, vel, 5.0, g)
-    assert far == pytest.approx((xi - p2) / np.linalg.norm(xi - p2), abs=1e-4)
+    far = ss._alpha_edge(p2[:1], p2[1:], q2, com, vel, target, square[None], 5.0, g)[0]
+    assert far == pytest.approx(_angle_to(xi - p2, p2, target), abs=1e-4)
     # at rest on P2: no heading
-    assert np.all(np.isnan(fall_heading(p2, square, [0.2, 0.1, z], [0, 0, 0], T, g)))
+    assert math.isnan(ss._alpha_edge(p2[:1], p2[1:], q2, [0.2, 0.1, z], [0, 0, 0], target, square[None], T, g)[0])
+    assert np.all(np.isnan(_fall_heading_reference(p2, square, [0.2, 0.1, z], [0, 0, 0], T, g)))
 
 
 def test_search_alpha_edge_equals_fall_heading_on_the_cells_polygon():
-    """step_search's vectorised alpha of the fall about the new support equals geometry.fall_heading's angle to T
-    on each cell's own hull (edge cells and corner cells alike)."""
-    from humfall_ros.fall.geometry import fall_heading
-
+    """step_search's vectorised alpha of the fall about the new support (the edge's normal from Q2 - P2) equals the
+    slow reference's angle to T on each cell's own hull (edge cells and corner cells alike)."""
     local = M.sole_corners_local["l"][:, :2]
     rng = np.random.default_rng(3)
     cells = np.column_stack([rng.uniform(0.2, 0.45, 40), rng.uniform(-0.35, 0.1, 40), rng.uniform(-0.3, 0.3, 40)])
@@ -575,8 +601,7 @@ def test_search_alpha_edge_equals_fall_heading_on_the_cells_polygon():
     for i, c in enumerate(cells):
         poly = support_polygon(np.vstack([ss.sole_corners_at(c[None], local)[0], pivot]))
         p2 = np.array([p2x[i], p2y[i]])
-        hd = fall_heading(p2, poly, g_td, v_td, 0.5)
-        t = target - p2
-        assert got[i] == pytest.approx(math.acos(np.clip(hd @ t / np.linalg.norm(t), -1, 1)), abs=1e-6), i
+        hd = _fall_heading_reference(p2, poly, g_td, v_td, 0.5)
+        assert got[i] == pytest.approx(_angle_to(hd, p2, target), abs=1e-6), i
         corners += np.min(np.linalg.norm(poly - p2, axis=1)) < 1e-3
     assert 0 < corners < len(cells)   # both kinds seen

@@ -44,7 +44,7 @@ from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.dynamics.toppling import FallOutcome, time_to_lean
 from humfall_ros.fall import step_search as ss
 from humfall_ros.fall.ftb import FtbState, features_of
-from humfall_ros.fall.geometry import fall_heading, polygon_margin_xy
+from humfall_ros.fall.geometry import polygon_margin_xy
 from humfall_ros.fall.push_residual import PushResidual
 from humfall_ros.fall.inertia_shaping import ClearBox, ShapingConfig, shaping_velocities
 from humfall_ros.fall.step_control import (
@@ -313,13 +313,13 @@ class SafeFallController:
         self.handbacks: list[dict] = []   # one per hand-back: time [s], CoM [m], CoM speed [m/s], feet (x, y, yaw)
         self.push_residual = PushResidual(self.config.push_residual_window_s)
         self.swing_start_xy: np.ndarray | None = None   # the swing sole's x, y at the decision [m]
-        self.deferred: tuple | None = None   # (fall event, time of the take-over) while the decision waits
+        self.pending_event = None            # the fall event taken over for, until its decision is made
         self.deferral: dict | None = None    # the last deferral: its start, decision time, residual at both
 
     # ------------------------------------------------------------------ contract
     def step(self, obs: Observation) -> JointTargets | None:
         s = obs.state
-        if s is not None:
+        if s is not None and self.config.defer_push_residual_mps > 0.0:
             self.push_residual.update(obs.time, s.com, s.capture_point, s.cop)
         if not self.taken_over:
             gait = obs.inputs.get("walking/state")
@@ -335,8 +335,11 @@ class SafeFallController:
             self.taken_over = True
             self.hold = np.asarray(obs.joint_position, float).copy()
             self.last_command = self.hold.copy()
-            if self._defer(obs, ev):
+            self.pending_event = ev
+        if self.pending_event is not None:
+            if self._defer(obs):
                 return JointTargets(self.hold.copy())
+            ev, self.pending_event = self.pending_event, None
             try:
                 self._take_over(obs, ev)
             except Exception as exc:  # noqa: BLE001 - never crash a falling robot: hold the posture
@@ -344,16 +347,6 @@ class SafeFallController:
                 self.reasons.append(f"decision failed ({type(exc).__name__}: {exc}); holding the posture")
                 self._note_failure()
         try:
-            if self.deferred is not None:
-                ev = self.deferred[0]
-                if self._defer(obs, ev):
-                    return JointTargets(self.hold.copy())
-                try:
-                    self._take_over(obs, ev)
-                except Exception as exc:  # noqa: BLE001 - as at the take-over
-                    self.phase = "hold"
-                    self.reasons.append(f"decision failed ({type(exc).__name__}: {exc}); holding the posture")
-                    self._note_failure()
             if self._hand_back(obs):
                 return None
             return self._tick(obs)
@@ -363,7 +356,7 @@ class SafeFallController:
             self._note_failure()
             return JointTargets(self.last_command.copy())
 
-    def _defer(self, obs: Observation, ev) -> bool:
+    def _defer(self, obs: Observation) -> bool:
         """Hold the posture and decide later while the push still acts (ours; ``fall.push_residual``): True while
         the capture point's residual exceeds ``defer_push_residual_mps`` and the deferral is shorter than
         ``max_defer_s`` (0: off). The step is then chosen from the state the push leaves."""
@@ -371,14 +364,12 @@ class SafeFallController:
         if c.defer_push_residual_mps <= 0.0:
             return False
         r = self.push_residual.magnitude()
-        if self.deferred is None:
+        if self.deferral is None or "decision_s" in self.deferral:   # a new take-over: its deferral starts
             self.deferral = {"start_s": obs.time, "residual_start_mps": r}
-            self.deferred = (ev, obs.time)
             self.phase = "deferred"
-        waited = obs.time - self.deferred[1]
+        waited = obs.time - self.deferral["start_s"]
         wait = math.isfinite(r) and r > c.defer_push_residual_mps and waited < c.max_defer_s - 1e-9
         if not wait:
-            self.deferred = None
             self.deferral.update(decision_s=obs.time, residual_decision_mps=r)
             if waited > 0.0:
                 self.reasons.append(f"decision deferred {waited * 1000:.0f} ms: push residual "
@@ -651,15 +642,13 @@ class SafeFallController:
 
     def _alpha2_edge(self, chosen, velocity, target) -> float:
         """The predicted avoidance angle of a predicted fall from the fall about the new support's edge or corner
-        (``geometry.fall_heading`` over ``fall_heading_horizon_s``; ours, beside paper 1's angle(Q2 P2 T)) [rad]
+        (the search's ``_alpha_edge`` over ``fall_heading_horizon_s``; ours, beside paper 1's angle(Q2 P2 T)) [rad]
         (NaN for a capture or without a target)."""
         if chosen.captured or target is None or velocity is None or not math.isfinite(chosen.alpha2):
             return math.nan
-        h = fall_heading(chosen.p2, chosen.polygon, chosen.com_touchdown, velocity, self.config.fall_heading_horizon_s)
-        t = np.asarray(target, float)[:2] - np.asarray(chosen.p2, float)[:2]
-        if not np.all(np.isfinite(h)) or np.linalg.norm(t) < 1e-9:
-            return math.nan
-        return math.acos(float(np.clip(h @ t / np.linalg.norm(t), -1.0, 1.0)))
+        p2 = np.asarray(chosen.p2, float)
+        return float(ss._alpha_edge(p2[:1], p2[1:2], chosen.q2, chosen.com_touchdown, velocity, target,
+                                    np.asarray(chosen.polygon, float)[None], self.config.fall_heading_horizon_s)[0])
 
     def _swing_of(self, case: ss.StepCase) -> str | None:
         """The sole a case moves: its own for lift / step, the non-stance one for continue (single support)."""

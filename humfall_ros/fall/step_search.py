@@ -89,7 +89,7 @@ class SearchConfig:
             left out (ours; 0: none). Measured: longer steps than ~0.43 m miss the prediction (side steps land
             early and up to 24 cm short, long forward steps up to 176 ms late) [m].
         fall_heading_horizon: > 0: falls rank by the avoidance angle of the fall about the new support's edge or
-            corner over this horizon (``geometry.fall_heading``; ours) instead of paper 1's angle(Q2 P2 T) [s].
+            corner over this horizon (:func:`_alpha_edge`; ours) instead of paper 1's angle(Q2 P2 T) [s].
     """
 
     cell_xy: float = 0.04
@@ -340,9 +340,13 @@ class _Hull:
 
 def _alpha_edge(p2x, p2y, q, g_td, v_td, target, vertices, horizon: float, g: float = GRAVITY,
                 corner_tol: float = 1e-3) -> np.ndarray:
-    """alpha of the fall about the new support (``geometry.fall_heading``, vectorised over cells) [rad].
+    """alpha of the fall about the new support (ours), vectorised over cells [rad]: the angle at P2 between T and
+    where the CoM goes from P2 ``horizon`` [s] after touchdown (``g_td``, ``v_td``).
 
-    P2 is the nearest boundary point to an outside Q2, so inside an edge the edge's outward normal is
+    P2 inside an edge: the robot topples about that edge, so the linear pendulum acts across it only (the CoP follows
+    the CoM along the edge): across, r_n cosh(w T) + v_n / w sinh(w T); along, r_e + v_e T (r = CoM - P2, w =
+    sqrt(g / z)). P2 at a corner: the point pendulum in both directions, whose heading tends to P2 -> Q2 (paper 1)
+    as T grows. P2 is the nearest boundary point to an outside Q2, so inside an edge the edge's outward normal is
     (Q2 - P2) / |Q2 - P2|; P2 within ``corner_tol`` of one of ``vertices`` (N, V, 2) is a corner (point pendulum).
     """
     p = np.column_stack([np.broadcast_to(p2x, np.shape(p2x)), np.broadcast_to(p2y, np.shape(p2y))]).reshape(-1, 2)
