@@ -157,35 +157,6 @@ def avoidance_angle_xy(px: float, py: float, qx: float, qy: float, tx: float, ty
         return math.nan
     return math.acos(min(max((ax * bx + ay * by) / (na * nb), -1.0), 1.0))
 
-def fall_heading(p2, polygon, com, com_velocity, horizon: float, g: float = 9.81,
-                 corner_tol: float = 1e-3) -> np.ndarray:
-    """Where the CoM goes from P2 after ``horizon`` [s] of the fall about the new support (ours), a unit (2,) vector.
-
-    P2 on an edge of ``polygon`` (not within ``corner_tol`` of a corner): the robot topples about that edge, so
-    the linear pendulum acts across it only (the CoP follows the CoM along the edge): across, r_n(T) = r_n cosh(w T)
-    + v_n / w sinh(w T); along, r_e(T) = r_e + v_e T. P2 at a corner (or the polygon a point): the point pendulum
-    in both directions, whose heading tends to P2 -> capture point (paper 1's P2 -> Q2) as T grows. r = CoM - P2
-    (horizontal), v its velocity, w = sqrt(g / z). NaN when the CoM is on P2 and at rest.
-    """
-    p2 = np.asarray(p2, float)[:2]
-    c = np.asarray(com, float).reshape(-1)
-    v = np.asarray(com_velocity, float).reshape(-1)[:2]
-    w = math.sqrt(g / max(float(c[2]), 1e-3))
-    r = c[:2] - p2
-    ch, sh = math.cosh(w * horizon), math.sinh(w * horizon)
-    edges = polygon_edges(polygon)
-    out = r * ch + v / w * sh     # the point pendulum
-    if len(edges) and np.all(np.isfinite(edges.normal)):
-        near, dist = nearest_on_segments(p2, edges.start, edges.end)
-        k = int(np.argmin(dist))
-        at_corner = min(np.linalg.norm(p2 - edges.start[k]), np.linalg.norm(p2 - edges.end[k])) < corner_tol
-        if not at_corner:
-            n = edges.normal[k]
-            e = np.array([-n[1], n[0]])
-            out = e * (e @ r + (e @ v) * horizon) + n * ((n @ r) * ch + (n @ v) / w * sh)
-    norm = float(np.linalg.norm(out))
-    return out / norm if norm > 1e-12 else np.full(2, np.nan)
-
 
 def heading(v) -> float:
     """Heading of a horizontal vector [rad] (atan2(y, x))."""
@@ -198,6 +169,6 @@ def rotation_z(yaw: float) -> np.ndarray:
     return np.array([[c, -s], [s, c]])
 
 
-__all__ = ["PolygonEdges", "avoidance_angle", "avoidance_angle_xy", "fall_heading", "heading", "inside_convex",
-           "inside_convex_xy", "nearest_on_boundary", "nearest_on_boundary_xy", "nearest_on_segments", "polygon_edges",
+__all__ = ["PolygonEdges", "avoidance_angle", "avoidance_angle_xy", "heading", "inside_convex", "inside_convex_xy",
+           "nearest_on_boundary", "nearest_on_boundary_xy", "nearest_on_segments", "polygon_edges",
            "polygon_margin_xy", "rotation_z"]
