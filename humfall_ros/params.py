@@ -44,6 +44,7 @@ class Declaration:
         description: what it is, with its unit.
         bounds: inclusive (low, high) for numbers (and each element of a number array), or None.
         read_only: may not change after start.
+        choices: the allowed values of a string (``validation: {one_of<>: [[a, b]]}``), or None.
     """
 
     name: str
@@ -52,6 +53,7 @@ class Declaration:
     description: str
     bounds: tuple[float, float] | None = None
     read_only: bool = False
+    choices: tuple[str, ...] | None = None
 
     def check(self, value: Any, where: str = "") -> Any:
         """``value`` typed like this declaration (an int for a double becomes a float), or ParamError."""
@@ -72,6 +74,8 @@ class Declaration:
         if base == "string":
             if not isinstance(v, str):
                 raise ParamError(f"{where}: expected string{like}, got {v!r}")
+            if self.choices is not None and v not in self.choices:
+                raise ParamError(f"{where}: {v!r} is not one of {', '.join(self.choices)}")
             return v
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise ParamError(f"{where}: expected {'int' if base == 'int' else 'double (a number)'}{like}, got {v!r}")
@@ -100,13 +104,19 @@ def _parse(node: str, name: str, spec: Any) -> Declaration:
         raise ParamError(f"{where}: every parameter needs a description")
     bounds = None
     validation = spec.get("validation") or {}
-    unknown = set(validation) - {"bounds<>"}
+    unknown = set(validation) - {"bounds<>", "one_of<>"}
     if unknown:
-        raise ParamError(f"{where}: unsupported validation {sorted(unknown)} (only bounds<>)")
+        raise ParamError(f"{where}: unsupported validation {sorted(unknown)} (only bounds<> and one_of<>)")
+    choices = None
+    if "one_of<>" in validation:
+        if not spec["type"].startswith("string"):
+            raise ParamError(f"{where}: one_of<> is for strings")
+        choices = tuple(str(c) for c in validation["one_of<>"][0])
     if "bounds<>" in validation:
         lo, hi = validation["bounds<>"]
         bounds = (lo, hi) if spec["type"].startswith("int") else (float(lo), float(hi))
-    d = Declaration(name, spec["type"], None, str(spec["description"]), bounds, bool(spec.get("read_only", False)))
+    d = Declaration(name, spec["type"], None, str(spec["description"]), bounds, bool(spec.get("read_only", False)),
+                    choices)
     return dataclasses.replace(d, default=d.check(spec["default_value"], where))
 
 

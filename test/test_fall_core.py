@@ -605,3 +605,33 @@ def test_search_alpha_edge_equals_fall_heading_on_the_cells_polygon():
         assert got[i] == pytest.approx(_angle_to(hd, p2, target), abs=1e-6), i
         corners += np.min(np.linalg.norm(poly - p2, axis=1)) < 1e-3
     assert 0 < corners < len(cells)   # both kinds seen
+
+
+@pytest.mark.parametrize("ranking", ["paper", "edge"])
+def test_falls_rank_by_the_configured_alpha2(ranking):
+    """``fall_ranking``: the best fall cell is the one with the largest paper angle or alpha2_edge; the candidates
+    come out in that order, and an unknown ranking is refused."""
+    local = M.sole_corners_local["l"][:, :2]
+    rng = np.random.default_rng(5)
+    cells = np.column_stack([rng.uniform(0.2, 0.45, 60), rng.uniform(-0.35, 0.1, 60), rng.uniform(-0.3, 0.3, 60)])
+    pivot = np.array([[0.145, -0.03], [0.145, -0.17]])
+    g_td, v_td = np.array([0.2, -0.05, 0.72]), np.array([0.7, -0.4, -0.1])
+    q2 = g_td[:2] + v_td[:2] / math.sqrt(9.81 / g_td[2]) + np.array([0.25, -0.2])   # outside every hull
+    target = np.array([1.3, 0.2])
+    h = ss._hull_core(cells, local, pivot, q2)
+    p2x, p2y = h.p2()
+    verts = np.concatenate([ss.sole_corners_at(cells, local), np.broadcast_to(pivot, (len(cells), 2, 2))], axis=1)
+    paper = ss._alpha(p2x, p2y, q2, target)
+    edge = ss._alpha_edge(p2x, p2y, q2, g_td, v_td, target, verts, 0.5)
+    want = {"paper": paper, "edge": edge}[ranking]
+    assert np.argmax(paper) != np.argmax(edge)    # the two models disagree on this case, so the ranking matters
+    cfg = ss.SearchConfig(fall_ranking=ranking, fall_heading_horizon=0.5)
+    got = ss.ranked_cells(ss.StepCase.STEP_LEFT, cells, pivot, q2, target, g_td, local, cfg, limit=10, v_td=v_td)
+    assert not got[0].captured
+    assert got[0].alpha2 == pytest.approx(want.max(), abs=1e-9)
+    assert np.allclose(got[0].landing, cells[np.argmax(want)])
+    assert all(a.alpha2 >= b.alpha2 - 1e-12 for a, b in zip(got, got[1:]))
+    best = ss._cells(ss.StepCase.STEP_LEFT, cells, pivot, q2, target, g_td, local, cfg)   # no velocity: the paper's
+    assert best.alpha2 == pytest.approx(paper.max(), abs=1e-9)
+    with pytest.raises(ValueError, match="fall_ranking"):
+        ss.SearchConfig(fall_ranking="sideways")

@@ -79,6 +79,10 @@ def test_overrides_are_typed_and_checked():
         params.check_overrides("locomotion", {"ankle_kp": 1e6})
     with pytest.raises(params.ParamError, match="expected bool"):
         params.check_overrides("sim_bridge", {"lockstep": 1})
+    # a string with one_of<>: the declared choices pass, another is refused by name
+    assert params.check_overrides("safe_fall_controller", {"fall_ranking": "edge"}) == {"fall_ranking": "edge"}
+    with pytest.raises(params.ParamError, match="not one of paper, edge"):
+        params.check_overrides("safe_fall_controller", {"fall_ranking": "sideways"})
 
 
 def test_config_from_refuses_unknown_keys_and_drops_only_the_ignored():

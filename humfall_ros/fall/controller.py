@@ -88,7 +88,7 @@ class SafeFallConfig:
     capture_offset_m: float = 0.0
     max_step_length_m: float = 0.0
     fall_heading_horizon_s: float = 0.5
-    rank_by_fall_heading: bool = False
+    fall_ranking: str = "paper"
     capture_margin: float = 0.02
     obstacle_clearance: float = 0.03
     swing_clearance: float = 0.05
@@ -136,7 +136,7 @@ class SafeFallConfig:
                                obstacle_clearance=self.obstacle_clearance, min_zone_cells=self.min_zone_cells,
                                capture_depth=self.capture_depth_m, cop_delay=self.capture_cop_delay_s,
                                capture_offset=self.capture_offset_m, max_step_length=self.max_step_length_m,
-                               fall_heading_horizon=self.fall_heading_horizon_s if self.rank_by_fall_heading else 0.0)
+                               fall_ranking=self.fall_ranking, fall_heading_horizon=self.fall_heading_horizon_s)
 
     @property
     def step(self) -> StepControlConfig:

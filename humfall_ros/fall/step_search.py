@@ -63,6 +63,9 @@ class StepCase(enum.Enum):
         return {"lift_left": "l", "step_left": "l", "lift_right": "r", "step_right": "r"}.get(self.value)
 
 
+FALL_RANKINGS = ("paper", "edge")
+
+
 @dataclasses.dataclass(frozen=True)
 class SearchConfig:
     """Grid and model parameters of the search (``config/safe_fall_controller.yaml``).
@@ -88,8 +91,11 @@ class SearchConfig:
         max_step_length: landing cells farther than this from the swing sole's position at the decision are
             left out (ours; 0: none). Measured: longer steps than ~0.43 m miss the prediction (side steps land
             early and up to 24 cm short, long forward steps up to 176 ms late) [m].
-        fall_heading_horizon: > 0: falls rank by the avoidance angle of the fall about the new support's edge or
-            corner over this horizon (:func:`_alpha_edge`; ours) instead of paper 1's angle(Q2 P2 T) [s].
+        fall_ranking: what predicted falls rank by (eq. 4's alpha2): ``paper`` (paper 1's angle(Q2 P2 T)),
+            ``edge`` (ours: the avoidance angle of the fall about the new support's edge or corner,
+            :func:`_alpha_edge`) [-]. (The smaller of the two was tried, session 20: it chose what the paper's angle
+            chose on every decision measured, that angle being the lower one.)
+        fall_heading_horizon: the horizon of :func:`_alpha_edge` for ``edge`` [s].
     """
 
     cell_xy: float = 0.04
@@ -103,7 +109,12 @@ class SearchConfig:
     cop_delay: float = 0.0
     capture_offset: float = 0.0
     max_step_length: float = 0.0
-    fall_heading_horizon: float = 0.0
+    fall_ranking: str = "paper"
+    fall_heading_horizon: float = 0.5
+
+    def __post_init__(self):
+        if self.fall_ranking not in FALL_RANKINGS:
+            raise ValueError(f"fall_ranking {self.fall_ranking!r}: one of {FALL_RANKINGS}")
 
 
 @dataclasses.dataclass
@@ -372,13 +383,13 @@ def _alpha_edge(p2x, p2y, q, g_td, v_td, target, vertices, horizon: float, g: fl
 
 
 def _fall_alpha(cells, sole_local, pivot, p2x, p2y, q2, g_td, v_td, target, cfg: SearchConfig) -> np.ndarray:
-    """The landing cells' alpha2 [rad]: paper 1's angle(Q2 P2 T), or with ``cfg.fall_heading_horizon`` > 0 and the
-    touchdown velocity known, :func:`_alpha_edge` on each cell's hull (its sole corners and the pivot)."""
-    if cfg.fall_heading_horizon > 0.0 and v_td is not None:
-        verts = np.concatenate([sole_corners_at(cells, sole_local),
-                                np.broadcast_to(pivot, (len(cells),) + pivot.shape)], axis=1)
-        return _alpha_edge(p2x, p2y, q2, g_td, v_td, target, verts, cfg.fall_heading_horizon)
-    return _alpha(p2x, p2y, q2, target)
+    """The landing cells' alpha2 [rad] as ``cfg.fall_ranking`` says: paper 1's angle(Q2 P2 T), or with the touchdown
+    velocity known, :func:`_alpha_edge` on each cell's hull (its sole corners and the pivot)."""
+    if cfg.fall_ranking == "paper" or v_td is None:
+        return _alpha(p2x, p2y, q2, target)
+    verts = np.concatenate([sole_corners_at(cells, sole_local),
+                            np.broadcast_to(pivot, (len(cells),) + pivot.shape)], axis=1)
+    return _alpha_edge(p2x, p2y, q2, g_td, v_td, target, verts, cfg.fall_heading_horizon)
 
 
 def _alpha(p2x, p2y, q, target) -> np.ndarray:
@@ -590,7 +601,7 @@ def search(sit: FallSituation, sole_local: np.ndarray, cfg: SearchConfig | None 
     else:
         G, Q, *rest = prediction
         V = rest[0] if rest else None
-    if V is None and cfg.fall_heading_horizon > 0.0:
+    if V is None and cfg.fall_ranking != "paper":
         V = predict_touchdown(com, vel, pivots, sit.touchdown_time, cfg.rk4_steps)[1]
     cases: dict[StepCase, CaseResult] = {}
     if target is None:
@@ -652,7 +663,7 @@ def _single(case: StepCase, poly, q2, target, g_td, cfg: SearchConfig, v_td=None
         px, py = nearest_on_boundary_xy(qx, qy, pts, closed=len(pts) >= 3)
     else:
         px, py = pts[0]
-    if cfg.fall_heading_horizon > 0.0 and v_td is not None:
+    if cfg.fall_ranking != "paper" and v_td is not None:
         alpha = float(_alpha_edge(np.array([px]), np.array([py]), q2, g_td, v_td, target, poly[None],
                                   cfg.fall_heading_horizon)[0])
     else:

@@ -83,6 +83,8 @@ class Params:
                 desc.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
             else:
                 desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+        if d.choices is not None:
+            desc.additional_constraints = f"one of: {', '.join(d.choices)}"
         value = self.node.declare_parameter(name, d.default, desc).value
         if isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
             value = list(value)
