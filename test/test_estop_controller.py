@@ -351,3 +351,32 @@ def test_a_standing_stop_takes_the_feet_heading_from_the_imu():
         assert np.allclose(mid, center, atol=1e-9)
         assert all(abs(feet[s].position[2] - feet["l"].position[2]) < 1e-9 for s in SIDES)
     assert heading(feet_from_joints(m, joints, center)) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_per_foot_cop_damping_turns_a_loaded_ankle_against_its_own_cop_error():
+    """``foot_cop_gain`` (walking's loop 5 in the stop): a loaded sole whose own CoP is ahead of its share of the
+    stop's ZMP reference turns its toes up (ankle pitch down) against the error, at a rate that grows with the
+    gain; a sole under ``foot_cop_min_force`` is left alone; with gain 0 the commands are the stop's own."""
+    pattern = Pattern()
+
+    def run(gain: float, right_force: float) -> np.ndarray:
+        ctl = EstopController(M, EstopConfig.defaults(trigger_time=0.0, foot_cop_gain=gain), DT)
+        out = None
+        for k in range(60):
+            o = obs(k * DT, **{"walking/state": pattern})
+            st = dataclasses.replace(o.state, left_normal_force=400.0, right_normal_force=right_force,
+                                     left_cop=np.array([0.30, 0.09, 0.0]), right_cop=np.array([0.025, -0.09, 0.0]))
+            out = ctl.step(dataclasses.replace(o, state=st))
+        assert ctl.state == EstopState.STOPPING
+        return out.positions
+
+    pitch = {s: M.joint_index(f"{s}_ankle_pitch") for s in "lr"}
+    off, on, strong = run(0.0, 200.0), run(1.0, 200.0), run(4.0, 200.0)
+    d_on, d_strong = on - off, strong - off
+    assert d_on[pitch["l"]] < -1e-4                              # the left CoP is 10+ cm ahead of its share
+    assert d_strong[pitch["l"]] < 2 * d_on[pitch["l"]]           # faster with a larger gain
+    light = run(1.0, 100.0) - off                                # right sole under 150 N: no correction there
+    assert abs(light[pitch["r"]]) < 1e-9 and abs(d_on[pitch["r"]]) > 1e-6
+    others = np.ones(len(off), bool)
+    others[[pitch["l"], pitch["r"], M.joint_index("l_ankle_roll"), M.joint_index("r_ankle_roll")]] = False
+    assert np.allclose(d_on[others], 0.0, atol=1e-12)            # only the ankles

@@ -76,6 +76,9 @@ class EstopConfig:
     ankle_max_offset: float = 0.12
     com_integral_gain: float = 0.0
     com_integral_max: float = 0.03
+    foot_cop_gain: float = 0.0
+    foot_cop_min_force: float = 150.0
+    foot_cop_time_constant: float = 0.2
     joint_stop_time: float = 0.3
     home_duration: float = 1.5
     align_feet: bool = True

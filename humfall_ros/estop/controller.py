@@ -72,6 +72,7 @@ from humfall_ros.estop.posture import configuration_from_feet
 from humfall_ros.estop.statespace import return_home, stop_duration_within_limits
 from humfall_ros.model.humanoid import SIDES, HumanoidModel, quat_matrix
 from humfall_ros.model.ik import ComTask, FrameTask, OrientationTask, PostureTask, WholeBodyIK
+from humfall_ros.walking.stabilizer import WalkingStabilizer
 
 BLEND_TIME = 0.3          # s: the measured-posture CoG offset at the start is blended out over this
 
@@ -355,6 +356,11 @@ class EstopController:
         self._posture_weight = np.where(self._legs, 1e-4, 10.0)
         self._pitch = [model.joint_index(f"{s}_ankle_pitch") for s in SIDES]
         self._roll = [model.joint_index(f"{s}_ankle_roll") for s in SIDES]
+        c = self.cfg
+        # walking's per-foot CoP damping (its loop 5 alone) for the stop's double support (off with gain 0)
+        self._foot_cop = WalkingStabilizer(model, self.dt, 0.0, 0.0, 0.0, c.foot_cop_time_constant,
+                                           c.ankle_max_offset, cop_time_constant_ds=c.foot_cop_time_constant,
+                                           foot_cop_gain=c.foot_cop_gain, foot_cop_min_force=c.foot_cop_min_force)
         home = getattr(model, "standing_posture", None)
         self._home = model.joint_vector(home) if isinstance(home, dict) else None
         self._phase: TriggerPhase = self.cfg.phase
@@ -382,6 +388,7 @@ class EstopController:
         self._trunk0 = np.eye(3)
         self._hold_feet = None
         self._com_integral = np.zeros(3)
+        self._foot_cop.reset()
         self._upper0 = None
         self._upper_v0 = None
         self._t_b = 0.0
@@ -749,8 +756,20 @@ class EstopController:
         for i, s in enumerate(SIDES):            # in the feet step's single support: the stance ankle only
             q[self._pitch[i]] += ankle_weight[s] * d_pitch
             q[self._roll[i]] += ankle_weight[s] * d_roll
+        if c.foot_cop_gain > 0:
+            q = self._foot_cop.apply(q, self._foot_cop_output(st, ref, feet, yaw))
         q = np.clip(q, self.m.limits.lower, self.m.limits.upper)
         return JointTargets(q, r.v[6:].copy())
+
+    def _foot_cop_output(self, st, ref, feet, yaw: float):
+        """Per-foot CoP damping of the stop (walking's loop 5): each loaded sole's ankle towards its share of the
+        stop's ZMP reference, feet relative; leaks during the feet step (its feet are not the held pair)."""
+        both = self.align is None
+        ref_mid = 0.5 * (feet["l"].position + feet["r"].position)
+        centres = {s: np.asarray(feet[s].sole_center(self.m, s), float)[:2] for s in SIDES} if both else None
+        return self._foot_cop.update(st.capture_point_fused, st.cop, st.feet_center, ref.com[:2], ref.zmp,
+                                     ref_mid, None, yaw, centres, None, foot_forces=st.foot_normal_forces if both
+                                     else None, foot_cops=st.foot_cops, contacts=st.contacts)
 
 
 __all__ = [
