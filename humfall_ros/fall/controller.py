@@ -124,6 +124,8 @@ class SafeFallConfig:
     defer_push_residual_mps: float = 0.0
     push_residual_window_s: float = 0.02
     max_defer_s: float = 0.04
+    max_extra_steps: int = 0
+    restep_after_s: float = 0.1
 
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> SafeFallConfig:
@@ -183,6 +185,8 @@ class SafeFallDecision:
             (``fall_heading_horizon_s``; ours) [rad] (NaN for a capture).
         replans: times the landing was re-decided during the swing (``replan_s``); the fields above
             are then the last re-decision's (``replan_stamp_ns``), the case and swing side stay.
+        step_index: 1 for the decision on the fall event; 2, 3, ... for a new decision after a step whose
+            predicted capture failed (``max_extra_steps``; ours).
     """
 
     stamp_ns: int
@@ -211,6 +215,7 @@ class SafeFallDecision:
     replans: int = 0
     replan_stamp_ns: int = 0
     alpha2_edge: float = math.nan
+    step_index: int = 1
 
 
 def _get(o, key, default=None):
@@ -315,6 +320,8 @@ class SafeFallController:
         self.swing_start_xy: np.ndarray | None = None   # the swing sole's x, y at the decision [m]
         self.pending_event = None            # the fall event taken over for, until its decision is made
         self.deferral: dict | None = None    # the last deferral: its start, decision time, residual at both
+        self.decisions: list[SafeFallDecision] = []   # every decision of this take-over, in order
+        self.restep_since: float | None = None        # a failed capture read since (debounce) [s]
 
     # ------------------------------------------------------------------ contract
     def step(self, obs: Observation) -> JointTargets | None:
@@ -638,6 +645,8 @@ class SafeFallController:
             res.cell_count, search_time, reachable,
             {k.value: v.alpha2 for k, v in res.cases.items()}, "; ".join(self.reasons))
         self.decision.alpha2_edge = self._alpha2_edge(chosen, velocity_td.get(swing), target)
+        self.decision.step_index = len(self.decisions) + 1
+        self.decisions.append(self.decision)
         self.predicted_touchdown_time = obs.time + touchdown
 
     def _alpha2_edge(self, chosen, velocity, target) -> float:
@@ -660,6 +669,8 @@ class SafeFallController:
     def _tick(self, obs: Observation) -> JointTargets:
         c = self.config
         st = obs.inputs.get("ftb/status")
+        if self.phase == "landed" and len(self.decisions) <= c.max_extra_steps:
+            self._restep(obs)
         # (the capture balance goes on: the FTB's falling_timeout_s reads "fallen" for a robot rocking to a stand)
         ends = ("shaping",) if c.capture_balance else ("landed", "shaping")
         if self.phase in ends and getattr(st, "state", None) is FtbState.FALLEN:
@@ -753,6 +764,32 @@ class SafeFallController:
                 self.last_command = pos
                 return JointTargets(pos, qd)
         return JointTargets(self.hold.copy() if self.hold is not None else np.asarray(obs.joint_position, float))
+
+    def _restep(self, obs: Observation) -> None:
+        """After a predicted capture: once the robot is seen falling about its new support (the 2-D pendulum over
+        the soles' hull past its crest for 10 ms, ``restep_after_s`` or more after the touchdown), decide again from
+        this state (eq. 4 with its five cases; ours: paper 1 takes one step). The swing starts on this tick."""
+        c = self.config
+        if self.touchdown_at is None or obs.time - self.touchdown_at < c.restep_after_s - 1e-9:
+            return
+        f = features_of(obs.state, self._soles_hull(obs))
+        if not (f.valid and f.separatrix_margin > 0.0):
+            self.restep_since = None
+            return
+        self.restep_since = obs.time if self.restep_since is None else self.restep_since
+        if obs.time - self.restep_since < 0.01 - 1e-9:
+            return
+        since = obs.time - self.touchdown_at
+        self.reasons.append(f"{obs.time:.3f} s: the capture failed (falling about the new support {since:.3f} s "
+                            f"after touchdown): decision {len(self.decisions) + 1}")
+        self.restep_since, self.touchdown_at, self.balancer = None, None, None
+        try:
+            self._take_over(obs, None)
+        except Exception as exc:  # noqa: BLE001 - never crash a falling robot: hold the posture
+            self.phase = "hold"
+            self.hold = self.last_command.copy()
+            self.reasons.append(f"decision failed ({type(exc).__name__}: {exc}); holding the posture")
+            self._note_failure()
 
     def _balance(self, obs: Observation) -> JointTargets:
         """After a captured step: the standing balance (ankle strategy, ``control.standing.StandingBalance``) about

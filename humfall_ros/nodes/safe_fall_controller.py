@@ -66,6 +66,7 @@ def decision_to_msg(d, fall_event_stamp_ns: int | None) -> SafeFallDecision:
     m.case_names = list(d.case_alpha2)
     m.case_alpha2 = [float(v) for v in d.case_alpha2.values()]
     m.reason = d.reason
+    m.step_index = int(getattr(d, "step_index", 1))
     return m
 
 

@@ -257,7 +257,7 @@ class SimBridge(Node):
             self.truth.metrics.note_decision({
                 "stamp_ns": stamp_key(msg.header.stamp), "case": msg.step_case, "swing_side": msg.swing_side,
                 "landing": list(msg.landing), "alpha2": msg.alpha2, "captured": msg.captured,
-                "touchdown_time": msg.touchdown_time})
+                "touchdown_time": msg.touchdown_time, "step_index": msg.step_index})
         except Exception as e:  # noqa: BLE001 - a bad message never stops the bridge
             self.get_logger().warning(f"safe_fall/decision not usable for the metrics: {e}")
 

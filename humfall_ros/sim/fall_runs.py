@@ -182,7 +182,7 @@ def summary(r: FallRun) -> dict:
     m = r.metrics
     out = {k: m.get(k) for k in ("fell", "fall_direction_deg", "avoidance_angle_deg", "avoidance_angle_p2_deg",
                                  "predicted_avoidance_deg", "predicted_avoidance_edge_deg", "predicted_captured",
-                                 "captured", "decision_case",
+                                 "captured", "decision_case", "decisions", "restep_times_s",
                                  "min_target_distance_m", "fall_event_time_s", "lead_time_s", "landing_time_s",
                                  "prediction", "measured_p2")}
     d = r.decision

@@ -53,6 +53,7 @@ class FallMetrics:
         self.last_com = None
         self.fall_event_time = None
         self.decision: dict | None = None
+        self.resteps: dict[int, dict] = {}   # step_index (2, 3, ..) -> a new decision after a failed capture
         self._feet_t = None
         self._lifted: dict[str, bool] = {}
         # side -> every touchdown after a lift-off: (t, (x, y, yaw), tilt [deg], CoPs 0.05-0.15 s after it)
@@ -67,8 +68,9 @@ class FallMetrics:
         """The fall controller's decision (``fall.controller.SafeFallDecision`` or the message's fields).
 
         Reads: stamp_ns or time [s], case, swing_side, landing (x, y, yaw), alpha2 [rad] (NaN: capture),
-        captured, touchdown_time [s after the decision]. The first one sets the decision time; a later
-        one (a re-planned landing, same decision) updates the rest.
+        captured, touchdown_time [s after the decision], step_index (1 when absent). The first one sets the
+        decision time; a later one with the same step_index (a re-planned landing, same decision) updates the
+        rest; a higher step_index is a new decision after a failed capture (``max_extra_steps``), kept apart.
         """
         if d is None:
             return
@@ -78,14 +80,20 @@ class FallMetrics:
         t = get("time")
         if t is None:
             t = get("stamp_ns", 0) * 1e-9
-        if self.decision is not None:
-            t = self.decision["time"]
-        self.decision = {"time": float(t), "case": str(get("case", get("step_case", ""))),
+        index = int(get("step_index", 1) or 1)
+        known = self.decision if index <= 1 else self.resteps.get(index)
+        if known is not None:
+            t = known["time"]
+        rec = {"time": float(t), "case": str(get("case", get("step_case", ""))),
                          "swing_side": str(get("swing_side", "")),
                          "landing": [float(x) for x in np.asarray(get("landing", [math.nan] * 3), float)],
                          "alpha2": float(get("alpha2", math.nan)), "captured": bool(get("captured", False)),
                          "alpha2_edge": float(get("alpha2_edge", math.nan)),
                          "touchdown_time": float(get("touchdown_time", math.nan))}
+        if index <= 1:
+            self.decision = rec
+        else:
+            self.resteps[index] = rec
 
     def update_feet(self, t: float, cop, down: dict, poses) -> None:
         """Per tick: ground-truth CoP (None airborne), soles touching {side: bool}, sole poses
@@ -122,26 +130,21 @@ class FallMetrics:
         depend on when the event became known (the bridge learns it over the graph)."""
         return {side: e[:3] for side, e in ((s, self._step_entry(s)) for s in self._touchdown_log) if e is not None}
 
-    def _entries_after_event(self, side: str) -> list:
-        """``side``'s touchdowns after the fall event (with no event, all of them)."""
-        after = self.fall_event_time if self.fall_event_time is not None else -math.inf
+    def _entries_after_event(self, side: str, after: float | None = None) -> list:
+        """``side``'s touchdowns after the fall event (with no event, all of them), or after ``after`` [s]."""
+        if after is None:
+            after = self.fall_event_time if self.fall_event_time is not None else -math.inf
         return [e for e in self._touchdown_log.get(side, []) if e[0] > after]
 
-    def _step_entry(self, side: str):
-        entries = self._entries_after_event(side)
+    def _step_entry(self, side: str, after: float | None = None):
+        entries = self._entries_after_event(side, after)
         return entries[0] if entries else None
 
-    def _step_cops(self, side: str) -> list:
+    def _step_cops(self, side: str, after: float | None = None) -> list:
         """The CoPs of P2: 0.05-0.15 s after the step's touchdown. A sole that bounces off before that
         window (seen in the sweep: down at 1.012 s, up, down again at 1.144 s) has none there: then the
         window after its next touchdown counts, if that comes within ``BOUNCE_S`` of the first."""
-        entries = self._entries_after_event(side)
-        for e in entries:
-            if e[0] - entries[0][0] > BOUNCE_S:
-                break
-            if e[3]:
-                return e[3]
-        return []
+        entries = self._entries_after_event(side, after)
         for e in entries:
             if e[0] - entries[0][0] > BOUNCE_S:
                 break
@@ -193,15 +196,21 @@ class FallMetrics:
 
     def _safe_fall(self, land) -> dict:
         d = self.decision or {}
+        # alpha2 is measured at the CoP after the last step that answered the fall: the first decision's, or,
+        # after failed captures, the last new decision's (``resteps``; its predictions then stand beside it)
+        last = self.resteps[max(self.resteps)] if self.resteps else None
+        dm = last if last is not None and last["case"].startswith("step") else d
         out = {"fall_event_time_s": self.fall_event_time,
                "lead_time_s": None if self.fall_event_time is None or self.landing_time is None
                else round(self.landing_time - self.fall_event_time, 4),
                "avoidance_angle_p2_deg": None, "measured_p2": None,
-               "predicted_avoidance_deg": None if not math.isfinite(d.get("alpha2", math.nan))
-               else math.degrees(d["alpha2"]),
-               "predicted_avoidance_edge_deg": None if not math.isfinite(d.get("alpha2_edge", math.nan))
-               else math.degrees(d["alpha2_edge"]),
+               "predicted_avoidance_deg": None if not math.isfinite(dm.get("alpha2", math.nan))
+               else math.degrees(dm["alpha2"]),
+               "predicted_avoidance_edge_deg": None if not math.isfinite(dm.get("alpha2_edge", math.nan))
+               else math.degrees(dm["alpha2_edge"]),
                "predicted_captured": d.get("captured"), "decision_case": d.get("case"),
+               "decisions": (1 if self.decision is not None else 0) + len(self.resteps),
+               "restep_times_s": [round(r["time"], 4) for _, r in sorted(self.resteps.items())],
                "captured": None, "prediction": None}
         side = d.get("swing_side") or None
         if side is None and self.fall_event_time is not None:  # no decision fed: the first step after the trigger
@@ -211,7 +220,11 @@ class FallMetrics:
         if self.decision is not None:
             stepped = td is not None and d["case"].startswith("step")
             out["captured"] = bool(stepped and not self.fell)
-        cops = self._step_cops(side) if td is not None else []
+        m_side, m_after = side, None
+        if dm is not d:
+            m_side, m_after = dm.get("swing_side") or None, dm["time"]
+        m_td = self._step_entry(m_side, m_after) if m_side else None
+        cops = self._step_cops(m_side, m_after) if m_td is not None else []
         if cops:
             p2 = np.mean(cops, axis=0)
             out["measured_p2"] = [float(x) for x in p2]
