@@ -89,3 +89,20 @@ def test_metrics_measure_alpha2_at_the_last_step_and_predict_from_the_first():
                                          np.array([0.8, 0.25]) / np.hypot(0.8, 0.25))))
     assert r["avoidance_angle_p2_deg"] == pytest.approx(want, abs=1e-6)
     assert r["prediction"]["alpha2_error_deg"] == pytest.approx(abs(want - 118.0), abs=1e-6)
+
+
+def test_a_new_decision_after_a_walking_push_does_not_use_the_interrupted_gait():
+    """walking_push 400 N: a new decision after the first step's failed capture is taken from the robot's own state,
+    with the five cases of a standing robot, never in the interrupted walk's single support with its planned footstep
+    (before the fix it read the walk's last support and footstep: "single support on l ..., planned landing ...")."""
+    from humfall_ros import scenario
+
+    sc = scenario.load("walking_push", ["push.0.force=[400.0, 0.0, 0.0]",
+                                        "params.safe_fall_controller.max_extra_steps=2",
+                                        "params.safe_fall_controller.restep_after_s=0.3"])
+    r = runs.run(sc, "stepping")
+    notes = r.reasons
+    first = next(i for i, n in enumerate(notes) if "capture failed" in n)
+    assert not any(n.startswith("single support on") for n in notes[first:])
+    assert r.metrics["decisions"] >= 2
+    assert r.decision.step_index == r.metrics["decisions"] and r.decision.case != "continue_step"

@@ -525,7 +525,8 @@ class SafeFallController:
         # (standing, a foot off the ground is a double-support situation: the five cases, as before)
         single, planned = None, None
         loaded = [sd for sd in SIDES if s.contacts[sd]]
-        gait_support = _gait_stance(self.gait)
+        # (the gait's support and footstep belong to the walk the fall event interrupted: not to a new decision)
+        gait_support = _gait_stance(self.gait) if not self.decisions else None
         if len(loaded) == 1 and gait_support == loaded[0]:
             swing_sd = "r" if loaded[0] == "l" else "l"
             if placements[swing_sd].translation[2] > c.single_support_lift_m:
