@@ -32,7 +32,7 @@ def estimator_errors(bag: str, tilt_limit_deg: float = 30.0) -> dict:
     from humfall_ros.model.humanoid import load_model, quat_matrix
 
     model = load_model()
-    truth = CentroidalEstimator(model)
+    truth = CentroidalEstimator(model, com_velocity_time_constant=0.0)   # odometry only
     by_stamp: dict[int, dict] = {}
     topics = ["/joint_states", "/imu", "/left_foot/wrench", "/right_foot/wrench", "/ground_truth/odom",
               "/centroidal_state"]

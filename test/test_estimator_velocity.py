@@ -57,9 +57,9 @@ def test_fusion_off_is_leg_odometry_and_on_follows_the_ground_reaction(model):
     still = np.zeros(model.njoints)
     a = np.array([1.0, -0.5, 0.0])   # m/s^2: the ground reaction says the CoM accelerates, kinematics says still
     push = {s: (w[0] + model.total_mass * a / 2, w[1]) for s, w in wrenches.items()}
-    off = CentroidalEstimator(model)
+    off = CentroidalEstimator(model, com_velocity_time_constant=0.0)
     tau = 0.2
-    on = CentroidalEstimator(model, com_velocity_time_constant=tau)
+    on = CentroidalEstimator(model, com_velocity_time_constant=tau, com_velocity_band=0.0)   # no band: the filter alone
     for est in (off, on):
         est.update(0.0, joints, still, [0, 0, 0, 1], np.zeros(3), wrenches)
     e_off = off.update(DT, joints, still, [0, 0, 0, 1], np.zeros(3), push)
@@ -134,3 +134,15 @@ def test_fusion_hides_the_stance_foot_slip_from_the_capture_point():
     assert fused_off == odometry_off         # off: one estimate
     assert odometry > 0.01
     assert fused < 0.01 and fused < 0.6 * odometry
+
+
+def test_constructor_defaults_are_the_declared_ones(model):
+    """One place: an estimator built without settings is the node's (config/state_estimator.yaml)."""
+    from humfall_ros import params
+
+    declared = params.defaults("state_estimator")
+    est = CentroidalEstimator(model)
+    assert est.contact_force == declared["contact_force"]
+    assert est.com_velocity_time_constant == declared["com_velocity_time_constant"] > 0
+    assert est.com_velocity_band == declared["com_velocity_band"]
+    assert CentroidalEstimator(model, com_velocity_time_constant=0.0).com_velocity_time_constant == 0.0

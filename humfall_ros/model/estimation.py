@@ -13,6 +13,7 @@ import dataclasses
 import numpy as np
 import pinocchio as pin
 
+from humfall_ros import params as params_mod
 from humfall_ros.dynamics.pendulum import GRAVITY, capture_point, lean_angle
 from humfall_ros.model.humanoid import (SIDES, HumanoidModel, cop_from_wrenches, cross3, point_in_polygon_margin,
                                         quat_matrix, support_polygon)
@@ -47,9 +48,17 @@ class CentroidalEstimate:
 class CentroidalEstimator:
     """Leg-odometry floating-base estimator feeding the centroidal quantities."""
 
-    def __init__(self, model: HumanoidModel, contact_force: float = 20.0, corner_tolerance: float = 0.004,
-                 edge_margin: float = 0.005, initial_xy=(0.0, 0.0), com_velocity_time_constant: float = 0.0,
-                 com_velocity_band: float = 0.0):
+    def __init__(self, model: HumanoidModel, contact_force: float | None = None, corner_tolerance: float = 0.004,
+                 edge_margin: float = 0.005, initial_xy=(0.0, 0.0), com_velocity_time_constant: float | None = None,
+                 com_velocity_band: float | None = None):
+        """``contact_force``, ``com_velocity_time_constant``, ``com_velocity_band``: None is the declared default of
+        config/state_estimator.yaml (one place); ``com_velocity_time_constant=0`` turns the fusion off."""
+        declared = params_mod.defaults("state_estimator")
+        contact_force = declared["contact_force"] if contact_force is None else contact_force
+        if com_velocity_time_constant is None:
+            com_velocity_time_constant = declared["com_velocity_time_constant"]
+        if com_velocity_band is None:
+            com_velocity_band = declared["com_velocity_band"]
         self.m = model
         # s; > 0: the CoM velocity fuses the ground reaction (Newton) with kinematics (``_fuse_com_velocity``)
         self.com_velocity_time_constant = float(com_velocity_time_constant)

@@ -114,7 +114,9 @@ class ClosedLoop:
         self.inputs = inputs
         self.active = "none"
         self.track_errors = track_errors
-        self._truth = CentroidalEstimator(self.model, contact_force=est["contact_force"]) if track_errors else None
+        # the reference for the estimator's errors: exact sensors, leg odometry only (its fused fields = odometry's)
+        self._truth = CentroidalEstimator(self.model, contact_force=est["contact_force"],
+                                          com_velocity_time_constant=0.0) if track_errors else None
         self.tilt_limit = np.radians(trunk_tilt_limit_deg)
         self.errors: dict[str, float] = {}
         self._past_tilt_limit = False
