@@ -583,19 +583,25 @@ def test_fall_heading_against_the_edge_and_point_pendulums():
     assert np.all(np.isnan(_fall_heading_reference(p2, square, [0.2, 0.1, z], [0, 0, 0], T, g)))
 
 
-def test_search_alpha_edge_equals_fall_heading_on_the_cells_polygon():
-    """step_search's vectorised alpha of the fall about the new support (the edge's normal from Q2 - P2) equals the
-    slow reference's angle to T on each cell's own hull (edge cells and corner cells alike)."""
+def _falling_cells(seed: int, n: int):
+    """Landing cells of a left step whose Q2 lies outside every cell's hull (a predicted fall for each), with P2 and
+    the hull vertices per cell: (local sole, cells, pivot, G and dG/dt at touchdown, Q2, T, P2 x, P2 y, vertices)."""
     local = M.sole_corners_local["l"][:, :2]
-    rng = np.random.default_rng(3)
-    cells = np.column_stack([rng.uniform(0.2, 0.45, 40), rng.uniform(-0.35, 0.1, 40), rng.uniform(-0.3, 0.3, 40)])
+    rng = np.random.default_rng(seed)
+    cells = np.column_stack([rng.uniform(0.2, 0.45, n), rng.uniform(-0.35, 0.1, n), rng.uniform(-0.3, 0.3, n)])
     pivot = np.array([[0.145, -0.03], [0.145, -0.17]])
     g_td, v_td = np.array([0.2, -0.05, 0.72]), np.array([0.7, -0.4, -0.1])
     q2 = g_td[:2] + v_td[:2] / math.sqrt(9.81 / g_td[2]) + np.array([0.25, -0.2])   # outside every hull
     target = np.array([1.3, 0.2])
-    h = ss._hull_core(cells, local, pivot, q2)
-    p2x, p2y = h.p2()
+    p2x, p2y = ss._hull_core(cells, local, pivot, q2).p2()
     verts = np.concatenate([ss.sole_corners_at(cells, local), np.broadcast_to(pivot, (len(cells), 2, 2))], axis=1)
+    return local, cells, pivot, g_td, v_td, q2, target, p2x, p2y, verts
+
+
+def test_search_alpha_edge_equals_fall_heading_on_the_cells_polygon():
+    """step_search's vectorised alpha of the fall about the new support (the edge's normal from Q2 - P2) equals the
+    slow reference's angle to T on each cell's own hull (edge cells and corner cells alike)."""
+    local, cells, pivot, g_td, v_td, q2, target, p2x, p2y, verts = _falling_cells(3, 40)
     got = ss._alpha_edge(p2x, p2y, q2, g_td, v_td, target, verts, 0.5)
     corners = 0
     for i, c in enumerate(cells):
@@ -611,16 +617,7 @@ def test_search_alpha_edge_equals_fall_heading_on_the_cells_polygon():
 def test_falls_rank_by_the_configured_alpha2(ranking):
     """``fall_ranking``: the best fall cell is the one with the largest paper angle or alpha2_edge; the candidates
     come out in that order, and an unknown ranking is refused."""
-    local = M.sole_corners_local["l"][:, :2]
-    rng = np.random.default_rng(5)
-    cells = np.column_stack([rng.uniform(0.2, 0.45, 60), rng.uniform(-0.35, 0.1, 60), rng.uniform(-0.3, 0.3, 60)])
-    pivot = np.array([[0.145, -0.03], [0.145, -0.17]])
-    g_td, v_td = np.array([0.2, -0.05, 0.72]), np.array([0.7, -0.4, -0.1])
-    q2 = g_td[:2] + v_td[:2] / math.sqrt(9.81 / g_td[2]) + np.array([0.25, -0.2])   # outside every hull
-    target = np.array([1.3, 0.2])
-    h = ss._hull_core(cells, local, pivot, q2)
-    p2x, p2y = h.p2()
-    verts = np.concatenate([ss.sole_corners_at(cells, local), np.broadcast_to(pivot, (len(cells), 2, 2))], axis=1)
+    local, cells, pivot, g_td, v_td, q2, target, p2x, p2y, verts = _falling_cells(5, 60)
     paper = ss._alpha(p2x, p2y, q2, target)
     edge = ss._alpha_edge(p2x, p2y, q2, g_td, v_td, target, verts, 0.5)
     want = {"paper": paper, "edge": edge}[ranking]
