@@ -757,15 +757,15 @@ class EstopController:
             q[self._pitch[i]] += ankle_weight[s] * d_pitch
             q[self._roll[i]] += ankle_weight[s] * d_roll
         if c.foot_cop_gain > 0:
-            q = self._foot_cop.apply(q, self._foot_cop_output(st, ref, feet, yaw))
+            q = self._foot_cop.apply(q, self._foot_cop_output(st, ref, ref_mid, feet, yaw))
         q = np.clip(q, self.m.limits.lower, self.m.limits.upper)
         return JointTargets(q, r.v[6:].copy())
 
-    def _foot_cop_output(self, st, ref, feet, yaw: float):
+    def _foot_cop_output(self, st, ref, ref_mid, feet, yaw: float):
         """Per-foot CoP damping of the stop (walking's loop 5): each loaded sole's ankle towards its share of the
-        stop's ZMP reference, feet relative; leaks during the feet step (its feet are not the held pair)."""
+        stop's ZMP reference, relative to the feet's mid-point ``ref_mid``; leaks during the feet step (its feet are
+        not the held pair)."""
         both = self.align is None
-        ref_mid = 0.5 * (feet["l"].position + feet["r"].position)
         centres = {s: np.asarray(feet[s].sole_center(self.m, s), float)[:2] for s in SIDES} if both else None
         return self._foot_cop.update(st.capture_point_fused, st.cop, st.feet_center, ref.com[:2], ref.zmp,
                                      ref_mid, None, yaw, centres, None, foot_forces=st.foot_normal_forces if both

@@ -347,12 +347,7 @@ class SafeFallController:
             if self._defer(obs):
                 return JointTargets(self.hold.copy())
             ev, self.pending_event = self.pending_event, None
-            try:
-                self._take_over(obs, ev)
-            except Exception as exc:  # noqa: BLE001 - never crash a falling robot: hold the posture
-                self.phase = "hold"
-                self.reasons.append(f"decision failed ({type(exc).__name__}: {exc}); holding the posture")
-                self._note_failure()
+            self._decide(obs, ev)
         try:
             if self._hand_back(obs):
                 return None
@@ -362,6 +357,17 @@ class SafeFallController:
             self.reasons.append(f"tick failed ({type(exc).__name__}: {exc}); holding the last command")
             self._note_failure()
             return JointTargets(self.last_command.copy())
+
+    def _decide(self, obs: Observation, ev) -> None:
+        """:meth:`_take_over` for the fall event ``ev`` (None: a new decision after a failed capture); if it fails,
+        hold the last command (at the take-over: the measured posture), never crash a falling robot."""
+        try:
+            self._take_over(obs, ev)
+        except Exception as exc:  # noqa: BLE001 - never crash a falling robot: hold the posture
+            self.phase = "hold"
+            self.hold = self.last_command.copy()
+            self.reasons.append(f"decision failed ({type(exc).__name__}: {exc}); holding the posture")
+            self._note_failure()
 
     def _defer(self, obs: Observation) -> bool:
         """Hold the posture and decide later while the push still acts (ours; ``fall.push_residual``): True while
@@ -784,13 +790,7 @@ class SafeFallController:
         self.reasons.append(f"{obs.time:.3f} s: the capture failed (falling about the new support {since:.3f} s "
                             f"after touchdown): decision {len(self.decisions) + 1}")
         self.restep_since, self.touchdown_at, self.balancer = None, None, None
-        try:
-            self._take_over(obs, None)
-        except Exception as exc:  # noqa: BLE001 - never crash a falling robot: hold the posture
-            self.phase = "hold"
-            self.hold = self.last_command.copy()
-            self.reasons.append(f"decision failed ({type(exc).__name__}: {exc}); holding the posture")
-            self._note_failure()
+        self._decide(obs, None)
 
     def _balance(self, obs: Observation) -> JointTargets:
         """After a captured step: the standing balance (ankle strategy, ``control.standing.StandingBalance``) about

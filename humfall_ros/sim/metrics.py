@@ -85,11 +85,11 @@ class FallMetrics:
         if known is not None:
             t = known["time"]
         rec = {"time": float(t), "case": str(get("case", get("step_case", ""))),
-                         "swing_side": str(get("swing_side", "")),
-                         "landing": [float(x) for x in np.asarray(get("landing", [math.nan] * 3), float)],
-                         "alpha2": float(get("alpha2", math.nan)), "captured": bool(get("captured", False)),
-                         "alpha2_edge": float(get("alpha2_edge", math.nan)),
-                         "touchdown_time": float(get("touchdown_time", math.nan))}
+               "swing_side": str(get("swing_side", "")),
+               "landing": [float(x) for x in np.asarray(get("landing", [math.nan] * 3), float)],
+               "alpha2": float(get("alpha2", math.nan)), "captured": bool(get("captured", False)),
+               "alpha2_edge": float(get("alpha2_edge", math.nan)),
+               "touchdown_time": float(get("touchdown_time", math.nan))}
         if index <= 1:
             self.decision = rec
         else:
