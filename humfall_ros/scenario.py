@@ -62,7 +62,8 @@ BUILTIN_PRIORITIES = {"locomotion": 10, "estop": 20, "safe_fall": 30}
 # Gait phases a push or an e-stop can be timed to (walking pattern: double support, then single support).
 Phase = Literal["ds_start", "ds_mid", "ss_start", "ss_mid", "ss_end"]
 PHASES: tuple[str, ...] = get_args(Phase)
-_SIM_KEYS = ("physics_rate", "control_rate", "lockstep", "real_time_factor", "friction", "contact_breaking_threshold")
+_SIM_KEYS = ("physics_rate", "control_rate", "lockstep", "real_time_factor", "friction", "contact_breaking_threshold",
+             "servo_time_constant")
 # the bridge's parameter ranges (config/sim_bridge.yaml bounds)
 SIM_RANGES = {k: params_mod.declarations("sim_bridge")[k].bounds for k in _SIM_KEYS
               if params_mod.declarations("sim_bridge")[k].bounds is not None}
@@ -330,6 +331,7 @@ class Sim(_Section):
     real_time_factor: Number = _BRIDGE["real_time_factor"]    # 0 = as fast as possible
     friction: Number = _BRIDGE["friction"]
     contact_breaking_threshold: Number = _BRIDGE["contact_breaking_threshold"]   # [m], PyBullet's
+    servo_time_constant: Number = _BRIDGE["servo_time_constant"]   # [s], the joint servos' position loop
 
     @field_validator(*SIM_RANGES)
     @classmethod

@@ -136,3 +136,55 @@ def test_contact_breaking_threshold_default_comes_from_the_yaml_and_reaches_the_
 def test_scenario_refuses_a_contact_breaking_threshold_out_of_range():
     with pytest.raises(scenario.ScenarioError, match="contact_breaking_threshold"):
         scenario.load("standing_quiet", ["sim.contact_breaking_threshold=0"])
+
+
+def test_servo_time_constant_sets_the_position_loop_of_the_joint_servos():
+    """The servos' position loop: PyBullet's positionGain = dt / servo_time_constant (the yaml's 0.02 s by default,
+    0.05 at 1 kHz), and a step of the position target is followed with about that time constant; one shorter than
+    a physics step is refused."""
+    from humfall_ros import params
+
+    tau = params.defaults("sim_bridge")["servo_time_constant"]
+    w = SimWorld(1000.0, 500.0)
+    try:
+        assert w.servo_time_constant == tau and w.position_gain == pytest.approx(1e-3 / tau)
+    finally:
+        w.close()
+    assert np.array_equal(_pushed_state(), _pushed_state(servo_time_constant=tau))
+    assert not np.array_equal(_pushed_state(servo_time_constant=0.005), _pushed_state())
+
+    def error_after(tau_s: float, t: float) -> float:
+        """The left elbow's error t after its target steps by 0.05 rad (the robot standing)."""
+        w = SimWorld(1000.0, 500.0, servo_time_constant=tau_s)
+        try:
+            for _ in range(100):
+                w.step_control()
+            j = w.model.joint_names.index("l_elbow")
+            q0 = w.joint_states()[0].copy()
+            target = w.targets.copy()
+            target[j] += 0.05
+            w.set_joint_targets(target)
+            for _ in range(round(t * 500)):
+                w.step_control()
+            return abs(target[j] - w.joint_states()[0][j])
+        finally:
+            w.close()
+
+    slow, fast = error_after(0.05, 0.05), error_after(0.005, 0.05)
+    assert 0.05 * 0.25 < slow < 0.05 * 0.5       # ~e^-1 of the step left after one time constant
+    assert fast < 0.05 * 0.01                     # ten time constants: gone
+    with pytest.raises(ValueError, match="positionGain"):
+        SimWorld(1000.0, 500.0, servo_time_constant=0.0005)
+
+
+def test_scenario_carries_the_servo_time_constant_to_the_world():
+    from humfall_ros.sim.closed_loop import ClosedLoop
+
+    sc = scenario.load("standing_quiet", ["sim.servo_time_constant=0.01"])
+    loop = ClosedLoop(sc, controllers=[])
+    try:
+        assert loop.world.position_gain == pytest.approx(0.1)
+    finally:
+        loop.close()
+    with pytest.raises(scenario.ScenarioError, match="servo_time_constant"):
+        scenario.load("standing_quiet", ["sim.servo_time_constant=0"])

@@ -95,7 +95,7 @@ class SimBridge(Node):
         self.metrics_file = P.declare("metrics_file")
         self.scenario_name = P.declare("scenario")
         # SimWorld's own settings (friction, contact threshold), from the parameters or the scenario's sim section
-        world_kw = {k: P.declare(k) for k in ("friction", "contact_breaking_threshold")}
+        world_kw = {k: P.declare(k) for k in ("friction", "contact_breaking_threshold", "servo_time_constant")}
         tf_rate = P.declare("tf_rate")
         gt_rate = P.declare("ground_truth_rate")
         self.service_period = 1.0 / P.declare("service_rate")
@@ -119,6 +119,7 @@ class SimBridge(Node):
                                        ("real_time_factor", "rtf_target", float(sim["real_time_factor"])),
                                        ("friction", None, float(sim["friction"])),
                                        ("contact_breaking_threshold", None, float(sim["contact_breaking_threshold"])),
+                                       ("servo_time_constant", None, float(sim["servo_time_constant"])),
                                        ("end_time", "end_time", float(self.scenario["duration"]))):
                 if param in P.overridden:
                     if P.values[param] != value:

@@ -96,7 +96,8 @@ class ClosedLoop:
             posture = {**STANDING_POSTURE, **sc["robot"]["initial_posture"]}
         bridge = node_params(sc, "sim_bridge")
         self.world = SimWorld(s["physics_rate"], s["control_rate"], friction=s["friction"], initial_posture=posture,
-                              contact_breaking_threshold=s["contact_breaking_threshold"])
+                              contact_breaking_threshold=s["contact_breaking_threshold"],
+                              servo_time_constant=s["servo_time_constant"])
         self.model = self.world.model
         self.ground_truth = GroundTruth(self.world, sc)
         self.sensors = Sensors(self.world, sensor_noise(sc) if noise is None else noise)

@@ -55,7 +55,7 @@ STANDING_POSTURE = _STANDING_POSTURE  # the model's (kept importable from here)
 
 class SimWorld:
     def __init__(self, physics_rate: float = 1000.0, control_rate: float = 500.0,
-                 friction: float = 0.9, position_gain: float = 0.3, velocity_gain: float = 1.0,
+                 friction: float = 0.9, servo_time_constant: float | None = None, velocity_gain: float = 1.0,
                  model: HumanoidModel | None = None, initial_posture: dict | None = None,
                  enforce_velocity_limits: bool = True, contact_breaking_threshold: float | None = None):
         if physics_rate % control_rate:
@@ -71,7 +71,17 @@ class SimWorld:
         if contact_breaking_threshold is None:
             contact_breaking_threshold = params_mod.defaults("sim_bridge")["contact_breaking_threshold"]
         self.contact_breaking_threshold = float(contact_breaking_threshold)
-        self.position_gain = position_gain
+        # The joint servos are PyBullet's motor constraints: each physics step they ask for the velocity
+        # target plus positionGain x the position error per step, within the URDF effort. So positionGain
+        # = dt / servo_time_constant (None: config/sim_bridge.yaml's). A fast loop (0.3, 3.3 ms: the default
+        # until session 21) rings on the stiff sole contact at every load change (docs/walking.md "Session 21").
+        if servo_time_constant is None:
+            servo_time_constant = params_mod.defaults("sim_bridge")["servo_time_constant"]
+        self.servo_time_constant = float(servo_time_constant)
+        self.position_gain = self.dt / self.servo_time_constant
+        if not 0.0 < self.position_gain <= 1.0:
+            raise ValueError(f"servo_time_constant {servo_time_constant} s is shorter than a physics step "
+                             f"({self.dt} s): PyBullet's positionGain would be {self.position_gain:.3g} > 1")
         self.velocity_gain = velocity_gain
         self.enforce_velocity_limits = enforce_velocity_limits
         self.model = model or load_model()
