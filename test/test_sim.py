@@ -160,7 +160,6 @@ def test_servo_time_constant_sets_the_position_loop_of_the_joint_servos():
             for _ in range(100):
                 w.step_control()
             j = w.model.joint_names.index("l_elbow")
-            q0 = w.joint_states()[0].copy()
             target = w.targets.copy()
             target[j] += 0.05
             w.set_joint_targets(target)
