@@ -122,7 +122,7 @@ def test_a_walking_step_contact_wrench_matches_the_momentum_rate_and_the_last_su
 def test_foot_wrench_is_the_tick_mean_of_that_foot(side):
     w = SimWorld()
     try:
-        for _ in range(20):
+        for _ in range(100):        # 0.2 s: with the 20 ms servo loop the stance still rocks +-13 % at 0.04 s
             w.step_control()
         f, _ = w.foot_wrench(side)
         assert f[2] == pytest.approx(0.5 * w.model.weight, rel=0.1)

@@ -44,7 +44,10 @@ def test_pinocchio_and_pybullet_agree_on_mass_and_standing_com(model):
         com_pb += pb.getDynamicsInfo(world.robot, -1, physicsClientId=c)[0] * np.array(pos)
         for i in range(pb.getNumJoints(world.robot, physicsClientId=c)):
             mi = pb.getDynamicsInfo(world.robot, i, physicsClientId=c)[0]
-            com_pb += mi * np.array(pb.getLinkState(world.robot, i, physicsClientId=c)[0])
+            # computeForwardKinematics: the cached link frames are those of the last step's start; the robot still
+            # settles into its servos after the reset (20 ms loop), so they lag the joint positions by v dt
+            com_pb += mi * np.array(pb.getLinkState(world.robot, i, computeForwardKinematics=True,
+                                                    physicsClientId=c)[0])
         com_pb /= pb_mass
         q, _ = world.pinocchio_state()
         com_pin = model.com(q)
