@@ -12,7 +12,7 @@ node in this process timestamps, per control tick, the arrival of joint_states
 hops of sim -> estimator -> controller -> sim. The probe's own delivery delay
 is in every timestamp alike, so differences are the hops. Prints one JSON object.
 
-    python benchmarks/bench_suite.py [--seconds 10] [--control-rate 500] [--repeats 3]
+    python benchmarks/bench_suite.py [--seconds 10] [--control-rate 500] [--repeats 3] [--scenario walking]
 """
 from __future__ import annotations
 
@@ -42,11 +42,12 @@ def standin_overrides(n: int) -> list[str]:
 
 
 COMPOSE = False  # --compose: the estimator and the controllers in one process
+SCENARIO = "standing_quiet"  # --scenario: e.g. walking (the walking suite, issue 10)
 
 
 def up(seconds: float, rate: float, lockstep: bool, rtf: float, runs: pathlib.Path, env: dict,
        probe: bool = False, standins: int = 0) -> dict:
-    cmd = [sys.executable, "-m", "humfall_ros.cli", "up", "--scenario", "standing_quiet", "--runs-dir", str(runs),
+    cmd = [sys.executable, "-m", "humfall_ros.cli", "up", "--scenario", SCENARIO, "--runs-dir", str(runs),
            "--no-plots", "--set", f"duration={seconds}", "--set", f"sim.control_rate={rate}",
            "--set", f"sim.lockstep={str(lockstep).lower()}", "--set", f"sim.real_time_factor={rtf}",
            *standin_overrides(standins), *(["--compose"] if COMPOSE else [])]
@@ -122,9 +123,10 @@ def main() -> int:
     ap.add_argument("--standins", type=int, default=0,
                     help="extra idle per-tick controller nodes (lockstep sources answering every tick with a release)")
     ap.add_argument("--compose", action="store_true", help="humfall up --compose")
+    ap.add_argument("--scenario", default="standing_quiet", help="the scenario (walking: the walking suite)")
     a = ap.parse_args()
-    global COMPOSE
-    COMPOSE = a.compose
+    global COMPOSE, SCENARIO
+    COMPOSE, SCENARIO = a.compose, a.scenario
     env = dict(os.environ)
     env["ROS_DOMAIN_ID"] = str(60 + os.getpid() % 30)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
@@ -143,6 +145,7 @@ def main() -> int:
                                                for r in free])), 3) for n in short["node_cpu_s"]}
         res = {
             "benchmark": "suite",
+            "scenario": a.scenario,
             "cpu_count": os.cpu_count(),
             "load_average_1min_before": round(load_before, 2),
             "control_rate_hz": a.control_rate,
