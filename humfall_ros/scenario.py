@@ -347,6 +347,9 @@ class Sim(_Section):
         if abs(ratio - round(ratio)) > 1e-9:
             raise _Reason(f"physics_rate ({self.physics_rate} Hz) must be a positive integer multiple of "
                           f"control_rate ({self.control_rate} Hz)")
+        if self.servo_time_constant * self.physics_rate < 1.0:
+            raise _Reason(f"servo_time_constant ({self.servo_time_constant} s) must be at least one physics step "
+                          f"(1 / physics_rate = {1.0 / self.physics_rate} s)")
         return self
 
 

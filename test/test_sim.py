@@ -187,3 +187,5 @@ def test_scenario_carries_the_servo_time_constant_to_the_world():
         loop.close()
     with pytest.raises(scenario.ScenarioError, match="servo_time_constant"):
         scenario.load("standing_quiet", ["sim.servo_time_constant=0"])
+    with pytest.raises(scenario.ScenarioError, match="at least one physics step"):
+        scenario.load("standing_quiet", ["sim.servo_time_constant=0.0005"])     # in range, but < 1 ms at 1 kHz
