@@ -19,7 +19,7 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # this checkout, not an installed copy
 
-from humfall_ros import params, scenario as scenario_mod
+from humfall_ros import scenario as scenario_mod
 from humfall_ros.dynamics.pendulum import GRAVITY
 from humfall_ros.model.humanoid import SIDES, load_model, point_in_polygon_margin, support_polygon
 from humfall_ros.sim.closed_loop import ClosedLoop
@@ -128,7 +128,7 @@ def run_walk(speed_kmh: float = 1.0, steps: int = 20, overrides: list[str] | Non
             q_true = world.pinocchio_configuration()
             model.forward(q_true)
             # touchdowns: planned = the tick the pattern leaves single support; actual = the swing sole loaded
-            contacts = {s: bool(c) for s, c in zip(SIDES, _sole_loaded(world))}
+            contacts = {s: bool(c) for s, c in zip(SIDES, _sole_loaded(world, loop.estimator.contact_force))}
             if st.walking and prev_support != "double" and st.support == "double":
                 planned_td.append((world.time, "r" if prev_support == "single_left" else "l"))
             for s in SIDES:
@@ -227,12 +227,10 @@ def _ref_feet_center(st) -> np.ndarray:
     return 0.5 * (np.array(st.left_foot[:2]) + np.array(st.right_foot[:2]))
 
 
-def _sole_loaded(world, threshold: float | None = None) -> list[bool]:
-    """Each sole carries more than ``threshold`` [N] (ground truth, the simulator's contact forces; None: the
-    estimator's own ``contact_force``, so the contact delays measure its detection, not the load ramp between two
-    thresholds: with 30 N the new servos' slow lift-off read 100-150 ms, docs/walking.md "Session 21")."""
-    if threshold is None:
-        threshold = params.defaults("state_estimator")["contact_force"]
+def _sole_loaded(world, threshold: float) -> list[bool]:
+    """Each sole carries more than ``threshold`` [N] (ground truth, the simulator's contact forces). The walk passes
+    the estimator's own ``contact_force``, so the contact delays measure its detection, not the load ramp between two
+    thresholds (with 30 N the new servos' slow lift-off read 100-150 ms, docs/walking.md "Session 21")."""
     return [float(np.linalg.norm(world.foot_wrench(s)[0])) > threshold for s in SIDES]
 
 
