@@ -172,8 +172,9 @@ def test_servo_time_constant_sets_the_position_loop_of_the_joint_servos():
     slow, fast = error_after(0.05, 0.05), error_after(0.005, 0.05)
     assert 0.05 * 0.25 < slow < 0.05 * 0.5       # ~e^-1 of the step left after one time constant
     assert fast < 0.05 * 0.01                     # ten time constants: gone
-    with pytest.raises(ValueError, match="positionGain"):
-        SimWorld(1000.0, 500.0, servo_time_constant=0.0005)
+    for too_short in (0.0005, 0.0, -0.02, float("nan")):
+        with pytest.raises(ValueError, match="positionGain"):
+            SimWorld(1000.0, 500.0, servo_time_constant=too_short)
 
 
 def test_scenario_carries_the_servo_time_constant_to_the_world():

@@ -78,10 +78,10 @@ class SimWorld:
         if servo_time_constant is None:
             servo_time_constant = params_mod.defaults("sim_bridge")["servo_time_constant"]
         self.servo_time_constant = float(servo_time_constant)
+        if not self.servo_time_constant >= self.dt:
+            raise ValueError(f"servo_time_constant {servo_time_constant} s must be at least a physics step "
+                             f"({self.dt} s): PyBullet's positionGain = dt / servo_time_constant is at most 1")
         self.position_gain = self.dt / self.servo_time_constant
-        if not 0.0 < self.position_gain <= 1.0:
-            raise ValueError(f"servo_time_constant {servo_time_constant} s is shorter than a physics step "
-                             f"({self.dt} s): PyBullet's positionGain would be {self.position_gain:.3g} > 1")
         self.velocity_gain = velocity_gain
         self.enforce_velocity_limits = enforce_velocity_limits
         self.model = model or load_model()
