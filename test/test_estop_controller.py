@@ -380,3 +380,92 @@ def test_per_foot_cop_damping_turns_a_loaded_ankle_against_its_own_cop_error():
     others = np.ones(len(off), bool)
     others[[pitch["l"], pitch["r"], M.joint_index("l_ankle_roll"), M.joint_index("r_ankle_roll")]] = False
     assert np.allclose(d_on[others], 0.0, atol=1e-12)            # only the ankles
+
+
+def _stop(cfg: dict, ticks: int, left_force: float = 300.0, right_force: float = 269.0, imu=None):
+    """A stop from ``Pattern()`` (left foot ahead) run ``ticks`` ticks with the given per-foot forces / IMU."""
+    pattern = Pattern()
+    ctl = EstopController(M, EstopConfig.defaults(trigger_time=0.0, **cfg), DT)
+    out = None
+    for k in range(ticks):
+        inputs = {"walking/state": pattern} if imu is None else {"walking/state": pattern, "imu": imu}
+        o = obs(k * DT, **inputs)
+        st = dataclasses.replace(o.state, left_normal_force=left_force, right_normal_force=right_force,
+                                 left_cop=np.array([0.175, 0.09, 0.0]), right_cop=np.array([0.025, -0.09, 0.0]))
+        out = ctl.step(dataclasses.replace(o, state=st))
+    assert ctl.state in (EstopState.STOPPING, EstopState.STOPPED)
+    return ctl, out
+
+
+def test_sole_sinkage_moves_the_held_feet_with_the_stops_load_split():
+    """``sole_sinkage_gain`` (walking's sinkage feed-forward in the stop): as the stop's ZMP reference moves onto
+    the front (left) sole, its held target goes down and the rear one's up, by the load change over the URDF
+    sole stiffness (at most the weight over it), twice as far with gain 2; gain 0 holds the feet as at the start."""
+    from humfall_ros.walking.compliance import sole_contact
+
+    stiffness, _ = sole_contact(M)
+    weight = M.total_mass * 9.81
+    moved = {}
+    for g in (0.0, 1.0, 2.0):
+        ctl, _ = _stop({"sole_sinkage_gain": g}, 10)
+        end = ctl.plan.stop_time + 0.5            # the reference at rest: no damper lead left
+        held = ctl._held_feet(end)
+        moved[g] = {s: held[s].translation[2] - ctl._hold_feet[s].translation[2] for s in "lr"}
+        for s in "lr":
+            assert np.allclose(held[s].rotation, ctl._hold_feet[s].rotation)
+            assert np.allclose(held[s].translation[:2], ctl._hold_feet[s].translation[:2])
+    assert moved[0.0] == {"l": 0.0, "r": 0.0}
+    front, rear = moved[1.0]["l"], moved[1.0]["r"]
+    assert front < -1e-5 and rear > 1e-5                          # the load moved forward: front in, rear out
+    assert abs(front) < 1.01 * weight / stiffness and abs(rear) < 1.01 * weight / stiffness
+    assert front + rear == pytest.approx(0.0, abs=0.1 * abs(front))  # one load moved from one sole to the other
+    assert moved[2.0]["l"] == pytest.approx(2 * front, rel=1e-9)
+
+
+def test_sole_flat_turns_each_loaded_ankle_against_its_soles_measured_tilt():
+    """``sole_flat_gain``: the IMU reads the trunk pitched 3 mrad forward and rolled 2 mrad over the standing joints,
+    so both soles read toes down and their +y edges up: each loaded ankle turns toes up and its +y edge down
+    (pitch and roll offsets < 0), bounded by ``sole_flat_max`` and leaking; a sole under ``sole_flat_min_force`` is
+    left alone; only the ankles change."""
+    import pinocchio as pin
+
+    d = M.model.createData()
+    q0 = M.configuration([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], M.joint_vector(STANDING_POSTURE))
+    pin.framesForwardKinematics(M.model, d, q0)
+    R_imu = pin.rpy.rpyToMatrix(0.002, 0.003, 0.0) @ d.oMf[M.frame_ids[M.imu_frame]].rotation
+    imu = (pin.Quaternion(R_imu).coeffs().copy(), np.zeros(3))
+    pitch = {s: M.joint_index(f"{s}_ankle_pitch") for s in "lr"}
+    roll = {s: M.joint_index(f"{s}_ankle_roll") for s in "lr"}
+    _, off = _stop({}, 100, imu=imu)
+    ctl, on = _stop({"sole_flat_gain": 20.0, "sole_flat_min_force": 150.0}, 100, right_force=100.0, imu=imu)
+    d_on = on.positions - off.positions
+    assert d_on[pitch["l"]] < -1e-3 and d_on[roll["l"]] < -5e-4          # loaded: toes up, +y edge down
+    assert abs(d_on[pitch["r"]]) < 1e-12 and abs(d_on[roll["r"]]) < 1e-12  # 100 N < 150 N: untouched
+    # a steady 3 mrad tilt: the leaky offset is the first-order response towards -gain * T * tilt (18 mrad)
+    t = 100 * DT
+    assert d_on[pitch["l"]] == pytest.approx(-20.0 * 0.3 * 0.003 * (1.0 - np.exp(-t / 0.3)), rel=0.05)
+    _, capped = _stop({"sole_flat_gain": 20.0, "sole_flat_max": 0.005}, 100, imu=imu)
+    assert (capped.positions - off.positions)[pitch["l"]] == pytest.approx(-0.005, abs=1e-9)
+    others = np.ones(len(off.positions), bool)
+    others[[pitch["l"], pitch["r"], roll["l"], roll["r"]]] = False
+    assert np.allclose(d_on[others], 0.0, atol=1e-12)
+
+
+def test_foot_force_difference_lifts_the_overloaded_held_sole():
+    """``foot_force_gain`` (walking's loop 4 with forces in the stop): the left sole carries 549 of 569 N while the
+    stop's ZMP reference starts on the right sole: the left held target goes up and the right one's down, by half
+    the loop's difference each, within ``foot_height_max``; gain 0 leaves the held feet alone."""
+    import pinocchio as pin
+
+    def feet_z(ctl):
+        d = M.model.createData()
+        pin.framesForwardKinematics(M.model, d, ctl.q_ik)
+        return {s: d.oMf[M.frame_ids[M.foot_link[s]]].translation[2] - ctl._hold_feet[s].translation[2]
+                for s in "lr"}
+
+    base, _ = _stop({}, 40)
+    ctl, _ = _stop({"foot_force_gain": 3e-5}, 40, left_force=549.0, right_force=20.0)
+    z0, z = feet_z(base), feet_z(ctl)
+    dl, dr = z["l"] - z0["l"], z["r"] - z0["r"]
+    assert dl > 1e-5 and dr < -1e-5 and dl == pytest.approx(-dr, rel=0.05)
+    assert dl - dr <= 0.0005 + 1e-6                      # foot_height_max

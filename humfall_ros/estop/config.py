@@ -79,6 +79,14 @@ class EstopConfig:
     foot_cop_gain: float = 0.0
     foot_cop_min_force: float = 150.0
     foot_cop_time_constant: float = 0.2
+    sole_sinkage_gain: float = 0.0
+    foot_force_gain: float = 0.0
+    foot_height_time_constant: float = 0.05
+    foot_height_max: float = 0.0005
+    sole_flat_gain: float = 0.0
+    sole_flat_max: float = 0.02
+    sole_flat_time_constant: float = 0.3
+    sole_flat_min_force: float = 0.0
     joint_stop_time: float = 0.3
     home_duration: float = 1.5
     align_feet: bool = True

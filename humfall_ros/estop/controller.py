@@ -72,6 +72,8 @@ from humfall_ros.estop.posture import configuration_from_feet
 from humfall_ros.estop.statespace import return_home, stop_duration_within_limits
 from humfall_ros.model.humanoid import SIDES, HumanoidModel, quat_matrix
 from humfall_ros.model.ik import ComTask, FrameTask, OrientationTask, PostureTask, WholeBodyIK
+from humfall_ros.dynamics.pendulum import GRAVITY
+from humfall_ros.walking.compliance import planned_loads, sole_contact, sole_sinkage
 from humfall_ros.walking.stabilizer import WalkingStabilizer
 
 BLEND_TIME = 0.3          # s: the measured-posture CoG offset at the start is blended out over this
@@ -360,7 +362,12 @@ class EstopController:
         # walking's per-foot CoP damping (its loop 5 alone) for the stop's double support (off with gain 0)
         self._foot_cop = WalkingStabilizer(model, self.dt, 0.0, 0.0, 0.0, c.foot_cop_time_constant,
                                            c.ankle_max_offset, cop_time_constant_ds=c.foot_cop_time_constant,
-                                           foot_cop_gain=c.foot_cop_gain, foot_cop_min_force=c.foot_cop_min_force)
+                                           foot_cop_gain=c.foot_cop_gain, foot_cop_min_force=c.foot_cop_min_force,
+                                           foot_force_gain=c.foot_force_gain,
+                                           foot_height_time_constant=c.foot_height_time_constant,
+                                           foot_height_max=c.foot_height_max)
+        self._sole_stiffness, self._sole_damping = sole_contact(model)
+        self._weight = model.total_mass * GRAVITY
         home = getattr(model, "standing_posture", None)
         self._home = model.joint_vector(home) if isinstance(home, dict) else None
         self._phase: TriggerPhase = self.cfg.phase
@@ -387,7 +394,9 @@ class EstopController:
         self._offset0 = np.zeros(3)
         self._trunk0 = np.eye(3)
         self._hold_feet = None
+        self._sink0 = {s: 0.0 for s in SIDES}
         self._com_integral = np.zeros(3)
+        self._sole_flat = {s: np.zeros(2) for s in SIDES}   # (pitch, roll) ankle offsets of the sole-flat loop
         self._foot_cop.reset()
         self._upper0 = None
         self._upper_v0 = None
@@ -587,6 +596,7 @@ class EstopController:
         # walking's sole sinkage, foot height and ankle offsets have it): holding the pattern's flat, unsunk poses
         # instead steps every leg by millimetres in one tick (measured at 1.8 km/h: both soles unloaded for 40 ms)
         self._hold_feet = self._feet_of(q_seed)
+        self._sink0 = self._sinkage(0.0)
         self._com_integral = np.zeros(3)
         self._offset0 = self.m.com(q_seed) - plan.sample(0.0).com
         self._trunk0 = _base_rotation(q_seed)
@@ -624,6 +634,28 @@ class EstopController:
                 "feet_yaw_off_pattern": mo.yaw}
 
     # ------------------------------------------------------------------ execution
+    def _sinkage(self, t: float) -> dict:
+        """side -> the sinkage [m] of the stop's planned load at ``t`` on the URDF sole contact (walking/compliance.py:
+        its ZMP reference split between the two soles of the plan, the damper's lead from the next tick's)."""
+        if self.cfg.sole_sinkage_gain <= 0 or self._sole_stiffness <= 0:
+            return {s: 0.0 for s in SIDES}
+        feet = self.plan.state.feet
+        centres = {s: np.asarray(feet[s].sole_center(self.m, s), float)[:2] for s in SIDES}
+        f = planned_loads(self.plan.sample(t).zmp, centres, None, self._weight)
+        f_next = planned_loads(self.plan.sample(t + self.dt).zmp, centres, None, self._weight)
+        return sole_sinkage(f, f_next, self.dt, self._sole_stiffness, self._sole_damping)
+
+    def _held_feet(self, t: float) -> dict:
+        """The held ankle placements at ``t``: as at the start, each pressed in by the change of its sole's planned
+        sinkage since then (``sole_sinkage_gain``; the feet were held with the trigger tick's sinkage in them), so
+        the load moves between the soles as the plan's ZMP does, without the robot rocking on its stiff soles."""
+        g = self.cfg.sole_sinkage_gain
+        if g <= 0:
+            return self._hold_feet
+        sink = self._sinkage(t)
+        return {s: pin.SE3(h.rotation, h.translation - np.array([0.0, 0.0, g * (sink[s] - self._sink0[s])]))
+                for s, h in self._hold_feet.items()}
+
     def _feet_of(self, q: np.ndarray) -> dict[str, pin.SE3]:
         """The ankle-frame (``foot_link``) placements of configuration ``q`` per side."""
         d = self.m.model.createData()
@@ -704,7 +736,7 @@ class EstopController:
         posture[~self._legs] = self._upper_targets(t)      # may start the feet step (home reached)
         feet = plan.state.feet
         yaw = math.atan2(*(sum(feet[s].rotation[:2, 0] for s in SIDES)[::-1]))
-        tasks = [FrameTask(self.m.foot_link[s], self._hold_feet[s], hard=True) for s in SIDES]
+        tasks = None                            # the held feet, below (the feet step has its own)
         ankle_weight = {s: 1.0 for s in SIDES}
         ref_mid = 0.5 * (feet["l"].position + feet["r"].position)
         if self.align is not None:              # return home, step 3: the feet step (estop/align.py)
@@ -719,6 +751,16 @@ class EstopController:
             if a.done and self.state == EstopState.ALIGNING:
                 self._set(EstopState.HOLDING, observation.stamp_ns, reason=self.status.reason,
                           align_end_time=observation.time)
+        c = self.cfg
+        stab = None
+        if c.foot_cop_gain > 0 or c.foot_force_gain > 0:    # walking's loops 4 (forces) and 5 in double support
+            stab = self._foot_cop_output(observation.state, ref, ref_mid, feet, yaw)
+        if tasks is None:
+            held = self._held_feet(t)
+            if stab is not None:
+                held = {s: pin.SE3(h.rotation, h.translation + np.array([0.0, 0.0, stab.foot_z[s]]))
+                        for s, h in held.items()}
+            tasks = [FrameTask(self.m.foot_link[s], held[s], hard=True) for s in SIDES]
         self.status = dataclasses.replace(self.status, com_ref=tuple(map(float, ref.com)),
                                           com_velocity_ref=tuple(map(float, ref.com_velocity)),
                                           zmp_ref=tuple(map(float, ref.zmp)))
@@ -732,7 +774,6 @@ class EstopController:
         self.q_ik = r.q
         q = r.q[7:].copy()
         # ankle strategy on the measured CoG relative to the feet (the stabiliser of the executed stop)
-        c = self.cfg
         st = observation.state
         mid = ref_mid
         # the measured vectors are in the estimator's world, the reference in the pattern's: turn the measured
@@ -756,10 +797,43 @@ class EstopController:
         for i, s in enumerate(SIDES):            # in the feet step's single support: the stance ankle only
             q[self._pitch[i]] += ankle_weight[s] * d_pitch
             q[self._roll[i]] += ankle_weight[s] * d_roll
-        if c.foot_cop_gain > 0:
-            q = self._foot_cop.apply(q, self._foot_cop_output(st, ref, ref_mid, feet, yaw))
+        if stab is not None:
+            q = self._foot_cop.apply(q, stab)
+        if c.sole_flat_gain > 0:
+            self._update_sole_flat(observation)
+            for i, s in enumerate(SIDES):
+                q[self._pitch[i]] += self._sole_flat[s][0]
+                q[self._roll[i]] += self._sole_flat[s][1]
         q = np.clip(q, self.m.limits.lower, self.m.limits.upper)
         return JointTargets(q, r.v[6:].copy())
+
+    def _update_sole_flat(self, observation: Observation) -> None:
+        """The sole-flat loop (``sole_flat_gain``): each ankle's (pitch, roll) offset integrates minus its sole's
+        measured tilt to the ground, the soles placed by the measured joints under the IMU's trunk orientation (the
+        estimator's construction). The loaded servos sag by a few mrad along each leg, which tips a held sole onto
+        one edge (measured at 1.35 km/h: both soles 3.4 mrad toe-down, their heels 0.7 mm up), and a stance on two
+        edges rocks the load from one sole to the other. In the feet step (its swing foot follows its own sole
+        task) the offsets leak out over ``foot_cop_time_constant``; otherwise over ``sole_flat_time_constant`` (a
+        loaded sole flat on the ground still tilts by its contact's elastic give, which must not be integrated)."""
+        c = self.cfg
+        imu = observation.inputs.get("imu")
+        if self.align is not None or imu is None:
+            for s in SIDES:
+                self._sole_flat[s] *= max(0.0, 1.0 - self.dt / c.foot_cop_time_constant)
+            return
+        d = self.m.model.createData()
+        q = self.m.configuration([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0],
+                                 np.asarray(observation.joint_position, float))
+        pin.framesForwardKinematics(self.m.model, d, q)
+        R_base = quat_matrix(np.asarray(imu[0], float)) @ d.oMf[self.m.frame_ids[self.m.imu_frame]].rotation.T
+        for s in SIDES:
+            up = (R_base @ d.oMf[self.m.frame_ids[self.m.foot_link[s]]].rotation).T[:, 2]   # world z in the sole
+            tilt = np.array([math.asin(float(np.clip(-up[0], -1.0, 1.0))),      # pitch, > 0: toes down
+                             math.asin(float(np.clip(up[1], -1.0, 1.0)))])      # roll, > 0: +y edge up
+            forces = observation.state.foot_normal_forces
+            loaded = forces is None or float(forces[s]) > c.sole_flat_min_force
+            rate = -(c.sole_flat_gain if loaded else 0.0) * tilt - self._sole_flat[s] / c.sole_flat_time_constant
+            self._sole_flat[s] = np.clip(self._sole_flat[s] + self.dt * rate, -c.sole_flat_max, c.sole_flat_max)
 
     def _foot_cop_output(self, st, ref, ref_mid, feet, yaw: float):
         """Per-foot CoP damping of the stop (walking's loop 5): each loaded sole's ankle towards its share of the
