@@ -436,7 +436,7 @@ def test_sole_flat_turns_each_loaded_ankle_against_its_soles_measured_tilt():
     imu = (pin.Quaternion(R_imu).coeffs().copy(), np.zeros(3))
     pitch = {s: M.joint_index(f"{s}_ankle_pitch") for s in "lr"}
     roll = {s: M.joint_index(f"{s}_ankle_roll") for s in "lr"}
-    _, off = _stop({}, 100, imu=imu)
+    _, off = _stop({"sole_flat_gain": 0.0}, 100, right_force=100.0, imu=imu)
     ctl, on = _stop({"sole_flat_gain": 20.0, "sole_flat_min_force": 150.0}, 100, right_force=100.0, imu=imu)
     d_on = on.positions - off.positions
     assert d_on[pitch["l"]] < -1e-3 and d_on[roll["l"]] < -5e-4          # loaded: toes up, +y edge down
@@ -444,7 +444,7 @@ def test_sole_flat_turns_each_loaded_ankle_against_its_soles_measured_tilt():
     # a steady 3 mrad tilt: the leaky offset is the first-order response towards -gain * T * tilt (18 mrad)
     t = 100 * DT
     assert d_on[pitch["l"]] == pytest.approx(-20.0 * 0.3 * 0.003 * (1.0 - np.exp(-t / 0.3)), rel=0.05)
-    _, capped = _stop({"sole_flat_gain": 20.0, "sole_flat_max": 0.005}, 100, imu=imu)
+    _, capped = _stop({"sole_flat_gain": 20.0, "sole_flat_max": 0.005}, 100, right_force=100.0, imu=imu)
     assert (capped.positions - off.positions)[pitch["l"]] == pytest.approx(-0.005, abs=1e-9)
     others = np.ones(len(off.positions), bool)
     others[[pitch["l"], pitch["r"], roll["l"], roll["r"]]] = False
@@ -463,9 +463,38 @@ def test_foot_force_difference_lifts_the_overloaded_held_sole():
         return {s: d.oMf[M.frame_ids[M.foot_link[s]]].translation[2] - ctl._hold_feet[s].translation[2]
                 for s in "lr"}
 
-    base, _ = _stop({}, 40)
+    base, _ = _stop({"foot_force_gain": 0.0}, 40, left_force=549.0, right_force=20.0)
     ctl, _ = _stop({"foot_force_gain": 3e-5}, 40, left_force=549.0, right_force=20.0)
     z0, z = feet_z(base), feet_z(ctl)
     dl, dr = z["l"] - z0["l"], z["r"] - z0["r"]
     assert dl > 1e-5 and dr < -1e-5 and dl == pytest.approx(-dr, rel=0.05)
     assert dl - dr <= 0.0005 + 1e-6                      # foot_height_max
+
+
+def test_quintic_blend_starts_and_ends_the_start_offset_without_a_velocity_step():
+    """``blend_profile``: the IK model's CoG minus the plan's (the start offset) goes out over ``BLEND_TIME``;
+    linear, its rate jumps by offset / BLEND_TIME at the start and at the end (a CoP spike on the robot: measured
+    at 1.8 km/h, 2 cm past n3 at 0.32 s); quintic, the rate is ~0 at both ends; both end on the plan."""
+    from humfall_ros.estop.controller import BLEND_TIME
+
+    applied = M.joint_vector(STANDING_POSTURE)
+    for j in ("l_hip_pitch", "r_hip_pitch"):
+        applied[M.joint_index(j)] -= 0.05                 # the trunk leant: a CoG offset to blend out
+    rates = {}
+    for profile in ("linear", "quintic"):
+        ctl = EstopController(M, EstopConfig.defaults(trigger_time=0.0, blend_profile=profile), DT)
+        off = []
+        for k in range(int(1.3 * BLEND_TIME / DT)):
+            o = dataclasses.replace(obs(k * DT, **{"walking/state": Pattern()}), joint_targets=applied.copy())
+            ctl.step(o)
+            t = k * DT - ctl._t_start
+            off.append(M.com(ctl.q_ik)[:2] - ctl.plan.sample(t).com[:2])
+        off = np.array(off)
+        rates[profile] = np.linalg.norm(np.diff(off, axis=0), axis=1) / DT
+        assert np.linalg.norm(off[-1]) < 1e-3                      # on the plan after the blend
+        offset0 = np.linalg.norm(ctl._offset0[:2])
+    assert offset0 > 0.005
+    k_end = int(BLEND_TIME / DT)
+    lin, quin = rates["linear"], rates["quintic"]
+    assert lin[2] > 0.5 * offset0 / BLEND_TIME and lin[k_end + 3] < 0.2 * lin[2]   # linear: on, then off
+    assert quin[2] < 0.1 * lin[2] and quin[k_end - 3] < 0.1 * lin[2]             # quintic: ~0 at both ends

@@ -9,6 +9,7 @@ BETA_POLICIES = ("clamp", "supremum", "omega_c")
 # the scenario's single-support phase names (humfall_ros.scenario.Phase) -> elapsed fraction (issue 12's trials)
 SS_PHASES = {"ss_start": 0.1, "ss_mid": 0.5, "ss_end": 0.95}
 FALLBACKS = ("min_n3_crouch", "none")
+BLEND_PROFILES = ("linear", "quintic")
 # parameters of config/estop_planner.yaml that only the node reads (not EstopConfig's)
 NODE_KEYS = frozenset({"walking_state_input"})
 
@@ -79,14 +80,15 @@ class EstopConfig:
     foot_cop_gain: float = 0.0
     foot_cop_min_force: float = 150.0
     foot_cop_time_constant: float = 0.2
-    sole_sinkage_gain: float = 0.0
-    foot_force_gain: float = 0.0
+    sole_sinkage_gain: float = 1.0
+    blend_profile: str = "quintic"
+    foot_force_gain: float = 3e-5
     foot_height_time_constant: float = 0.05
     foot_height_max: float = 0.0005
-    sole_flat_gain: float = 0.0
+    sole_flat_gain: float = 20.0
     sole_flat_max: float = 0.02
     sole_flat_time_constant: float = 0.3
-    sole_flat_min_force: float = 0.0
+    sole_flat_min_force: float = 150.0
     joint_stop_time: float = 0.3
     home_duration: float = 1.5
     align_feet: bool = True
@@ -103,6 +105,8 @@ class EstopConfig:
     def __post_init__(self):
         if self.beta_policy not in BETA_POLICIES:
             raise ValueError(f"beta_policy {self.beta_policy!r} is not one of {', '.join(BETA_POLICIES)}")
+        if self.blend_profile not in BLEND_PROFILES:
+            raise ValueError(f"blend_profile {self.blend_profile!r} is not one of {', '.join(BLEND_PROFILES)}")
         if self.fallback not in FALLBACKS:
             raise ValueError(f"fallback {self.fallback!r} is not one of {', '.join(FALLBACKS)}")
         if len(self.minor_lqr_weights) != 3 or min(self.minor_lqr_weights) < 0:
@@ -149,4 +153,5 @@ def trigger_params(estop: dict) -> dict:
     return {}
 
 
-__all__ = ["BETA_POLICIES", "FALLBACKS", "NODE_KEYS", "SS_PHASES", "EstopConfig", "TriggerPhase", "trigger_params"]
+__all__ = ["BETA_POLICIES", "BLEND_PROFILES", "FALLBACKS", "NODE_KEYS", "SS_PHASES", "EstopConfig", "TriggerPhase",
+           "trigger_params"]

@@ -731,7 +731,8 @@ class EstopController:
         if ref.done and self.state == EstopState.STOPPING:
             self._t_stopped = observation.time
             self._set(EstopState.STOPPED, observation.stamp_ns, reason=self.status.reason)
-        blend = max(0.0, 1.0 - t / BLEND_TIME)
+        u = min(max(t / BLEND_TIME, 0.0), 1.0)
+        blend = 1.0 - (u if self.cfg.blend_profile == "linear" else 10 * u ** 3 - 15 * u ** 4 + 6 * u ** 5)
         posture = self.q_ik[7:].copy()
         posture[~self._legs] = self._upper_targets(t)      # may start the feet step (home reached)
         feet = plan.state.feet
