@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import types
 import pathlib
 
 import numpy as np
@@ -304,12 +305,15 @@ def test_a_landing_the_ik_cannot_reach_retries_the_cases_next_cells():
     assert retried >= 5
 
 
-def _deferral_run(threshold: float, residual_after: float, max_defer: float = 0.04):
+def _deferral_run(threshold: float, residual_after: float, max_defer: float = 0.04, scope: str = "any",
+                  gait=None):
     """A recorded take-over fed 20 ms of history with the capture point running ahead of the LIPM by 2 m/s
-    (a push acting), then the fall event, then ticks with the residual ``residual_after`` [m/s]."""
+    (a push acting), then the fall event, then ticks with the residual ``residual_after`` [m/s]; ``gait``: a
+    walking state given before the event (the recording is standing)."""
     r = DATA["decisions"][0]
     cfg = SafeFallConfig.from_params({**params.defaults("safe_fall_controller"), **RECORDING,
-                                      "defer_push_residual_mps": threshold, "max_defer_s": max_defer})
+                                      "defer_push_residual_mps": threshold, "max_defer_s": max_defer,
+                                      "defer_scope": scope})
     ctrl = SafeFallController(config=cfg)
     base = obs_of(r)
     s = base.state
@@ -326,6 +330,8 @@ def _deferral_run(threshold: float, residual_after: float, max_defer: float = 0.
         inputs = dict(base.inputs)
         if not event:
             inputs.pop("fall_event")
+            if gait is not None:
+                inputs["walking/state"] = gait
         return dataclasses.replace(base, stamp_ns=base.stamp_ns + k * 2_000_000, state=st, inputs=inputs)
 
     for k in range(-10, 0):
@@ -354,6 +360,17 @@ def test_the_decision_waits_while_the_push_residual_is_high():
     # the push goes on: decided at max_defer_s
     ctrl, k, _, _ = _deferral_run(1.0, 2.0, max_defer=0.03)
     assert k == 15 and ctrl.deferral["residual_decision_mps"] > 1.0
+
+
+def test_the_deferral_can_be_kept_to_walking_take_overs():
+    """``defer_scope: walking``: a standing take-over decides on the event's tick although the residual is high;
+    one taken over while walking (a walking state seen before the event) holds and waits as ``any`` does."""
+    ctrl, k, _, _ = _deferral_run(1.0, 0.0, scope="walking")
+    assert k == 0 and ctrl.deferral is None
+    gait = types.SimpleNamespace(walking=True, released=False)
+    ctrl = _deferral_run(1.0, 2.0, max_defer=0.03, scope="walking", gait=gait)[0]
+    assert ctrl.deferral is not None and ctrl.deferral["residual_start_mps"] == pytest.approx(2.0, rel=0.05)
+    assert ctrl.deferral["decision_s"] - ctrl.deferral["start_s"] == pytest.approx(0.03, abs=1e-6)
 
 
 def test_predicted_falls_report_the_edge_fall_angle_and_captures_do_not():

@@ -99,7 +99,10 @@ def test_a_new_decision_after_a_walking_push_does_not_use_the_interrupted_gait()
 
     sc = scenario.load("walking_push", ["push.0.force=[400.0, 0.0, 0.0]",
                                         "params.safe_fall_controller.max_extra_steps=2",
-                                        "params.safe_fall_controller.restep_after_s=0.3"])
+                                        "params.safe_fall_controller.restep_after_s=0.3",
+                                        # decided at the event (no deferral): the first step's capture then fails,
+                                        # the case under test (deferred to the push's end, 400 N is captured)
+                                        "params.safe_fall_controller.defer_push_residual_mps=0.0"])
     r = runs.run(sc, "stepping")
     notes = r.reasons
     first = next(i for i, n in enumerate(notes) if "capture failed" in n)

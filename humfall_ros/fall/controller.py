@@ -124,6 +124,7 @@ class SafeFallConfig:
     defer_push_residual_mps: float = 0.0
     push_residual_window_s: float = 0.02
     max_defer_s: float = 0.04
+    defer_scope: str = "walking"
     max_extra_steps: int = 0
     restep_after_s: float = 0.1
 
@@ -372,9 +373,11 @@ class SafeFallController:
     def _defer(self, obs: Observation) -> bool:
         """Hold the posture and decide later while the push still acts (ours; ``fall.push_residual``): True while
         the capture point's residual exceeds ``defer_push_residual_mps`` and the deferral is shorter than
-        ``max_defer_s`` (0: off). The step is then chosen from the state the push leaves."""
+        ``max_defer_s`` (0: off); with ``defer_scope`` walking only when the fall event came while walking (the
+        swing foot is already off the ground, so waiting costs no lift; standing, the wait delays the lift-off). The
+        step is then chosen from the state the push leaves."""
         c = self.config
-        if c.defer_push_residual_mps <= 0.0:
+        if c.defer_push_residual_mps <= 0.0 or (c.defer_scope == "walking" and self.gait is None):
             return False
         r = self.push_residual.magnitude()
         if self.deferral is None or "decision_s" in self.deferral:   # a new take-over: its deferral starts
