@@ -196,6 +196,24 @@ def test_metrics_alpha2_at_the_measured_p2_and_prediction():
     assert r["predicted_avoidance_deg"] == pytest.approx(90.0) and r["captured"] is False
 
 
+def test_metrics_a_step_that_ends_leaning_on_the_target_is_no_capture():
+    """``captured``: the step was taken and the robot did not fall, without the target's help: the same run
+    with the robot touching the target on the way (distance 0) is not a capture; 3 cm away it is."""
+    out = {}
+    for dist in (0.03, 0.0):
+        m = _metrics_after_a_step_right_decision()
+        poses = {"l": (0.0, 0.1, 0.0, 0.0), "r": (0.0, -0.1, 0.0, 0.0)}
+        for k in range(1000):
+            t = 0.002 * k
+            down = {"l": True, "r": not (0.61 <= t < 1.04)}
+            poses["r"] = (0.31, -0.1, 0.21, 1.0) if t >= 1.04 else poses["r"]
+            m.update_feet(t, [0.14, 0.0, 0.0], down, poses)
+            m.update(t, [0.1, 0.0, 0.75], 0.1, 0.8, 0.5 if t < 1.5 else dist, False)
+        out[dist] = m.result()
+    assert out[0.03]["captured"] is True and out[0.03]["min_target_distance_m"] == pytest.approx(0.03)
+    assert out[0.0]["captured"] is False and not out[0.0]["fell"]
+
+
 def test_metrics_with_lazy_poses_and_cop_equal_the_eager_ones_and_compute_them_rarely():
     """The bridge passes the feet's poses and the CoP as functions (foot_state(world, lazy=True)): the same
     result, and the functions are called on the touchdown tick and in the CoP window only."""

@@ -18,6 +18,8 @@ import math
 
 import numpy as np
 
+TARGET_CONTACT_M = 1e-3   # a robot-target distance below this is a touch (PyBullet's closest points read 0 at contact)
+
 FALL_TRUNK_TILT = math.radians(45.0)   # trunk tilt beyond which the robot has fallen
 FALL_WAIST_HEIGHT = 0.35               # m; waist below this: fallen
 BOUNCE_S = 0.3                         # s; a step's sole that lifts and lands again within this is one touchdown (P2)
@@ -219,7 +221,10 @@ class FallMetrics:
         td = self.touchdowns.get(side) if side else None
         if self.decision is not None:
             stepped = td is not None and d["case"].startswith("step")
-            out["captured"] = bool(stepped and not self.fell)
+            # a robot that ends up leaning on the target did not stop its own fall (measured: walking_push 300 N with
+            # the push deferral "captured" while its trunk rested on the target box)
+            touched = self.min_target_distance < TARGET_CONTACT_M
+            out["captured"] = bool(stepped and not self.fell and not touched)
         m_side, m_after = side, None
         if dm is not d:
             m_side, m_after = dm.get("swing_side") or None, dm["time"]
