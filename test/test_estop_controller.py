@@ -498,3 +498,31 @@ def test_quintic_blend_starts_and_ends_the_start_offset_without_a_velocity_step(
     lin, quin = rates["linear"], rates["quintic"]
     assert lin[2] > 0.5 * offset0 / BLEND_TIME and lin[k_end + 3] < 0.2 * lin[2]   # linear: on, then off
     assert quin[2] < 0.1 * lin[2] and quin[k_end - 3] < 0.1 * lin[2]             # quintic: ~0 at both ends
+
+
+def test_flatten_held_feet_turns_a_tilted_held_foot_flat_over_the_blend():
+    """``flatten_held_feet``: the take-over holds the front foot where walking's ankle offset (0.03 rad) tipped it;
+    over the start blend the held pose goes flat (roll, pitch 0, yaw and position kept); without it, it stays tipped."""
+    import pinocchio as pin
+
+    from humfall_ros.estop.controller import BLEND_TIME
+
+    applied = M.joint_vector(STANDING_POSTURE)
+    applied[M.joint_index("l_ankle_pitch")] += 0.03
+    tilt = {}
+    for flat in (False, True):
+        ctl = EstopController(M, EstopConfig.defaults(trigger_time=0.0, flatten_held_feet=flat), DT)
+        for k in range(int(1.2 * BLEND_TIME / DT)):
+            ctl.step(dataclasses.replace(obs(k * DT, **{"walking/state": Pattern()}), joint_targets=applied.copy()))
+        start = ctl._hold_feet["l"]
+        held = ctl._held_feet(1.2 * BLEND_TIME)["l"]
+        d = M.model.createData()
+        pin.framesForwardKinematics(M.model, d, ctl.q_ik)
+        ik_foot = d.oMf[M.frame_ids[M.foot_link["l"]]]
+        up = ik_foot.rotation[:, 2]
+        tilt[flat] = float(np.arccos(np.clip(up[2], -1.0, 1.0)))
+        assert np.linalg.norm(held.translation[:2] - start.translation[:2]) < 1e-12
+        yaw = [float(np.arctan2(R[1, 0], R[0, 0])) for R in (held.rotation, start.rotation)]
+        assert yaw[0] == pytest.approx(yaw[1], abs=1e-9)
+    assert tilt[False] == pytest.approx(0.03, abs=3e-3)
+    assert tilt[True] < 1e-3

@@ -81,6 +81,7 @@ class EstopConfig:
     foot_cop_min_force: float = 150.0
     foot_cop_time_constant: float = 0.2
     sole_sinkage_gain: float = 1.0
+    flatten_held_feet: bool = True
     blend_profile: str = "quintic"
     foot_force_gain: float = 3e-5
     foot_height_time_constant: float = 0.05

@@ -650,11 +650,21 @@ class EstopController:
         sinkage since then (``sole_sinkage_gain``; the feet were held with the trigger tick's sinkage in them), so
         the load moves between the soles as the plan's ZMP does, without the robot rocking on its stiff soles."""
         g = self.cfg.sole_sinkage_gain
+        hold = self._hold_feet
+        if self.cfg.flatten_held_feet:
+            w = self._blend_done(t)
+            hold = {s: pin.SE3(h.rotation @ pin.exp3(w * pin.log3(h.rotation.T @ _yaw_matrix(
+                math.atan2(h.rotation[1, 0], h.rotation[0, 0])))), h.translation) for s, h in hold.items()}
         if g <= 0:
-            return self._hold_feet
+            return hold
         sink = self._sinkage(t)
         return {s: pin.SE3(h.rotation, h.translation - np.array([0.0, 0.0, g * (sink[s] - self._sink0[s])]))
-                for s, h in self._hold_feet.items()}
+                for s, h in hold.items()}
+
+    def _blend_done(self, t: float) -> float:
+        """How far the start blend is at ``t`` [0, 1] (``blend_profile`` over ``BLEND_TIME``)."""
+        u = min(max(t / BLEND_TIME, 0.0), 1.0)
+        return u if self.cfg.blend_profile == "linear" else 10 * u ** 3 - 15 * u ** 4 + 6 * u ** 5
 
     def _feet_of(self, q: np.ndarray) -> dict[str, pin.SE3]:
         """The ankle-frame (``foot_link``) placements of configuration ``q`` per side."""
@@ -731,8 +741,7 @@ class EstopController:
         if ref.done and self.state == EstopState.STOPPING:
             self._t_stopped = observation.time
             self._set(EstopState.STOPPED, observation.stamp_ns, reason=self.status.reason)
-        u = min(max(t / BLEND_TIME, 0.0), 1.0)
-        blend = 1.0 - (u if self.cfg.blend_profile == "linear" else 10 * u ** 3 - 15 * u ** 4 + 6 * u ** 5)
+        blend = 1.0 - self._blend_done(t)
         posture = self.q_ik[7:].copy()
         posture[~self._legs] = self._upper_targets(t)      # may start the feet step (home reached)
         feet = plan.state.feet
