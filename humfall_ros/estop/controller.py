@@ -64,6 +64,7 @@ import numpy as np
 import pinocchio as pin
 
 from humfall_ros.control.contract import JointTargets, Observation, stamp_ns_of
+from humfall_ros.dynamics.pendulum import GRAVITY
 from humfall_ros.estop.align import AlignPlan, AlignSettings, plan_alignment
 from humfall_ros.estop.config import EstopConfig, TriggerPhase
 from humfall_ros.estop.frame import FootPose, PlanarMotion
@@ -72,7 +73,6 @@ from humfall_ros.estop.posture import configuration_from_feet
 from humfall_ros.estop.statespace import return_home, stop_duration_within_limits
 from humfall_ros.model.humanoid import SIDES, HumanoidModel, quat_matrix
 from humfall_ros.model.ik import ComTask, FrameTask, OrientationTask, PostureTask, WholeBodyIK
-from humfall_ros.dynamics.pendulum import GRAVITY
 from humfall_ros.walking.compliance import planned_loads, sole_contact, sole_sinkage
 from humfall_ros.walking.stabilizer import WalkingStabilizer
 
@@ -367,6 +367,7 @@ class EstopController:
                                            foot_height_time_constant=c.foot_height_time_constant,
                                            foot_height_max=c.foot_height_max)
         self._sole_stiffness, self._sole_damping = sole_contact(model)
+        self._fk = model.model.createData()     # one Data for the per-tick forward kinematics (no allocation per tick)
         self._weight = model.total_mass * GRAVITY
         home = getattr(model, "standing_posture", None)
         self._home = model.joint_vector(home) if isinstance(home, dict) else None
@@ -395,6 +396,7 @@ class EstopController:
         self._trunk0 = np.eye(3)
         self._hold_feet = None
         self._sink0 = {s: 0.0 for s in SIDES}
+        self._plan_centres = None           # the plan's sole centres (x, y) per side, for the sinkage
         self._com_integral = np.zeros(3)
         self._sole_flat = {s: np.zeros(2) for s in SIDES}   # (pitch, roll) ankle offsets of the sole-flat loop
         self._foot_cop.reset()
@@ -596,6 +598,7 @@ class EstopController:
         # walking's sole sinkage, foot height and ankle offsets have it): holding the pattern's flat, unsunk poses
         # instead steps every leg by millimetres in one tick (measured at 1.8 km/h: both soles unloaded for 40 ms)
         self._hold_feet = self._feet_of(q_seed)
+        self._plan_centres = None
         self._sink0 = self._sinkage(0.0)
         self._com_integral = np.zeros(3)
         self._offset0 = self.m.com(q_seed) - plan.sample(0.0).com
@@ -634,19 +637,23 @@ class EstopController:
                 "feet_yaw_off_pattern": mo.yaw}
 
     # ------------------------------------------------------------------ execution
-    def _sinkage(self, t: float) -> dict:
+    def _sinkage(self, t: float, zmp=None) -> dict:
         """side -> the sinkage [m] of the stop's planned load at ``t`` on the URDF sole contact (walking/compliance.py:
-        its ZMP reference split between the two soles of the plan, the damper's lead from the next tick's)."""
+        its ZMP reference split between the two soles of the plan, the damper's lead from the next tick's);
+        ``zmp``: the plan's ZMP at ``t`` when the caller has it."""
         if self.cfg.sole_sinkage_gain <= 0 or self._sole_stiffness <= 0:
             return {s: 0.0 for s in SIDES}
-        feet = self.plan.state.feet
-        centres = {s: np.asarray(feet[s].sole_center(self.m, s), float)[:2] for s in SIDES}
-        f = planned_loads(self.plan.sample(t).zmp, centres, None, self._weight)
+        if self._plan_centres is None:
+            feet = self.plan.state.feet
+            self._plan_centres = {s: np.asarray(feet[s].sole_center(self.m, s), float)[:2] for s in SIDES}
+        centres = self._plan_centres
+        f = planned_loads(self.plan.sample(t).zmp if zmp is None else zmp, centres, None, self._weight)
         f_next = planned_loads(self.plan.sample(t + self.dt).zmp, centres, None, self._weight)
         return sole_sinkage(f, f_next, self.dt, self._sole_stiffness, self._sole_damping)
 
-    def _held_feet(self, t: float) -> dict:
-        """The held ankle placements at ``t``: as at the start, each pressed in by the change of its sole's planned
+    def _held_feet(self, t: float, zmp=None) -> dict:
+        """The held ankle placements at ``t``: as at the start, turned flat over the start blend (``flatten_held_feet``:
+        the start's held poses carry walking's ankle offsets), and each pressed in by the change of its sole's planned
         sinkage since then (``sole_sinkage_gain``; the feet were held with the trigger tick's sinkage in them), so
         the load moves between the soles as the plan's ZMP does, without the robot rocking on its stiff soles."""
         g = self.cfg.sole_sinkage_gain
@@ -657,7 +664,7 @@ class EstopController:
                 math.atan2(h.rotation[1, 0], h.rotation[0, 0])))), h.translation) for s, h in hold.items()}
         if g <= 0:
             return hold
-        sink = self._sinkage(t)
+        sink = self._sinkage(t, zmp)
         return {s: pin.SE3(h.rotation, h.translation - np.array([0.0, 0.0, g * (sink[s] - self._sink0[s])]))
                 for s, h in hold.items()}
 
@@ -676,7 +683,7 @@ class EstopController:
         """The measured IMU yaw minus the IMU yaw of configuration ``q`` [rad] (0 without an IMU input)."""
         if imu is None:
             return 0.0
-        d = self.m.model.createData()
+        d = self._fk
         pin.framesForwardKinematics(self.m.model, d, q)
         R_ik = d.oMf[self.m.frame_ids[self.m.imu_frame]].rotation
         R = quat_matrix(np.asarray(imu[0], float))
@@ -766,7 +773,7 @@ class EstopController:
         if c.foot_cop_gain > 0 or c.foot_force_gain > 0:    # walking's loops 4 (forces) and 5 in double support
             stab = self._foot_cop_output(observation.state, ref, ref_mid, feet, yaw)
         if tasks is None:
-            held = self._held_feet(t)
+            held = self._held_feet(t, ref.zmp)
             if stab is not None:
                 held = {s: pin.SE3(h.rotation, h.translation + np.array([0.0, 0.0, stab.foot_z[s]]))
                         for s, h in held.items()}
@@ -831,7 +838,7 @@ class EstopController:
             for s in SIDES:
                 self._sole_flat[s] *= max(0.0, 1.0 - self.dt / c.foot_cop_time_constant)
             return
-        d = self.m.model.createData()
+        d = self._fk
         q = self.m.configuration([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0],
                                  np.asarray(observation.joint_position, float))
         pin.framesForwardKinematics(self.m.model, d, q)
