@@ -133,8 +133,7 @@ def _walk_cp_errors(tau: float) -> tuple[float, float]:
 def test_fusion_hides_the_stance_foot_slip_from_the_capture_point():
     """1.35 km/h on the slipping servos: the stance foot slides ~40 mm/s at the end of each single support, which
     leg odometry reads as a CoM velocity error (the capture point ~1.3 cm off); with the ground reaction fused,
-    under 1 cm. The
-    odometry's own capture point is the same with the filter on or off."""
+    under 1 cm. The odometry's own capture point is the same with the filter on or off."""
     odometry_off, fused_off = _walk_cp_errors(0.0)
     odometry, fused = _walk_cp_errors(0.2)
     assert fused_off == odometry_off         # off: one estimate

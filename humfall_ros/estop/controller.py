@@ -71,7 +71,7 @@ from humfall_ros.estop.frame import FootPose, PlanarMotion
 from humfall_ros.estop.planner import EstopInputError, EstopPlanner, PatternState, StopPlan
 from humfall_ros.estop.posture import configuration_from_feet
 from humfall_ros.estop.statespace import return_home, stop_duration_within_limits
-from humfall_ros.model.humanoid import SIDES, HumanoidModel, quat_matrix
+from humfall_ros.model.humanoid import SIDES, HumanoidModel, base_rotation_from_imu, quat_matrix
 from humfall_ros.model.ik import ComTask, FrameTask, OrientationTask, PostureTask, WholeBodyIK
 from humfall_ros.walking.compliance import planned_loads, sole_contact, sole_sinkage
 from humfall_ros.walking.stabilizer import WalkingStabilizer
@@ -265,7 +265,7 @@ def feet_from_joints(model: HumanoidModel, joints, feet_center_xy, heading: floa
     pin.framesForwardKinematics(model.model, d, q)
     soles = {s: d.oMf[model.frame_ids[model.sole_frame[s]]] for s in SIDES}
     if imu_orientation is not None:
-        R_base = quat_matrix(np.asarray(imu_orientation, float)) @ d.oMf[model.frame_ids[model.imu_frame]].rotation.T
+        R_base = base_rotation_from_imu(model, d, imu_orientation)
         x_axes = sum(R_base @ soles[s].rotation[:, 0] for s in SIDES)
         heading = math.atan2(float(x_axes[1]), float(x_axes[0]))
     ankles = {s: d.oMf[model.frame_ids[model.foot_link[s]]] for s in SIDES}
@@ -293,7 +293,7 @@ def measured_sole_centers(model: HumanoidModel, joints, feet_center, imu_orienta
     q = model.configuration([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], np.asarray(joints, float))
     pin.framesForwardKinematics(model.model, d, q)
     if imu_orientation is not None:
-        R = quat_matrix(np.asarray(imu_orientation, float)) @ d.oMf[model.frame_ids[model.imu_frame]].rotation.T
+        R = base_rotation_from_imu(model, d, imu_orientation)
     elif q_fallback is not None:
         R = _base_rotation(q_fallback)
     else:
@@ -359,7 +359,8 @@ class EstopController:
         self._pitch = [model.joint_index(f"{s}_ankle_pitch") for s in SIDES]
         self._roll = [model.joint_index(f"{s}_ankle_roll") for s in SIDES]
         c = self.cfg
-        # walking's per-foot CoP damping (its loop 5 alone) for the stop's double support (off with gain 0)
+        # walking's stabiliser with only its stance loops for the stop's double support: foot force difference control
+        # (loop 4 with forces, foot_force_gain) and per-foot CoP damping (loop 5, foot_cop_gain; 0 = off)
         self._foot_cop = WalkingStabilizer(model, self.dt, 0.0, 0.0, 0.0, c.foot_cop_time_constant,
                                            c.ankle_max_offset, cop_time_constant_ds=c.foot_cop_time_constant,
                                            foot_cop_gain=c.foot_cop_gain, foot_cop_min_force=c.foot_cop_min_force,
@@ -842,13 +843,13 @@ class EstopController:
         q = self.m.configuration([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0],
                                  np.asarray(observation.joint_position, float))
         pin.framesForwardKinematics(self.m.model, d, q)
-        R_base = quat_matrix(np.asarray(imu[0], float)) @ d.oMf[self.m.frame_ids[self.m.imu_frame]].rotation.T
+        R_base = base_rotation_from_imu(self.m, d, imu[0])
+        forces = observation.state.foot_normal_forces
         for s in SIDES:
             up = (R_base @ d.oMf[self.m.frame_ids[self.m.foot_link[s]]].rotation).T[:, 2]   # world z in the sole
             tilt = np.array([math.asin(float(np.clip(-up[0], -1.0, 1.0))),      # pitch, > 0: toes down
                              math.asin(float(np.clip(up[1], -1.0, 1.0)))])      # roll, > 0: +y edge up
-            forces = observation.state.foot_normal_forces
-            loaded = forces is None or float(forces[s]) > c.sole_flat_min_force
+            loaded = float(forces[s]) > c.sole_flat_min_force
             rate = -(c.sole_flat_gain if loaded else 0.0) * tilt - self._sole_flat[s] / c.sole_flat_time_constant
             self._sole_flat[s] = np.clip(self._sole_flat[s] + self.dt * rate, -c.sole_flat_max, c.sole_flat_max)
 

@@ -25,7 +25,7 @@ import math
 import numpy as np
 import pinocchio as pin
 
-from humfall_ros.model.humanoid import HumanoidModel, quat_matrix
+from humfall_ros.model.humanoid import HumanoidModel, base_rotation_from_imu
 from humfall_ros.model.ik import FrameTask, PostureTask, WholeBodyIK
 
 LEG_JOINTS = ("hip_yaw", "hip_roll", "hip_pitch", "knee", "ankle_pitch", "ankle_roll")
@@ -41,8 +41,7 @@ def configuration_from_sensors(model: HumanoidModel, joints, imu_quat_xyzw, com_
     m, d = model.model, model.data
     q = model.configuration([0, 0, 0], [0, 0, 0, 1], joints)
     pin.framesForwardKinematics(m, d, q)
-    R_imu = quat_matrix(imu_quat_xyzw)
-    R_base = R_imu @ d.oMf[model.frame_ids[model.imu_frame]].rotation.T
+    R_base = base_rotation_from_imu(model, d, imu_quat_xyzw)
     q[3:7] = pin.Quaternion(R_base).coeffs()
     c = pin.centerOfMass(m, d, q)
     q[:3] = np.asarray(com_world, float) - c

@@ -199,6 +199,13 @@ class HumanoidModel:
         return M.translation.copy(), R @ np.asarray(force_local, float), R @ np.asarray(torque_local, float)
 
 
+def base_rotation_from_imu(model: HumanoidModel, data, imu_quat_xyzw) -> np.ndarray:
+    """World rotation of the floating base from the IMU's world orientation (x, y, z, w), given ``data`` after a
+    frames forward kinematics pass with the base at identity: the IMU's rotation composed with the inverse of its
+    rotation in the base (through the waist joints) - the estimator's construction."""
+    return quat_matrix(imu_quat_xyzw) @ data.oMf[model.frame_ids[model.imu_frame]].rotation.T
+
+
 def quat_matrix(q_xyzw) -> np.ndarray:
     """Rotation matrix of a quaternion (x, y, z, w), normalised first.
 
