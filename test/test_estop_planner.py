@@ -184,6 +184,25 @@ def test_long_step_crouches_and_the_crouch_is_in_the_zmp_prediction(planner):
     assert plan.sample(plan.end_time + 1).com[2] == pytest.approx(st.ground_height + plan.crouch.end_height)
 
 
+def test_the_crouch_keeps_its_clearance_below_what_the_legs_reach_with_the_upper_body_held(planner):
+    """The posture check moves the CoG with the legs (the stop's IK holds the upper body); the crouch ends
+    ``crouch_clearance`` below the highest height the check reaches, to the IK's tolerance."""
+    st = walking_state(0.4, 0.5)
+    seed = _seed(st)
+    plan = planner.plan_with_posture(st, seed)
+    c = planner.cfg
+    upper = np.array([not any(k in n for k in ("hip", "knee", "ankle")) for n in M.joint_names])
+    assert np.max(np.abs(plan.posture.q[7:][upper] - seed[7:][upper])) < 5e-3   # chest and arms where they were
+    solver = planner.posture_solver
+    xy = plan.final_com[:2]
+    top = plan.crouch.end_height + c.crouch_clearance
+    below = solver.solve(plan.posture.q, st.feet, np.array([*xy, st.ground_height + top - 3 * c.ik_tolerance]),
+                         st.ground_height)
+    above = solver.solve(plan.posture.q, st.feet, np.array([*xy, st.ground_height + top + 3 * c.ik_tolerance]),
+                         st.ground_height)
+    assert below.reachable and not above.reachable
+
+
 def test_unreachable_stop_runs_the_fallback_or_not():
     st = walking_state(0.65, 0.8)
     fb = EstopPlanner(M).plan_with_posture(st, _seed(st))

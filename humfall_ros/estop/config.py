@@ -68,8 +68,8 @@ class EstopConfig:
     ik_max_iterations: int = 60
     ik_dt: float = 0.05
     ik_tolerance: float = 1e-3
-    crouch_min_cog_height: float = 0.6
-    crouch_clearance: float = 0.01
+    crouch_min_cog_height: float = 0.55
+    crouch_clearance: float = 0.02
     crouch_duration: float = 0.8
     fallback: str = "min_n3_crouch"
     ankle_kp: float = 0.3

@@ -584,8 +584,17 @@ class EstopController:
         targets = observation.joint_targets
         joints = np.asarray(targets if targets is not None else observation.joint_position, float)
         q_seed = configuration_from_feet(self.m, joints, state.feet, feet_side)
+        upper = ~self._legs
+        upper0 = np.asarray(observation.joint_position, float)[upper].copy()
+        upper_v0 = np.asarray(observation.joint_velocity, float)[upper].copy()
+        lim = self.m.limits
+        t_b = stop_duration_within_limits(upper0, upper_v0, lim.lower[upper], lim.upper[upper],
+                                          self.cfg.joint_stop_time)
+        # the final-posture check holds the upper body where eq. 23 stops it, as the stop will
+        q_check = q_seed.copy()
+        q_check[7:][upper] = return_home(upper0, upper_v0, t_b, t_b)[0]
         try:
-            plan = self.planner.plan_with_posture(state, q_seed)
+            plan = self.planner.plan_with_posture(state, q_check)
         except EstopInputError as e:
             self._set(EstopState.REFUSED, observation.stamp_ns, reason=f"refused: {e}")
             return
@@ -604,12 +613,7 @@ class EstopController:
         self._com_integral = np.zeros(3)
         self._offset0 = self.m.com(q_seed) - plan.sample(0.0).com
         self._trunk0 = _base_rotation(q_seed)
-        upper = ~self._legs
-        self._upper0 = np.asarray(observation.joint_position, float)[upper].copy()
-        self._upper_v0 = np.asarray(observation.joint_velocity, float)[upper].copy()
-        lim = self.m.limits
-        self._t_b = stop_duration_within_limits(self._upper0, self._upper_v0, lim.lower[upper], lim.upper[upper],
-                                                self.cfg.joint_stop_time)
+        self._upper0, self._upper_v0, self._t_b = upper0, upper_v0, t_b
         if not plan.feasible:
             self._log(f"estop: predicted infeasible: {plan.reason}")
         self._set(EstopState.STOPPING, observation.stamp_ns, start_time=observation.time, **status_from_plan(plan),

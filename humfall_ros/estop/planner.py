@@ -464,23 +464,37 @@ def settle_posture(planner: "EstopPlanner", plan: "StopPlan", q_seed: np.ndarray
         check = solver.solve(q_seed, state.feet, target, ground)
         if check.reachable:
             return p, check, ""
-        # lower the CoG: the highest reachable height by bisection down to crouch_min_cog_height
-        low = solver.solve(check.q, state.feet, np.array([*target[:2], ground + c.crouch_min_cog_height]), ground)
-        if not low.reachable:
-            return p, low, (f"final CoG not reachable with the feet fixed even at {c.crouch_min_cog_height} m "
-                            f"(limits: {', '.join(low.binding_joints) or 'none'})")
-        lo_z, hi_z, best = c.crouch_min_cog_height, z0, low
-        while hi_z - lo_z > max(c.crouch_clearance, 2 * c.ik_tolerance):
+        # lower the CoG. Reachability against height is an interval (too high: the rear leg straight, its hip at
+        # the extension stop; too low: the front ankle at its dorsiflexion stop), so scan down in steps of the
+        # clearance for a reachable height, then bisect its top to the IK's tolerance: the crouch then keeps the
+        # whole clearance below it (a bisection stopped at the clearance's width kept 0-1 of it, and at 1.8 km/h
+        # the executed rear hip reached its extension stop: the rear sole let go, the CoP jumped 2.8 cm)
+        step = max(c.crouch_clearance, 2 * c.ik_tolerance)
+        hi_z, best, q = z0, None, check.q
+        for z in [*np.arange(z0 - step, c.crouch_min_cog_height, -step), c.crouch_min_cog_height]:
+            trial = solver.solve(q, state.feet, np.array([*target[:2], ground + z]), ground)
+            if trial.reachable:
+                lo_z, best = z, trial
+                break
+            hi_z, q = z, trial.q
+        if best is None:
+            return p, trial, (f"final CoG not reachable with the feet fixed at any height down to "
+                              f"{c.crouch_min_cog_height} m (limits: {', '.join(trial.binding_joints) or 'none'})")
+        while hi_z - lo_z > 2 * c.ik_tolerance:
             mid = 0.5 * (lo_z + hi_z)
             trial = solver.solve(best.q, state.feet, np.array([*target[:2], ground + mid]), ground)
             if trial.reachable:
                 lo_z, best = mid, trial
             else:
                 hi_z = mid
-        z1 = max(lo_z - c.crouch_clearance, c.crouch_min_cog_height)
-        crouch = Crouch(z0, z1, c.crouch_duration)
-        p = planner.plan(state, beta=p.beta, crouch=crouch)          # the same beta, crouched
-        check = solver.solve(best.q, state.feet, p.final_com.copy(), ground)
+        # the clearance below the top, or as much of it as the interval's bottom leaves
+        for keep in (1.0, 0.5, 0.0):
+            z1 = max(lo_z - keep * c.crouch_clearance, c.crouch_min_cog_height)
+            crouch = Crouch(z0, z1, c.crouch_duration)
+            p = planner.plan(state, beta=p.beta, crouch=crouch)          # the same beta, crouched
+            check = solver.solve(best.q, state.feet, p.final_com.copy(), ground)
+            if check.reachable:
+                break
         if not check.reachable:
             return p, check, f"crouched posture at {z1:.3f} m not reachable ({', '.join(check.binding_joints)})"
         return p, check, ""

@@ -98,12 +98,14 @@ class PostureSolver:
         self.dt = dt
         self.max_iterations = max_iterations
         self.tolerance = tolerance
-        # the legs move the CoG (the paper moves the waist); the upper body holds its posture
+        # the legs move the CoG (the paper moves the waist); the upper body holds its posture, weighted above the
+        # CoG task (1e3) as the stop's IK holds it: at weight 10 the check leaned the chest 0.24 rad forward to
+        # reach the CoG, passed a posture the stop never takes, and the executed rear hip reached its stop
         legs = {n for s in SIDES for n in model.joint_names if n.startswith(f"{s}_") and
                 any(k in n for k in ("hip", "knee", "ankle"))}
         self._data = model.model.createData()
         self._foot_ids = {s: model.frame_ids[model.foot_link[s]] for s in SIDES}
-        self._posture_weights = np.array([1e-6 if n in legs else 10.0 for n in model.joint_names])
+        self._posture_weights = np.array([1e-6 if n in legs else 1e4 for n in model.joint_names])
 
     def _errors(self, q, feet) -> tuple[np.ndarray, float]:
         """(CoG (3,), largest foot position error [m]) at ``q``."""
