@@ -201,6 +201,10 @@ def test_the_crouch_keeps_its_clearance_below_what_the_legs_reach_with_the_upper
     above = solver.solve(plan.posture.q, st.feet, np.array([*xy, st.ground_height + top + 3 * c.ik_tolerance]),
                          st.ground_height)
     assert below.reachable and not above.reachable
+    # a crouch floor between the top and the top less the clearance: not feasible (the clearance is not optional)
+    tight = EstopPlanner(M, EstopConfig.defaults(crouch_min_cog_height=top - 0.5 * c.crouch_clearance,
+                                                 fallback="none")).plan_with_posture(st, seed)
+    assert not tight.feasible and "clearance does not fit" in tight.reason
 
 
 def test_unreachable_stop_runs_the_fallback_or_not():

@@ -487,14 +487,16 @@ def settle_posture(planner: "EstopPlanner", plan: "StopPlan", q_seed: np.ndarray
                 lo_z, best = mid, trial
             else:
                 hi_z = mid
-        # the clearance below the top, or as much of it as the interval's bottom leaves
-        for keep in (1.0, 0.5, 0.0):
-            z1 = max(lo_z - keep * c.crouch_clearance, c.crouch_min_cog_height)
-            crouch = Crouch(z0, z1, c.crouch_duration)
-            p = planner.plan(state, beta=p.beta, crouch=crouch)          # the same beta, crouched
-            check = solver.solve(best.q, state.feet, p.final_com.copy(), ground)
-            if check.reachable:
-                break
+        # the whole clearance below the top, or the stop is not feasible: a crouch without it ends at the stop of
+        # the binding joint once executed (2.0 km/h ds_mid at 0.55 m with none left: the CoP rode the edge)
+        z1 = lo_z - c.crouch_clearance
+        short = z1 < c.crouch_min_cog_height - 1e-9
+        z1 = max(z1, c.crouch_min_cog_height)
+        p = planner.plan(state, beta=p.beta, crouch=Crouch(z0, z1, c.crouch_duration))   # the same beta, crouched
+        check = solver.solve(best.q, state.feet, p.final_com.copy(), ground)
+        if short:
+            return p, check, (f"the crouch's clearance does not fit: the legs reach {lo_z:.3f} m, less "
+                              f"{c.crouch_clearance} m is below crouch_min_cog_height {c.crouch_min_cog_height} m")
         if not check.reachable:
             return p, check, f"crouched posture at {z1:.3f} m not reachable ({', '.join(check.binding_joints)})"
         return p, check, ""
