@@ -20,11 +20,15 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import re
 from typing import Any
 
 import yaml
 
 from humfall_ros import paths
+
+# a float with an exponent and no dot ('1e-4'): YAML 1.2 reads a float, PyYAML (YAML 1.1) a string
+_YAML12_FLOAT = re.compile(r"[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)[eE][-+]?[0-9]+")
 
 TYPES = ("bool", "int", "double", "string", "bool_array", "int_array", "double_array", "string_array")
 
@@ -77,6 +81,8 @@ class Declaration:
             if self.choices is not None and v not in self.choices:
                 raise ParamError(f"{where}: {v!r} is not one of {', '.join(self.choices)}")
             return v
+        if base == "double" and isinstance(v, str) and _YAML12_FLOAT.fullmatch(v.strip()):
+            v = float(v)        # PyYAML reads YAML 1.1: '1e-4' (no dot) is a string there, a float in YAML 1.2
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise ParamError(f"{where}: expected {'int' if base == 'int' else 'double (a number)'}{like}, got {v!r}")
         if base == "int":

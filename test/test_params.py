@@ -4,6 +4,7 @@ import importlib
 import math
 
 import pytest
+import yaml
 
 from humfall_ros import params
 
@@ -83,6 +84,13 @@ def test_overrides_are_typed_and_checked():
     assert params.check_overrides("safe_fall_controller", {"fall_ranking": "edge"}) == {"fall_ranking": "edge"}
     with pytest.raises(params.ParamError, match="not one of paper, edge"):
         params.check_overrides("safe_fall_controller", {"fall_ranking": "sideways"})
+    # '1e-4' is a string to PyYAML (YAML 1.1): a double takes it as the number YAML 1.2 reads; other text is refused
+    assert yaml.safe_load("1e-4") == "1e-4"
+    assert params.check_overrides("sim_bridge", {"noise_joint_position": "1e-4"}) == {"noise_joint_position": 1e-4}
+    with pytest.raises(params.ParamError, match="expected double"):
+        params.check_overrides("sim_bridge", {"noise_joint_position": "1e-4x"})
+    with pytest.raises(params.ParamError, match="expected int"):
+        params.check_overrides("sim_bridge", {"noise_seed": "1e3"})
 
 
 def test_config_from_refuses_unknown_keys_and_drops_only_the_ignored():
