@@ -9,7 +9,7 @@ on long steps. When the horizontal CoG target is reachable only lower (a stretch
 hip), the stop plans a waist **crouch** (the paper's HRP-2 crouched above 1.8 km/h): a
 quintic of the CoG height to ``clearance`` below the height the IK could reach, and the
 ZMP prediction is redone with that vertical motion. If no crouch down to
-``crouch_min_cog_height`` gives a reachable posture, or the ZMP leaves the polygon, the
+``crouch_min_cog_height`` gives a reachable posture with that whole clearance, or the ZMP leaves the polygon, the
 **fallback** ``min_n3_crouch`` plans with beta = -omega_f (the smallest n3 this model can give
 with -omega_f <= beta: n3 equals eq. 22's bound y0 + ydot0/omega_c), with the crouch the posture
 needs or, if none suffices, the deepest one, and runs it with ``feasible=False``; ``fallback: none``
@@ -99,8 +99,9 @@ class PostureSolver:
         self.max_iterations = max_iterations
         self.tolerance = tolerance
         # the legs move the CoG (the paper moves the waist); the upper body holds its posture, weighted above the
-        # CoG task (1e3) as the stop's IK holds it: at weight 10 the check leaned the chest 0.24 rad forward to
-        # reach the CoG, passed a posture the stop never takes, and the executed rear hip reached its stop
+        # CoG task (1e3): the stop's IK, stepping 2 ms at a time, moves the legs first (posture weight 1e-4 against
+        # the upper body's 10) and ends at a leg joint's stop with the chest upright; at weight 10 here the check's
+        # 60 long steps leaned the chest 0.24 rad forward instead and passed a posture the stop never takes
         legs = {n for s in SIDES for n in model.joint_names if n.startswith(f"{s}_") and
                 any(k in n for k in ("hip", "knee", "ankle"))}
         self._data = model.model.createData()
