@@ -526,3 +526,23 @@ def test_flatten_held_feet_turns_a_tilted_held_foot_flat_over_the_blend():
         assert yaw[0] == pytest.approx(yaw[1], abs=1e-9)
     assert tilt[False] == pytest.approx(0.03, abs=3e-3)
     assert tilt[True] < 1e-3
+
+
+def test_the_final_posture_check_holds_the_arms_where_eq_23_stops_them():
+    """The stop's final-posture check sees the upper body where the joints' stop (eq. 23) will leave it, not where the
+    arms are at the trigger: a swinging arm ends a third of its velocity times T_b further on."""
+    from humfall_ros.estop.statespace import return_home
+
+    ctl = EstopController(M, EstopConfig.defaults(trigger_time=0.0), DT)
+    k = M.joint_index("r_shoulder_pitch")
+    o = obs(0.0, **{"walking/state": Pattern()})
+    v = np.zeros_like(o.joint_position)
+    v[k] = 1.5                                               # the arm swinging forward at the trigger
+    ctl.step(dataclasses.replace(o, joint_velocity=v))
+    assert ctl.state == EstopState.STOPPING
+    upper = np.array([not any(j in n for j in ("hip", "knee", "ankle")) for n in M.joint_names])
+    end = return_home(o.joint_position[upper], v[upper], ctl._t_b, ctl._t_b)[0]
+    checked = ctl.plan.posture.q[7:][upper]
+    i = int(np.flatnonzero(np.flatnonzero(upper) == k)[0])
+    assert ctl._t_b > 0.0 and end[i] - o.joint_position[k] == pytest.approx(1.5 * ctl._t_b / 3.0)
+    assert checked[i] == pytest.approx(end[i], abs=5e-3)      # the check's arm at eq. 23's end, not at the trigger
