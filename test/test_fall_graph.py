@@ -105,3 +105,26 @@ def test_captured_push_handed_back_to_locomotion_over_ros_equals_in_process(run_
                 and mine.active_sources[k] == "locomotion")
     assert round(k_hb * 2e6) == t_hb                            # the same hand-back tick (500 Hz)
     assert not r["metrics"]["fell"]
+
+
+WALKING_DURATION = 8.0  # s: the push at 7.1 s in a right swing, the fall event 7.18 s, the decision after the push
+
+
+def test_a_walking_take_over_decided_after_the_push_over_ros_equals_in_process(run_up):
+    """walking_push with stepping: the take-over of a walking robot waits while the push residual reads the push
+    (the default since session 23, from the estimator's capture points of the last ticks), then steps; over ROS the
+    wait ends on the same tick and the joint states are bit-identical to the in-process loop."""
+    ov = [f"duration={WALKING_DURATION}"]
+    status, r = run_up("walking_push", "stepping", *ov)
+    assert status == 0, r
+    bag = r["bag"]
+    decisions = bag_messages(bag, "/safe_fall/decision")
+    assert decisions and decisions[0].step_case in ("step_left", "step_right")
+    sc = scenario.load("walking_push", ov + ["controller=stepping"])
+    mine = runs.run(sc, stop_after_landing_s=None)
+    assert any("decision deferred" in x for x in mine.reasons)
+    ros = np.array([p for _, _, p in joint_states_from_bag(bag)])[:len(mine.joint_positions)]
+    assert ros.shape == mine.joint_positions.shape
+    assert np.array_equal(ros, mine.joint_positions)
+    assert mine.decision.case == decisions[-1].step_case      # the last one published: after the swing's re-plans
+    assert np.array_equal(np.asarray(mine.decision.landing), np.asarray(decisions[-1].landing))
