@@ -75,6 +75,7 @@ from humfall_ros.model.humanoid import SIDES, HumanoidModel, base_rotation_from_
 from humfall_ros.model.ik import ComTask, FrameTask, OrientationTask, PostureTask, WholeBodyIK
 from humfall_ros.walking.compliance import planned_loads, sole_contact, sole_sinkage
 from humfall_ros.walking.stabilizer import WalkingStabilizer
+from humfall_ros.walking.swing import min_jerk
 
 BLEND_TIME = 0.3          # s: the measured-posture CoG offset at the start is blended out over this
 
@@ -676,7 +677,7 @@ class EstopController:
     def _blend_done(self, t: float) -> float:
         """How far the start blend is at ``t`` [0, 1] (``blend_profile`` over ``BLEND_TIME``)."""
         u = min(max(t / BLEND_TIME, 0.0), 1.0)
-        return u if self.cfg.blend_profile == "linear" else 10 * u ** 3 - 15 * u ** 4 + 6 * u ** 5
+        return u if self.cfg.blend_profile == "linear" else min_jerk(u)[0]
 
     def _feet_of(self, q: np.ndarray) -> dict[str, pin.SE3]:
         """The ankle-frame (``foot_link``) placements of configuration ``q`` per side."""
@@ -699,8 +700,7 @@ class EstopController:
         pos, _ = return_home(self._upper0, self._upper_v0, self._t_b, t)
         if self.state in (EstopState.STOPPED, EstopState.ALIGNING, EstopState.HOLDING) and self._home is not None:
             s = min(max((self.now - self._t_stopped) / self.cfg.home_duration, 0.0), 1.0)
-            blend = 10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5
-            pos = pos + blend * (self._home[~self._legs] - pos)
+            pos = pos + min_jerk(s)[0] * (self._home[~self._legs] - pos)
             if s >= 1.0 and self.state == EstopState.STOPPED:
                 self._home_reached()
         elif self.state == EstopState.STOPPED:
