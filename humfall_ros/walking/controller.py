@@ -29,7 +29,7 @@ import pinocchio as pin
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.control.standing import StandingController
 from humfall_ros.dynamics.pendulum import GRAVITY
-from humfall_ros.model.humanoid import SIDES, HumanoidModel, quat_matrix
+from humfall_ros.model.humanoid import SIDES, HumanoidModel, base_rotation_from_imu, quat_matrix
 from humfall_ros.model.ik import (
     ComTask,
     FrameTask,
@@ -272,7 +272,7 @@ class LocomotionController:
         m = self.m
         q = m.configuration([0, 0, 0], [0, 0, 0, 1], observation.joint_position)
         m.forward(q)
-        R_wb = quat_matrix(quat / np.linalg.norm(quat)) @ m.frame_placement(m.imu_frame).rotation.T
+        R_wb = base_rotation_from_imu(m, m.data, quat / np.linalg.norm(quat))
         yaws = [yaw_of(R_wb @ m.frame_placement(m.sole_frame[s]).rotation) for s in SIDES]
         return math.atan2(sum(map(math.sin, yaws)), sum(map(math.cos, yaws)))
 
