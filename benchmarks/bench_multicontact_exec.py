@@ -107,6 +107,8 @@ def main() -> int:
     ap.add_argument("--speed-limit", choices=mr.SPEED_LIMITS, default="motor",
                     help="RunConfig.speed_limit (solver: SimWorld's clamp, what ROS runs; not momentum-conserving)")
     ap.add_argument("--blend", type=float, default=0.0, help="ExecutorConfig.blend_time [s]")
+    ap.add_argument("--pitch-gain", type=float, default=mr.RunConfig.base_pitch_gain,
+                    help="ExecutorConfig.base_pitch_gain (0: open loop, the executor before session 24)")
     ap.add_argument("--latency", type=float, default=0.0, help="RunConfig.plan_latency [s]")
     ap.add_argument("--one-hand", action="store_true", help="ExecutorConfig.both_hands off")
     ap.add_argument("--set", default="", help="planner parameters name=value,... (yaml names)")
@@ -131,7 +133,8 @@ def main() -> int:
     planner = None if a.replay else FallPlanner.from_params(**overrides)
     run_cfg = mr.RunConfig(time_budget=a.budget, hold=a.hold, both_hands=not a.one_hand, plan_latency=a.latency,
                            velocity_feedforward=not a.no_velocity_feedforward,
-                           speed_limit=a.speed_limit, blend_time=a.blend)
+                           speed_limit=a.speed_limit, blend_time=a.blend,
+                           base_pitch_gain=a.pitch_gain)
     out["run_config"] = run_cfg.__dict__
     cases = []
     for ke in [float(x) for x in a.kes.split(",")]:

@@ -271,3 +271,77 @@ def test_blend_time_starts_from_the_servo_targets(models):
     np.testing.assert_allclose(b.positions[idx], 0.5 * 0.05 + 0.5 * 0.5)
     c = ex.step(_obs(hm, 1.2))
     np.testing.assert_allclose(c.positions[idx], 0.5)
+
+
+def _imu_reading(hm, base_rotation, joints):
+    """The IMU's world orientation (xyzw) of the robot with that base rotation and joints, and a zero gyro."""
+    from scipy.spatial.transform import Rotation
+
+    q = hm.configuration([0.0, 0.0, 0.8], Rotation.from_matrix(base_rotation).as_quat(), joints)
+    hm.forward(q)
+    R = hm.frame_placement(hm.imu_frame).rotation
+    return Rotation.from_matrix(R).as_quat(), np.zeros(3)
+
+
+def test_base_pitch_from_the_imu_is_the_planar_states_pitch(models):
+    from scipy.spatial.transform import Rotation
+
+    from humfall_ros.multicontact.executor import base_pitch_from_imu, planar_state
+
+    pm, hm = models
+    data = hm.model.createData()
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        joints = rng.uniform(-0.3, 0.3, len(hm.joint_names))      # the chest joints move the IMU in the base
+        R = Rotation.from_euler("zyx", [rng.uniform(-1, 1), rng.uniform(-1.5, 1.5), rng.uniform(-0.2, 0.2)])
+        imu = _imu_reading(hm, R.as_matrix(), joints)
+        q3 = hm.configuration([0.1, 0.0, 0.8], R.as_quat(), joints)
+        want = planar_state(pm, hm.joint_names, q3, np.zeros(hm.model.nv))[0][2]
+        assert base_pitch_from_imu(hm, data, joints, imu) == pytest.approx(want, abs=1e-9)
+        assert base_pitch_from_imu(hm, data, joints, imu[0]) == pytest.approx(want, abs=1e-9)   # orientation alone
+    for bad in (None, (np.full(4, np.nan), np.zeros(3)), (np.zeros(4), np.zeros(3)), (np.ones(3), np.zeros(3))):
+        assert base_pitch_from_imu(hm, data, joints, bad) is None
+    assert base_pitch_from_imu(hm, data, np.full(len(hm.joint_names), np.nan), imu) is None
+
+
+def test_base_pitch_feedback_offsets_the_hips_by_the_gain_times_the_pitch_error(models):
+    from scipy.spatial.transform import Rotation
+
+    pm, hm = models
+    q0 = np.zeros(pm.n)
+    q0[2] = 0.3                                   # the plan's root pitch
+    q0[3:] = 0.1
+    seg = _segment(pm, q0, q0, 1.0, mode=("LF", "RF"), target=("LF", "RF"))
+    hips = [hm.joint_names.index(j) for j in pm.joint_names if j.endswith("hip_pitch")]
+    rest = [hm.joint_names.index(j) for j in pm.joint_names if not j.endswith("hip_pitch")]
+    assert len(hips) == 2
+    joints = np.full(len(hm.joint_names), 0.05)
+    imu = _imu_reading(hm, Rotation.from_euler("y", 0.42).as_matrix(), joints)     # pitched 0.12 rad ahead
+
+    def targets(gain, model, reading):
+        ex = MulticontactExecutor([seg], pm.joint_names, hm.joint_names, ExecutorConfig(base_pitch_gain=gain),
+                                  model=model)
+        ex.step(_obs(hm, 0.0))
+        obs = _obs(hm, 0.5, q=joints)
+        if reading is not None:
+            obs.inputs["imu"] = reading
+        return ex.step(obs), ex
+
+    open_loop, ex0 = targets(0.0, hm, imu)
+    np.testing.assert_allclose(open_loop.positions[hips], 0.1)
+    assert ex0.pitch_feedback_ticks == 0
+    for gain in (0.5, 2.0):
+        fb, ex = targets(gain, hm, imu)
+        np.testing.assert_allclose(fb.positions[hips], 0.1 + gain * 0.12, atol=1e-9)
+        np.testing.assert_allclose(fb.positions[rest], open_loop.positions[rest])
+        np.testing.assert_allclose(fb.velocities, open_loop.velocities)
+        assert ex.pitch_error_max == pytest.approx(0.12, abs=1e-9) and ex.pitch_feedback_ticks == 1
+    # no model, or no usable IMU reading: open loop (never a crash)
+    for model, reading in ((None, imu), (hm, None), (hm, (np.full(4, np.nan), np.zeros(3)))):
+        out, ex = targets(1.0, model, reading)
+        np.testing.assert_allclose(out.positions, open_loop.positions)
+        assert ex.pitch_feedback_ticks == 0
+    with pytest.raises(ValueError):
+        ExecutorConfig(base_pitch_gain=-1.0)
+    with pytest.raises(ValueError):
+        MulticontactExecutor([seg], pm.joint_names, hm.joint_names[::-1], model=hm)

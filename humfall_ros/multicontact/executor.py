@@ -13,10 +13,21 @@ lands a foot ends early when that foot is loaded before its planned end, and its
 last knot is held (up to ``landing_wait``) while the foot is still in the air at
 its planned end. Hands have no contact flag in the observation, so hand landings
 switch at their planned times. After the last segment the final posture is held.
+
+**Base pitch feedback** (ours; the paper re-simulates its plans in the planar model, open loop): the
+base is unactuated, so joint tracking alone leaves its pitch to the 3-D contacts. Executed open loop,
+the soles roll onto their toes (the planar feet are flat) and the base pitch runs ahead of the plan
+(+0.2 rad at 0.55 s in the 20 J hand plan; the hands land 23 cm short and the robot pitches over
+them onto its head). Each hip pitch target gets ``base_pitch_gain`` x (theta - theta_plan(t)), theta the
+base pitch estimated from the IMU and the joints (``base_pitch_from_imu``, no ground truth) and
+theta_plan the plan's root pitch (the planar state's third coordinate, eq. 7's spline) at the same
+plan time. The hip pitch axis is the base's pitch axis (y), so with the thighs held an offset of +d
+pitches the pelvis by -d: a gain of 1 takes the whole error out at the hips.
 """
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Callable
 
 import numpy as np
@@ -25,6 +36,7 @@ from scipy.spatial.transform import Rotation
 from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.multicontact.collocation import Segment, hermite_eval
+from humfall_ros.model.humanoid import base_rotation_from_imu
 from humfall_ros.multicontact.model import FEET
 
 
@@ -47,6 +59,9 @@ class ExecutorConfig:
             then act as a damped position loop on the plan's positions).
         blend_time: the sagittal targets go linearly from the servos' targets at the take-over to the
             plan's over this time [s] (0: the plan from the first tick).
+        base_pitch_gain: the hip pitch targets get this times the base pitch error (measured minus
+            planned) [rad/rad]; 0: open loop (the executor of sessions 5-23). Needs the executor's
+            ``model`` and the IMU in the observation (``inputs["imu"]``); without either, open loop.
     """
 
     landing_wait: float = 0.2
@@ -56,10 +71,13 @@ class ExecutorConfig:
     both_hands: bool = True
     velocity_feedforward: bool = True
     blend_time: float = 0.0
+    base_pitch_gain: float = 1.0
 
     def __post_init__(self):
         if self.hold not in HOLD_MODES:
             raise ValueError(f"hold must be one of {HOLD_MODES}, got {self.hold!r}")
+        if not (math.isfinite(self.base_pitch_gain) and 0.0 <= self.base_pitch_gain <= 10.0):
+            raise ValueError(f"base_pitch_gain must be in [0, 10], got {self.base_pitch_gain!r}")
 
     @staticmethod
     def from_params(d: dict) -> ExecutorConfig:
@@ -83,12 +101,14 @@ class MulticontactExecutor:
             ``segments``, with that tick's observation; returns the plan whose time 0 is that tick, or
             None (no plan: the executor then releases for good, ``reason`` says why). The in-process
             runner plans there with the simulator paused (``humfall_ros.sim.multicontact_run``).
+        model: the 3-D robot (``HumanoidModel``, joints in ``joint_names`` order): the base pitch
+            feedback estimates the base's pitch from the IMU through it; None: open loop.
     """
 
     source = "multicontact"
 
     def __init__(self, segments: list[Segment], planar_joint_names: list[str], joint_names: list[str],
-                 cfg: ExecutorConfig | None = None, plan_source: PlanSource | None = None):
+                 cfg: ExecutorConfig | None = None, plan_source: PlanSource | None = None, model=None):
         if not segments and plan_source is None:
             raise ValueError("an empty plan")
         missing = [j for j in planar_joint_names if j not in joint_names]
@@ -100,6 +120,12 @@ class MulticontactExecutor:
         self.index = np.array([joint_names.index(j) for j in planar_joint_names])
         self.n_joints = len(joint_names)
         self.planar_joint_names = list(planar_joint_names)
+        if model is not None and list(model.joint_names) != list(joint_names):
+            raise ValueError("the model's joints are not the command's joints")
+        self.model = model
+        self._data = model.model.createData() if model is not None else None
+        # the plan's hip pitch joints (planar indices): the base pitch feedback acts there
+        self._hips = np.array([i for i, j in enumerate(self.planar_joint_names) if j.endswith("hip_pitch")], int)
         self.reset()
 
     def _arm_copy(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -126,6 +152,8 @@ class MulticontactExecutor:
         self.reason = ""
         self._copy = None
         self.switches: list[tuple[int, float, str]] = []   # (segment entered, plan time, why)
+        self.pitch_error_max = 0.0      # largest |base pitch - plan's| seen [rad]
+        self.pitch_feedback_ticks = 0   # ticks with the feedback applied
 
     @property
     def take_over_time(self) -> float | None:
@@ -152,6 +180,22 @@ class MulticontactExecutor:
         k = int(np.clip(np.searchsorted(seg.time, t, side="right") - 1, 0, len(seg.time) - 2))
         q, dq = hermite_eval(seg.time[k], seg.time[k + 1], seg.q[k], seg.v[k], seg.q[k + 1], seg.v[k + 1], t)
         return q[3:], dq[3:]
+
+    @staticmethod
+    def root_pitch(seg: Segment, t: float) -> float:
+        """The plan's root (base) pitch in ``seg`` at time ``t`` from its start (clamped) [rad]."""
+        t = float(np.clip(t, seg.time[0], seg.time[-1]))
+        k = int(np.clip(np.searchsorted(seg.time, t, side="right") - 1, 0, len(seg.time) - 2))
+        q, _ = hermite_eval(seg.time[k], seg.time[k + 1], seg.q[k], seg.v[k], seg.q[k + 1], seg.v[k + 1], t)
+        return float(q[2])
+
+    def _pitch_error(self, observation: Observation, seg: Segment, t: float) -> float | None:
+        """Measured minus planned base pitch [rad], or None (no model, no usable IMU reading)."""
+        if self.model is None:
+            return None
+        theta = base_pitch_from_imu(self.model, self._data, observation.joint_position,
+                                    observation.inputs.get("imu"))
+        return None if theta is None else theta - self.root_pitch(seg, t)
 
     def _foot_loaded(self, obs: Observation, foot: str) -> bool:
         return bool(obs.state.left_contact if foot == "LF" else obs.state.right_contact)
@@ -215,12 +259,40 @@ class MulticontactExecutor:
         if self.cfg.blend_time > 0 and tp < self.cfg.blend_time:
             w = tp / self.cfg.blend_time
             q, dq = (1 - w) * self._start + w * q, w * dq
+        if self.cfg.base_pitch_gain > 0 and len(self._hips):
+            err = self._pitch_error(observation, seg, tp - self._seg_start)
+            if err is not None:
+                q = q.copy()
+                q[self._hips] += self.cfg.base_pitch_gain * err
+                self.pitch_error_max = max(self.pitch_error_max, abs(err))
+                self.pitch_feedback_ticks += 1
         pos = self._hold.copy()
         vel = np.zeros(self.n_joints)
         pos[self.index] = q
         if self.cfg.velocity_feedforward:
             vel[self.index] = dq
         return JointTargets(positions=pos, velocities=vel)
+
+
+def base_pitch_from_imu(model, data, joint_position, imu) -> float | None:
+    """The base's pitch about the world y axis [rad] from an IMU reading and the joints, as the planar
+    state measures it (:func:`planar_state`), or None for a missing or unusable reading.
+
+    ``imu``: ``(orientation xyzw, gyro)`` or the orientation alone (``Observation.inputs["imu"]``);
+    ``data``: a pinocchio data of ``model.model`` (overwritten). The IMU's rotation in the base comes from
+    the joints (``model.base_rotation_from_imu``: the estimator's construction)."""
+    if imu is None:
+        return None
+    quat = np.asarray(imu[0] if isinstance(imu, (tuple, list)) else imu, float).reshape(-1)
+    joints = np.asarray(joint_position, float).reshape(-1)
+    if (quat.shape != (4,) or not np.all(np.isfinite(quat)) or np.linalg.norm(quat) < 0.5
+            or joints.shape != (len(model.joint_names),) or not np.all(np.isfinite(joints))):
+        return None
+    import pinocchio as pin
+
+    pin.framesForwardKinematics(model.model, data, model.configuration([0, 0, 0], [0, 0, 0, 1], joints))
+    R = base_rotation_from_imu(model, data, quat / np.linalg.norm(quat))
+    return float(np.arctan2(R[0, 2], R[2, 2]))
 
 
 def planar_state(planar_model, joint_names: list[str], q3, v3) -> tuple[np.ndarray, np.ndarray]:

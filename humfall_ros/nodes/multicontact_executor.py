@@ -25,7 +25,7 @@ import sys
 from humfall_ros import paths
 from humfall_ros.multicontact.executor import ExecutorConfig, MulticontactExecutor, StoredPlan
 from humfall_ros.nodes.common import run_node
-from humfall_ros.nodes.controller_node import ControllerNode
+from humfall_ros.nodes.controller_node import IMU, ControllerNode
 
 CONFIG = "multicontact_executor"
 
@@ -65,8 +65,9 @@ def make_controller(p: dict, model):
     start = plan.take_over_time if p["start_time"] < 0 else p["start_time"]
     cfg = ExecutorConfig.from_params({"landing_wait": p["landing_wait"], "early_switch": p["early_switch"],
                                       "start_time": start, "hold": p["hold"], "both_hands": p["both_hands"],
-                                      "velocity_feedforward": p["velocity_feedforward"], "blend_time": p["blend_time"]})
-    ex = MulticontactExecutor(plan.segments, load_planar().joint_names, model.joint_names, cfg)
+                                      "velocity_feedforward": p["velocity_feedforward"], "blend_time": p["blend_time"],
+                                      "base_pitch_gain": p["base_pitch_gain"]})
+    ex = MulticontactExecutor(plan.segments, load_planar().joint_names, model.joint_names, cfg, model=model)
     ex.source = p["source"]
     return ex
 
@@ -83,7 +84,9 @@ def make_node(name: str | None = None):
     """The node, named ``name`` (default ``multicontact_executor_<source>``, as the launcher names the process of
     a scenario's controllers entry: ``<module stem>_<source>``; the composed runner passes that name, so a
     composed run's params-file section reaches it)."""
-    node = ControllerNode(name or f"{CONFIG}_{source_from_argv(sys.argv)}", make_controller, config_name=CONFIG)
+    # the IMU each tick: the base pitch feedback (ExecutorConfig.base_pitch_gain) estimates the base's pitch from it
+    node = ControllerNode(name or f"{CONFIG}_{source_from_argv(sys.argv)}", make_controller, inputs=[IMU],
+                          config_name=CONFIG)
     ex = node.controller
     if isinstance(ex, MulticontactExecutor):
         node.get_logger().info(f"plan: {len(ex.segments)} segments "

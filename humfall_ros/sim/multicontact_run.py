@@ -54,7 +54,7 @@ class RunConfig:
         contact_force_min: a limb or link touches when its tick-mean contact force exceeds this [N].
         final_window: the final mode and KE are judged over this last stretch of the run [s].
         time_budget: the planner's wall-clock budget [s].
-        hold, both_hands, velocity_feedforward, blend_time: as in ``ExecutorConfig``.
+        hold, both_hands, velocity_feedforward, blend_time, base_pitch_gain: as in ``ExecutorConfig``.
         plan_latency: the plan is made from the state at the push's end but the executor takes over
             this much later [s] (the standing balance in between): what a planner that needs that
             long would do without pausing the simulator. 0: paused (the plan's state is the take-over's).
@@ -75,6 +75,7 @@ class RunConfig:
     both_hands: bool = True
     velocity_feedforward: bool = True
     blend_time: float = 0.0
+    base_pitch_gain: float = ExecutorConfig.base_pitch_gain
     plan_latency: float = 0.0
     speed_limit: str = "motor"
 
@@ -247,10 +248,11 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
     t_plan = t_start
     t_start = t_start + cfg.plan_latency
     ex_cfg = ExecutorConfig(start_time=t_start, hold=cfg.hold, both_hands=cfg.both_hands,
-                            velocity_feedforward=cfg.velocity_feedforward, blend_time=cfg.blend_time)
-    executor = MulticontactExecutor([], pm.joint_names, _joint_names(), ex_cfg,
-                                    plan_source=plan_source if segments is None else stored_source)
+                            velocity_feedforward=cfg.velocity_feedforward, blend_time=cfg.blend_time,
+                            base_pitch_gain=cfg.base_pitch_gain)
     hm = _model()
+    executor = MulticontactExecutor([], pm.joint_names, _joint_names(), ex_cfg,
+                                    plan_source=plan_source if segments is None else stored_source, model=hm)
     loop = ClosedLoop(sc, controllers=[locomotion_controller(sc, hm), executor],
                       priorities={executor.source: EXECUTOR_PRIORITY})
     if cfg.speed_limit not in SPEED_LIMITS:
@@ -323,6 +325,7 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
         "take_over_time": executor.take_over_time, "plan_latency": cfg.plan_latency, "speed_limit": cfg.speed_limit,
         "executor_failed": executor.failed,
         "executor_reason": executor.reason, "ke_max": float(ke.max()) if len(ke) else float("nan"),
+        "base_pitch_error_max": executor.pitch_error_max, "base_pitch_feedback_ticks": executor.pitch_feedback_ticks,
     }
     if executor.take_over_time is None:
         out["success"] = False
