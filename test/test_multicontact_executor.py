@@ -345,3 +345,20 @@ def test_base_pitch_feedback_offsets_the_hips_by_the_gain_times_the_pitch_error(
         ExecutorConfig(base_pitch_gain=-1.0)
     with pytest.raises(ValueError):
         MulticontactExecutor([seg], pm.joint_names, hm.joint_names[::-1], model=hm)
+
+
+def test_base_pitch_feedback_acts_on_the_stance_legs_hips_only(models):
+    from scipy.spatial.transform import Rotation
+
+    pm, hm = models
+    q0 = np.zeros(pm.n)
+    q0[3:] = 0.1
+    swing = _segment(pm, q0, q0, 1.0, "add", "RF", ("LF",), ("LF", "RF"))     # the right foot in the air
+    ex = MulticontactExecutor([swing, swing], pm.joint_names, hm.joint_names, model=hm)
+    joints = np.full(len(hm.joint_names), 0.05)
+    ex.step(_obs(hm, 0.0))
+    obs = _obs(hm, 0.2, q=joints)
+    obs.inputs["imu"] = _imu_reading(hm, Rotation.from_euler("y", 0.1).as_matrix(), joints)
+    out = ex.step(obs)
+    assert out.positions[hm.joint_names.index("l_hip_pitch")] == pytest.approx(0.2, abs=1e-9)   # 0.1 + 1 x 0.1
+    assert out.positions[hm.joint_names.index("r_hip_pitch")] == pytest.approx(0.1, abs=1e-9)   # swinging: the plan

@@ -18,7 +18,8 @@ switch at their planned times. After the last segment the final posture is held.
 base is unactuated, so joint tracking alone leaves its pitch to the 3-D contacts. Executed open loop,
 the soles roll onto their toes (the planar feet are flat) and the base pitch runs ahead of the plan
 (+0.2 rad at 0.55 s in the 20 J hand plan; the hands land 23 cm short and the robot pitches over
-them onto its head). Each hip pitch target gets ``base_pitch_gain`` x (theta - theta_plan(t)), theta the
+them onto its head). Each stance leg's hip pitch target (a foot in the segment's contact mode; a swinging
+leg tracks its plan) gets ``base_pitch_gain`` x (theta - theta_plan(t)), theta the
 base pitch estimated from the IMU and the joints (``base_pitch_from_imu``, no ground truth) and
 theta_plan the plan's root pitch (the planar state's third coordinate, eq. 7's spline) at the same
 plan time. The hip pitch axis is the base's pitch axis (y), so with the thighs held an offset of +d
@@ -124,8 +125,9 @@ class MulticontactExecutor:
             raise ValueError("the model's joints are not the command's joints")
         self.model = model
         self._data = model.model.createData() if model is not None else None
-        # the plan's hip pitch joints (planar indices): the base pitch feedback acts there
-        self._hips = np.array([i for i, j in enumerate(self.planar_joint_names) if j.endswith("hip_pitch")], int)
+        # the plan's hip pitch joints (planar indices) by foot: the base pitch feedback acts on the stance legs'
+        self._hips = {("LF" if j.startswith("l_") else "RF"): i for i, j in enumerate(self.planar_joint_names)
+                      if j.endswith("hip_pitch")}
         self.reset()
 
     def _arm_copy(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -259,11 +261,14 @@ class MulticontactExecutor:
         if self.cfg.blend_time > 0 and tp < self.cfg.blend_time:
             w = tp / self.cfg.blend_time
             q, dq = (1 - w) * self._start + w * q, w * dq
-        if self.cfg.base_pitch_gain > 0 and len(self._hips):
+        # only the hips of the legs whose foot is on the ground in this segment: a hip offset pitches the
+        # pelvis only when the thigh is held; on a swinging leg it would move the foot instead
+        stance = [i for foot, i in self._hips.items() if foot in seg.mode]
+        if self.cfg.base_pitch_gain > 0 and stance:
             err = self._pitch_error(observation, seg, tp - self._seg_start)
             if err is not None:
                 q = q.copy()
-                q[self._hips] += self.cfg.base_pitch_gain * err
+                q[stance] += self.cfg.base_pitch_gain * err
                 self.pitch_error_max = max(self.pitch_error_max, abs(err))
                 self.pitch_feedback_ticks += 1
         pos = self._hold.copy()
