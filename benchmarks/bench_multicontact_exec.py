@@ -3,6 +3,7 @@
     python benchmarks/bench_multicontact_exec.py [--kes 20,40,60] [--objective departure|paper]
                                                  [--budget 120] [--save-plans DIR] [--plots DIR]
                                                  [--calibrate 300,400,500] [--set name=value,...]
+                                                 [--replay DIR] [--pitch-gain 1.0]
 
 Per case: the push of ``config/scenarios/multicontact_push.yaml`` with the force that gives the
 requested sagittal kinetic energy at the push's end (found by a few secant steps on KE ~ F^2, each a
@@ -11,8 +12,11 @@ plan at the push's end from the measured state (simulator paused while planning)
 final 3-D KE, final contact mode vs the plan's, links touching the ground besides the planned
 extremities, planned vs executed contact times and positions, peak contact force per limb.
 
-``--objective departure`` (default) plans with the post-impact objective and frontier key, landings
-unlimited, no touchdown-speed constraint (``humfall_ros.multicontact.planner.DEPARTURE``): with the paper's objective
+``--pitch-gain`` is the executor's base pitch feedback on the stance hips (``ExecutorConfig.base_pitch_gain``,
+default 1; 0: open loop, the executor before session 24).
+
+``--objective departure`` (default) plans with the post-impact objective and frontier key, landings unlimited,
+no touchdown-speed constraint (``humfall_ros.multicontact.planner.DEPARTURE``): with the paper's objective
 the step options of session 11 are the defaults (docs/multicontact.md). ``--objective paper`` uses the declaration as
 it is. ``--save-plans DIR`` writes each executed plan as ``multicontact_push_<KE>J.json``
 (``StoredPlan``; the executor node's ``plan_file``). ``--calibrate F,...`` only prints the push -> KE
