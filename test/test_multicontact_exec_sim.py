@@ -1,12 +1,12 @@
 """A stored multi-contact plan executed on the 3-D robot in PyBullet (issue 14), in process.
 
-The shipped 20 and 60 J plans (config/multicontact_plans/multicontact_push_<KE>J.json, made by
+The shipped 20, 40 and 60 J plans (config/multicontact_plans/multicontact_push_<KE>J.json, made by
 ``benchmarks/bench_multicontact_exec.py --save-plans config/multicontact_plans``) replayed after the
 same push: the take-over state must be the one it was planned from (the simulation is deterministic;
 if the world changed, regenerate the plans), and the robot must end at rest in the planned mode
-(both hands: ``ExecutorConfig.both_hands``) with nothing else on the ground. (The 40 J plan does too. The 20 J
+(both hands: ``ExecutorConfig.both_hands``) with nothing else on the ground (issue 14's executed figure). The 20 J
 plan needs the base pitch feedback, ``ExecutorConfig.base_pitch_gain``: open loop it ends with the head on the
-ground on the 20 ms servos, docs/multicontact.md "Session 24"; the 10 J plan, which lifts a foot, does either way.)
+ground on the 20 ms servos, docs/multicontact.md "Session 24"; the 10 J plan, which lifts a foot, does either way.
 """
 import pytest
 
@@ -16,7 +16,7 @@ from humfall_ros.nodes.multicontact_executor import plan_path
 from humfall_ros.sim.multicontact_run import execute
 
 
-@pytest.fixture(scope="module", params=[20, 60])
+@pytest.fixture(scope="module", params=[20, 40, 60])
 def run60(request):
     plan = StoredPlan.load(plan_path(f"multicontact_push_{request.param}J"))
     force = plan.meta["push_force"]
