@@ -32,12 +32,13 @@ import math
 from typing import Callable
 
 import numpy as np
+import pinocchio as pin
 from scipy.spatial.transform import Rotation
 
 from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
-from humfall_ros.multicontact.collocation import Segment, hermite_eval
 from humfall_ros.model.humanoid import base_rotation_from_imu
+from humfall_ros.multicontact.collocation import Segment, hermite_eval
 from humfall_ros.multicontact.model import FEET
 
 
@@ -60,8 +61,8 @@ class ExecutorConfig:
             then act as a damped position loop on the plan's positions).
         blend_time: the sagittal targets go linearly from the servos' targets at the take-over to the
             plan's over this time [s] (0: the plan from the first tick).
-        base_pitch_gain: the hip pitch targets get this times the base pitch error (measured minus
-            planned) [rad/rad]; 0: open loop (the executor of sessions 5-23). Needs the executor's
+        base_pitch_gain: the stance legs' hip pitch targets get this times the base pitch error (measured
+            minus planned) [rad/rad]; 0: open loop (the executor of sessions 5-23). Needs the executor's
             ``model`` and the IMU in the observation (``inputs["imu"]``); without either, open loop.
     """
 
@@ -293,8 +294,6 @@ def base_pitch_from_imu(model, data, joint_position, imu) -> float | None:
     if (quat.shape != (4,) or not np.all(np.isfinite(quat)) or np.linalg.norm(quat) < 0.5
             or joints.shape != (len(model.joint_names),) or not np.all(np.isfinite(joints))):
         return None
-    import pinocchio as pin
-
     pin.framesForwardKinematics(model.model, data, model.configuration([0, 0, 0], [0, 0, 0, 1], joints))
     R = base_rotation_from_imu(model, data, quat / np.linalg.norm(quat))
     return float(np.arctan2(R[0, 2], R[2, 2]))
