@@ -144,3 +144,16 @@ def test_cop_from_wrenches_with_shear_and_ankle_torques():
     cop, fz = cop_from_wrenches(wrenches)
     assert fz == pytest.approx(sum(normals))
     assert cop[:2] == pytest.approx(np.average(points, axis=0, weights=normals)[:2], abs=1e-12)
+
+
+def test_imu_quaternion_reads_every_shape_of_reading_and_refuses_unusable_ones():
+    from types import SimpleNamespace
+
+    from humfall_ros.model.humanoid import imu_quaternion
+
+    q = np.array([0.0, 0.1, 0.0, 0.995])
+    for reading in ((q, np.zeros(3)), [q, np.zeros(3)], q, {"orientation": q}, SimpleNamespace(orientation=q)):
+        np.testing.assert_array_equal(imu_quaternion(reading), q)          # as given, not normalised
+    for bad in (None, (np.full(4, np.nan), np.zeros(3)), (np.zeros(4), np.zeros(3)), (np.ones(3), np.zeros(3)),
+                {"gyro": q}, SimpleNamespace(gyro=q), object(), (("a", "b", "c", "d"), None)):
+        assert imu_quaternion(bad) is None

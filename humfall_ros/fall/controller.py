@@ -54,7 +54,7 @@ from humfall_ros.fall.step_control import (
     predicted_stance_placement,
 )
 from humfall_ros.fall.stepping_zone import stepping_zone
-from humfall_ros.model.humanoid import SIDES, HumanoidModel, load_model, support_polygon
+from humfall_ros.model.humanoid import SIDES, HumanoidModel, imu_quaternion, load_model, support_polygon
 
 
 # joints inertia shaping may move, by name fragment: all of them (the paper), the pitch chain, or its upper body
@@ -222,14 +222,6 @@ class SafeFallDecision:
 
 def _get(o, key, default=None):
     return o.get(key, default) if isinstance(o, dict) else getattr(o, key, default)
-
-
-def _imu_quat(imu) -> np.ndarray | None:
-    if imu is None:
-        return None
-    q = imu[0] if isinstance(imu, (tuple, list)) else _get(imu, "orientation")
-    q = np.asarray(q, float).reshape(-1)
-    return q if q.shape == (4,) and np.all(np.isfinite(q)) and np.linalg.norm(q) > 0.5 else None
 
 
 def _side(v) -> str:
@@ -409,7 +401,7 @@ class SafeFallController:
             return False
         s = obs.state
         feet = {}
-        quat = _imu_quat(obs.inputs.get("imu"))
+        quat = imu_quaternion(obs.inputs.get("imu"))
         if quat is not None:
             q = configuration_from_sensors(self.m, obs.joint_position, quat, s.com)
             self.m.forward(q)
@@ -504,7 +496,7 @@ class SafeFallController:
         if ev_com is not None and np.all(np.isfinite(ev_com)) and \
                 np.linalg.norm(np.asarray(ev_com, float) - np.asarray(s.com, float)) > c.inconsistent_com_m:
             notes.append("fall event inconsistent with the state (CoM moved): deciding from the current state")
-        quat = _imu_quat(obs.inputs.get("imu"))
+        quat = imu_quaternion(obs.inputs.get("imu"))
         if quat is None:
             raise ValueError("no IMU orientation in the inputs")
         q = configuration_from_sensors(self.m, obs.joint_position, quat, s.com)
@@ -710,7 +702,7 @@ class SafeFallController:
                 self.hold = self.last_command.copy()
                 self.falling_since = None
             else:
-                quat = _imu_quat(obs.inputs.get("imu"))
+                quat = imu_quaternion(obs.inputs.get("imu"))
                 if quat is None:
                     self.reasons.append("IMU lost during the swing: holding the last command")
                     self.phase = "hold"
@@ -758,7 +750,7 @@ class SafeFallController:
         if self.phase == "landed" and c.capture_balance:
             return self._balance(obs)
         if self.phase == "shaping":
-            quat = _imu_quat(obs.inputs.get("imu"))
+            quat = imu_quaternion(obs.inputs.get("imu"))
             if quat is not None:
                 q = configuration_from_sensors(self.m, obs.joint_position, quat, obs.state.com)
                 q[7:] = self.last_command  # shape from the commanded posture (position-controlled joints lag)
@@ -810,7 +802,7 @@ class SafeFallController:
             self.balance_from = self.hold.copy()
             self.balance_start = obs.time
             self.settle = self.hold.copy()
-            quat = _imu_quat(obs.inputs.get("imu"))
+            quat = imu_quaternion(obs.inputs.get("imu"))
             ref = None
             if quat is not None:
                 q = configuration_from_sensors(self.m, obs.joint_position, quat, s.com)
@@ -835,7 +827,7 @@ class SafeFallController:
         The new support after a step: with the capture balance the robot rocks from one sole's corner to the
         other's, and over the touching corners alone the energy read "falling" (standing_push: 0.6 s after
         touchdown, inertia shaping then took over from the balance and the robot fell)."""
-        quat = _imu_quat(obs.inputs.get("imu"))
+        quat = imu_quaternion(obs.inputs.get("imu"))
         if quat is None:
             return None
         q = configuration_from_sensors(self.m, obs.joint_position, quat, obs.state.com)

@@ -206,6 +206,27 @@ def base_rotation_from_imu(model: HumanoidModel, data, imu_quat_xyzw) -> np.ndar
     return quat_matrix(imu_quat_xyzw) @ data.oMf[model.frame_ids[model.imu_frame]].rotation.T
 
 
+def imu_quaternion(imu) -> np.ndarray | None:
+    """The world orientation (x, y, z, w) of an IMU reading, or None for a missing or unusable one.
+
+    ``imu``: ``Observation.inputs["imu"]`` as the loops fill it, ``(orientation, gyro)``; also an object or dict
+    with an ``orientation``, or the orientation array itself. Unusable: not four finite numbers, or a norm
+    of 0.5 or less (not normalised here)."""
+    if imu is None:
+        return None
+    if isinstance(imu, (tuple, list)):
+        q = imu[0]
+    elif isinstance(imu, np.ndarray):
+        q = imu
+    else:
+        q = imu.get("orientation") if isinstance(imu, dict) else getattr(imu, "orientation", None)
+    try:
+        q = np.asarray(q, float).reshape(-1)
+    except (TypeError, ValueError):
+        return None
+    return q if q.shape == (4,) and np.all(np.isfinite(q)) and np.linalg.norm(q) > 0.5 else None
+
+
 def quat_matrix(q_xyzw) -> np.ndarray:
     """Rotation matrix of a quaternion (x, y, z, w), normalised first.
 

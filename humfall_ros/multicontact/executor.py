@@ -37,7 +37,7 @@ from scipy.spatial.transform import Rotation
 
 from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
-from humfall_ros.model.humanoid import base_rotation_from_imu
+from humfall_ros.model.humanoid import base_rotation_from_imu, imu_quaternion
 from humfall_ros.multicontact.collocation import Segment, hermite_eval
 from humfall_ros.multicontact.model import FEET
 
@@ -177,28 +177,26 @@ class MulticontactExecutor:
 
     # ------------------------------------------------------------------ plan
     @staticmethod
-    def sample(seg: Segment, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Joint positions and velocities of ``seg`` at time ``t`` from its start (clamped)."""
+    def planar(seg: Segment, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """The plan's whole planar state (root x, z, pitch, then the joints) and its rate in ``seg`` at time ``t``
+        from its start (clamped): the cubic Hermite spline between knots (eq. 7)."""
         t = float(np.clip(t, seg.time[0], seg.time[-1]))
         k = int(np.clip(np.searchsorted(seg.time, t, side="right") - 1, 0, len(seg.time) - 2))
-        q, dq = hermite_eval(seg.time[k], seg.time[k + 1], seg.q[k], seg.v[k], seg.q[k + 1], seg.v[k + 1], t)
-        return q[3:], dq[3:]
+        return hermite_eval(seg.time[k], seg.time[k + 1], seg.q[k], seg.v[k], seg.q[k + 1], seg.v[k + 1], t)
 
     @staticmethod
-    def root_pitch(seg: Segment, t: float) -> float:
-        """The plan's root (base) pitch in ``seg`` at time ``t`` from its start (clamped) [rad]."""
-        t = float(np.clip(t, seg.time[0], seg.time[-1]))
-        k = int(np.clip(np.searchsorted(seg.time, t, side="right") - 1, 0, len(seg.time) - 2))
-        q, _ = hermite_eval(seg.time[k], seg.time[k + 1], seg.q[k], seg.v[k], seg.q[k + 1], seg.v[k + 1], t)
-        return float(q[2])
+    def sample(seg: Segment, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Joint positions and velocities of ``seg`` at time ``t`` from its start (clamped)."""
+        q, dq = MulticontactExecutor.planar(seg, t)
+        return q[3:], dq[3:]
 
-    def _pitch_error(self, observation: Observation, seg: Segment, t: float) -> float | None:
+    def _pitch_error(self, observation: Observation, planned_pitch: float) -> float | None:
         """Measured minus planned base pitch [rad], or None (no model, no usable IMU reading)."""
         if self.model is None:
             return None
         theta = base_pitch_from_imu(self.model, self._data, observation.joint_position,
                                     observation.inputs.get("imu"))
-        return None if theta is None else theta - self.root_pitch(seg, t)
+        return None if theta is None else theta - planned_pitch
 
     def _foot_loaded(self, obs: Observation, foot: str) -> bool:
         return bool(obs.state.left_contact if foot == "LF" else obs.state.right_contact)
@@ -253,7 +251,8 @@ class MulticontactExecutor:
             self._seg_start = tp
             self.switches.append((self._seg, tp, why))
         seg = self.segments[self._seg]
-        q, dq = self.sample(seg, tp - self._seg_start)
+        plan_q, plan_dq = self.planar(seg, tp - self._seg_start)
+        q, dq = plan_q[3:], plan_dq[3:]
         if tp - self._seg_start > float(seg.time[-1]):
             dq = np.zeros_like(dq)      # holding the last knot (plan over, or waiting for a touchdown)
         if self._copy is not None:
@@ -266,7 +265,7 @@ class MulticontactExecutor:
         # pelvis only when the thigh is held; on a swinging leg it would move the foot instead
         stance = [i for foot, i in self._hips.items() if foot in seg.mode]
         if self.cfg.base_pitch_gain > 0 and stance:
-            err = self._pitch_error(observation, seg, tp - self._seg_start)
+            err = self._pitch_error(observation, float(plan_q[2]))
             if err is not None:
                 q = q.copy()
                 q[stance] += self.cfg.base_pitch_gain * err
@@ -284,18 +283,20 @@ def base_pitch_from_imu(model, data, joint_position, imu) -> float | None:
     """The base's pitch about the world y axis [rad] from an IMU reading and the joints, as the planar
     state measures it (:func:`planar_state`), or None for a missing or unusable reading.
 
-    ``imu``: ``(orientation xyzw, gyro)`` or the orientation alone (``Observation.inputs["imu"]``);
+    ``imu``: ``Observation.inputs["imu"]`` (``model.imu_quaternion`` reads it);
     ``data``: a pinocchio data of ``model.model`` (overwritten). The IMU's rotation in the base comes from
     the joints (``model.base_rotation_from_imu``: the estimator's construction)."""
-    if imu is None:
-        return None
-    quat = np.asarray(imu[0] if isinstance(imu, (tuple, list)) else imu, float).reshape(-1)
+    quat = imu_quaternion(imu)
     joints = np.asarray(joint_position, float).reshape(-1)
-    if (quat.shape != (4,) or not np.all(np.isfinite(quat)) or np.linalg.norm(quat) < 0.5
-            or joints.shape != (len(model.joint_names),) or not np.all(np.isfinite(joints))):
+    if quat is None or joints.shape != (len(model.joint_names),) or not np.all(np.isfinite(joints)):
         return None
     pin.framesForwardKinematics(model.model, data, model.configuration([0, 0, 0], [0, 0, 0, 1], joints))
-    R = base_rotation_from_imu(model, data, quat / np.linalg.norm(quat))
+    return pitch_of(base_rotation_from_imu(model, data, quat / np.linalg.norm(quat)))
+
+
+def pitch_of(R) -> float:
+    """The planar pitch of a world rotation [rad]: the rotation about the world y axis that the planar model's
+    root angle measures (the body's x axis against the world's, in the x-z plane)."""
     return float(np.arctan2(R[0, 2], R[2, 2]))
 
 
@@ -314,7 +315,7 @@ def planar_state(planar_model, joint_names: list[str], q3, v3) -> tuple[np.ndarr
     q = np.zeros(planar_model.n)
     v = np.zeros(planar_model.n)
     q[0], q[1] = q3[0], q3[2]
-    q[2] = float(np.arctan2(R[0, 2], R[2, 2]))          # rotation about the world y axis
+    q[2] = pitch_of(R)
     lin, ang = R @ v3[:3], R @ v3[3:6]
     v[0], v[1], v[2] = lin[0], lin[2], ang[1]
     for i, j in enumerate(planar_model.joint_names):

@@ -29,7 +29,7 @@ import pinocchio as pin
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.control.standing import StandingController
 from humfall_ros.dynamics.pendulum import GRAVITY
-from humfall_ros.model.humanoid import SIDES, HumanoidModel, base_rotation_from_imu, quat_matrix
+from humfall_ros.model.humanoid import SIDES, HumanoidModel, base_rotation_from_imu, imu_quaternion, quat_matrix
 from humfall_ros.model.ik import (
     ComTask,
     FrameTask,
@@ -265,9 +265,8 @@ class LocomotionController:
     def world_heading(self, observation: Observation) -> float:
         """The soles' mean yaw in the world [rad]: from the IMU and the joints (the observation has no yaw), else
         the controller's ``heading``."""
-        imu = observation.inputs.get("imu")
-        quat = None if imu is None else np.asarray(imu[0] if isinstance(imu, (tuple, list)) else imu, float)
-        if quat is None or quat.shape != (4,) or not np.all(np.isfinite(quat)) or np.linalg.norm(quat) < 0.5:
+        quat = imu_quaternion(observation.inputs.get("imu"))
+        if quat is None:
             return self.heading
         m = self.m
         q = m.configuration([0, 0, 0], [0, 0, 0, 1], observation.joint_position)
