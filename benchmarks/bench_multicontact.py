@@ -212,7 +212,9 @@ def run_sweep(args, overrides: dict) -> dict:
         "build_s": round(build_total, 2),
     }
     if args.library:
-        out["library"] = library_figures(out, cases, overrides, [float(x) for x in args.library.split(",")])
+        out["library"] = library_figures(out, cases, overrides, [float(x) for x in args.library.split(",")],
+                                         [float(x) for x in args.library_entries.split(",") if x.strip()],
+                                         args.budget)
     if args.plots:
         from humfall_ros.multicontact import plots
         tag = "" if not overrides else "_" + out["transition_objective"]
@@ -221,24 +223,34 @@ def run_sweep(args, overrides: dict) -> dict:
     return out
 
 
-def library_figures(run: dict, cases: list, overrides: dict, queries: list[float]) -> dict:
-    """Online use: the sweep's plans as a library, re-planned warm at ``queries`` (J)."""
+def library_figures(run: dict, cases: list, overrides: dict, queries: list[float],
+                    extra_entries: list[float] = (), budget: float = 120.0) -> dict:
+    """Online use: the sweep's plans (and plans of ``extra_entries`` J, searched here) as a library,
+    re-planned warm at ``queries`` (J)."""
     from humfall_ros.multicontact.library import LibraryEntry, PlanLibrary
     entries = [LibraryEntry(c["ke"], 1.0, 0.0, c["contact_sequence"], c["_result"]["segments"])
                for c in cases if c["success"]]
-    lib = PlanLibrary(entries)
     planner = FallPlanner.from_params(**overrides)
     t0 = time.perf_counter()
-    for e in entries:   # what a running node has done once: build the structures the library uses
+    extra = PlanLibrary.build(planner, extra_entries, time_budget=budget).entries if extra_entries else []
+    extra_s = time.perf_counter() - t0
+    lib = PlanLibrary(sorted(entries + extra, key=lambda e: e.kinetic_energy))
+    t0 = time.perf_counter()
+    for e in lib.entries:   # what a running node has done once: build the structures the library uses
         for s in e.segments:
-            planner.opt.structures(s.mode, s.change, s.extremity, Environment())
-    out = {"entries": [e.kinetic_energy for e in entries], "structure_build_s": round(time.perf_counter() - t0, 2),
-           "queries": []}
+            planner.opt.prepare_warm(s, Environment())
+    out = {"entries": [e.kinetic_energy for e in lib.entries],
+           "entry_sequences": {str(e.kinetic_energy): " -> ".join(e.contact_sequence) for e in lib.entries},
+           "extra_entries_requested": list(extra_entries), "extra_entries_search_s": round(extra_s, 2),
+           "warm_start_multipliers": planner.opt.cfg.warm_start_multipliers,
+           "structure_build_s": round(time.perf_counter() - t0, 2), "queries": []}
     for ke in queries:
         r = lib.replan(planner, {"kinetic_energy": ke, "direction": 1.0})
         out["queries"].append({
             "ke": ke, "success": r.success, "reason": r.reason, "time_s": round(r.time_s, 3),
             "nlp_times_s": [round(t, 3) for t in r.nlp_times_s],
+            "iterations": [sg.iterations for sg in r.segments],
+            "primal_fallbacks": sum(len(sg.attempt_log) > 1 for sg in r.segments),
             "entry_ke": r.entry.kinetic_energy if r.entry else None,
             "sequence": r.entry.contact_sequence if r.entry else None, "final_ke": r.final_ke,
             "landings": [{k: (round(v, 3) if isinstance(v, float) else v) for k, v in x.to_dict().items()}
@@ -286,6 +298,8 @@ def main(argv=None) -> int:
     ap.add_argument("--library", default="",
                     help="after the sweep: use its plans as a library and re-plan warm at these energies (J), "
                          "e.g. 12,15,25,35,45")
+    ap.add_argument("--library-entries", default="",
+                    help="with --library: more library entries (J), each planned by the tree search, e.g. 15,25,35")
     args = ap.parse_args(argv)
     overrides = parse_overrides(args.set)
     out = {"machine_cpus": os.cpu_count(), "jobs": args.jobs,

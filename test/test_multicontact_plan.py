@@ -249,8 +249,60 @@ def test_library_replan_reuses_a_stored_plan_warm(tmp_path):
     assert r.final_ke < planner.opt.cfg.eps_ke
     assert r.segments[0].ke[0] == pytest.approx(12.0, rel=1e-6)     # from the request's state, not the entry's
     assert r.segments[0].attempt_log[0]["seed_T"] == "warm" and len(r.nlp_times_s) == 1
+    # the saved entry kept IPOPT's multipliers (the structure's layout), and the re-plan started from them
+    stored = r.entry.segments[0]
+    nlp, _ = planner.opt.structures(stored.mode, stored.change, stored.extremity, Environment())
+    assert nlp.fits(stored.multipliers)
+    assert r.segments[0].attempt_log[0]["multipliers"] is True
     miss = lib.replan(planner, {"kinetic_energy": 12.0, "direction": -1.0})
     assert not miss.success and "no library entry" in miss.reason
+    # primal only (the option off): one IPOPT run from the primal guess, also at rest
+    planner.opt.cfg.warm_start_multipliers = False
+    try:
+        r0 = lib.replan(planner, {"kinetic_energy": 12.0, "direction": 1.0})
+    finally:
+        planner.opt.cfg.warm_start_multipliers = True
+    assert r0.success and [a["multipliers"] for a in r0.segments[0].attempt_log] == [False]
+
+    # a stop that the multipliers lead astray (ends above eps_KE) is solved again from the primal
+    # guess, and that one is kept; the time reported is both runs'
+    real = planner.opt.warm_solve
+
+    def astray(q0, v0, guess, env, acc_max=None, multipliers=None):
+        seg = real(q0, v0, guess, env, acc_max=acc_max, multipliers=multipliers)
+        if seg.attempt_log[0]["multipliers"]:
+            ke = seg.ke.copy()
+            ke[-1] = 1.0
+            seg = dataclasses.replace(seg, ke=ke)
+        return seg
+    planner.opt.warm_solve = astray
+    try:
+        r1 = lib.replan(planner, {"kinetic_energy": 12.0, "direction": 1.0})
+    finally:
+        del planner.opt.warm_solve
+    assert r1.success and r1.final_ke < planner.opt.cfg.eps_ke
+    assert [a["multipliers"] for a in r1.segments[0].attempt_log] == [True, False]
+    assert r1.nlp_times_s[0] == pytest.approx(sum(a["time"] for a in r1.segments[0].attempt_log), abs=0.01)
+
+
+def test_warm_solve_from_its_own_solution_with_multipliers_takes_few_iterations():
+    """A solved segment re-solved from its own start: with its multipliers IPOPT starts at the optimum
+    (warm_start_init_point) and stops within a few iterations; primal only it pushes the point into
+    the interior and walks back (session 25: the 20 J step's segments 23-58 iterations)."""
+    planner = FallPlanner.from_params(nlp_max_wall_time=120.0)
+    r = planner.plan({"kinetic_energy": 10.0, "direction": 1.0, "time_budget": 600.0})
+    assert r["success"], r["reason"]
+    seg = r["segments"][0]
+    env = Environment()
+    warm = planner.opt.warm_solve(seg.q[0], seg.v[0], seg, env)
+    cold = planner.opt.warm_solve(seg.q[0], seg.v[0], seg, env, multipliers=False)
+    assert warm.success and cold.success
+    assert warm.attempt_log[0]["multipliers"] and not cold.attempt_log[0]["multipliers"]
+    assert warm.final_ke == pytest.approx(seg.final_ke, abs=1e-3)
+    assert warm.iterations <= 10 < cold.iterations, (warm.iterations, cold.iterations)
+    # a guess without multipliers (a plan from an older library file) falls back to the primal start
+    bare = dataclasses.replace(seg, multipliers=None)
+    assert not planner.opt.warm_solve(seg.q[0], seg.v[0], bare, env).attempt_log[0]["multipliers"]
 
 
 def test_a_failed_seed_is_retried_with_the_next_duration_in_order():

@@ -227,7 +227,9 @@ class _PolishOpt(_StepOpt):
         self.warm_calls = []
         self.polished_stops = polished_stops
 
-    def warm_solve(self, q0, v0, guess, env, acc_max=None):
+    def warm_solve(self, q0, v0, guess, env, acc_max=None, multipliers=None):
+        # the polish changes the bounds, so the rejected stop's multipliers must not be used
+        assert multipliers is False
         self.warm_calls.append(acc_max)
         ke = guess.ke.copy()
         ke[-1] = 0.0 if self.polished_stops else 1.0

@@ -122,6 +122,10 @@ class OptConfig:
     contact_pos_tol: float = 0.002   # m, eq. 3 at the knots (drift bound)
     contact_vel_tol: float = 0.02    # m/s, eq. 4 at the knots
     nlp_max_wall_time: float = 10.0
+    # a warm re-solve (``warm_solve``: the library re-plan) whose guess carries the IPOPT multipliers of
+    # its own solve starts IPOPT from them too (warm_start_init_point); false: from the primal guess only
+    # (before session 25). The tree's polish of a rejected stop never uses them (its bounds differ).
+    warm_start_multipliers: bool = True
     # threads of casadi's own OpenBLAS under IPOPT's MUMPS (0: the library's default, one per core)
     blas_threads: int = 1
     # Objective of a transition that adds a contact (Sec. III-A): 'pre_impact' (the
@@ -227,13 +231,18 @@ class Segment:
     build_time: float = 0.0  # part of nlp_time spent building a not yet cached NLP structure
     objective: float = float("nan")   # eq. 9 value (blended for an added contact)
     attempt_log: list = dataclasses.field(default_factory=list)  # one dict per seed tried
+    # IPOPT's multipliers at this solution (bounds of the variables, constraints), in the NLP's own
+    # layout: a warm re-solve of the same structure starts from them (``warm_solve``)
+    multipliers: tuple | None = None
 
     @property
     def final_ke(self) -> float:
         return float(self.ke[-1])
 
-    def to_dict(self, model: PlanarModel | None = None) -> dict:
-        return {
+    def to_dict(self, model: PlanarModel | None = None, multipliers: bool = False) -> dict:
+        """JSON-able; ``multipliers``: also IPOPT's multipliers (a library entry keeps them for its
+        warm re-plans; plan responses leave them out)."""
+        d = {
             "kind": self.kind, "mode": mode_label(self.mode), "target_mode": mode_label(self.target_mode),
             "change": self.change, "extremity": self.extremity,
             "time": self.time.tolist(), "q": self.q.tolist(), "v": self.v.tolist(), "a": self.a.tolist(),
@@ -244,6 +253,10 @@ class Segment:
             "seed_duration": self.seed_duration, "attempts": self.attempts,
             "max_violation": self.max_violation, "objective": self.objective, "attempt_log": self.attempt_log,
         }
+        if multipliers and self.multipliers is not None:
+            d["multipliers"] = {"x": np.asarray(self.multipliers[0]).tolist(),
+                                "g": np.asarray(self.multipliers[1]).tolist()}
+        return d
 
     @staticmethod
     def from_dict(d: dict) -> Segment:
@@ -258,7 +271,9 @@ class Segment:
                        attempts=int(d["attempts"]), max_violation=float(d["max_violation"]),
                        cpu_time=float(d.get("cpu_time", 0.0)), build_time=float(d.get("build_time", 0.0)),
                        objective=float(d.get("objective", float("nan"))),
-                       attempt_log=list(d.get("attempt_log", [])), **arrays)
+                       attempt_log=list(d.get("attempt_log", [])),
+                       multipliers=(np.asarray(d["multipliers"]["x"], float), np.asarray(d["multipliers"]["g"], float))
+                       if d.get("multipliers") else None, **arrays)
 
 
 # ---------------------------------------------------------------- splines
@@ -464,6 +479,8 @@ class SegmentNLP:
             "ipopt.max_wall_time": cfg.nlp_max_wall_time,
         }
         self.solver = ca.nlpsol(f"seg_{id(self)}", "ipopt", {"x": w, "f": f, "g": G}, opts)
+        self._opts = opts
+        self._warm_solver = None
         self.f_ke_end = ca.Function("ke_end", [w], [ke])
         self.f_cap_cost = ca.Function("cap_cost", [w], [ca.SX(cap_cost)])
         self.f_g = ca.Function("g", [w], [G])
@@ -471,6 +488,26 @@ class SegmentNLP:
         self._block_idx = {b: np.where(tags == b)[0] for b in set(tags)}
         self.knot_slices = [(1 + k * nk, 1 + (k + 1) * nk) for k in range(N)]
         self.lock = threading.Lock()
+
+    # IPOPT's warm start from a known solution's multipliers: the initial point is not pushed into the
+    # interior (bound pushes ~0) and the barrier starts small, since the guess is a neighbouring optimum
+    WARM_START_OPTIONS = {"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-3,
+                          "ipopt.warm_start_bound_push": 1e-6, "ipopt.warm_start_mult_bound_push": 1e-6,
+                          "ipopt.warm_start_slack_bound_push": 1e-6}
+
+    def warm_solver(self):
+        """The same NLP (its oracle: no second symbolic build) with IPOPT's warm-start options; built
+        on first use (~2 s, as the cold solver; the derivative functions are generated again)."""
+        with self.lock:
+            if self._warm_solver is None:
+                self._warm_solver = ca.nlpsol(f"warm_{id(self)}", "ipopt", self.solver.oracle(),
+                                              {**self._opts, **self.WARM_START_OPTIONS})
+            return self._warm_solver
+
+    def fits(self, multipliers) -> bool:
+        """Multipliers of this structure's layout (variables, constraints)?"""
+        return (multipliers is not None and len(multipliers) == 2 and np.size(multipliers[0]) == self.nw
+                and np.size(multipliers[1]) == self.ng)
 
     def _row_fn(self, row: C.ContactRow):
         model = self.model
@@ -908,6 +945,7 @@ class TrajectoryOptimizer:
                 and viol <= cfg.feasibility_tol
             seg = self._segment(nlp, w, mode, target, change, ext, ok, stats, T, viol)
             seg.objective = float(nlp.f_ke_end(w))
+            seg.multipliers = (np.array(sol["lam_x"]).ravel(), np.array(sol["lam_g"]).ravel())
             log.append({"seed_T": round(T, 4), "status": seg.status, "iterations": seg.iterations,
                         "time": round(time.perf_counter() - t_a, 3), "objective": round(seg.objective, 4),
                         "final_ke": round(seg.final_ke, 4), "T": round(float(seg.time[-1]), 4),
@@ -934,7 +972,14 @@ class TrajectoryOptimizer:
         best.attempt_log = log
         return best
 
-    def warm_solve(self, q0, v0, guess: Segment, env: Environment, acc_max: float | None = None) -> Segment:
+    def prepare_warm(self, guess: Segment, env: Environment) -> None:
+        """Build what ``warm_solve(.., guess, env)`` will use (a node's warm-up for its library)."""
+        nlp, _ = self.structures(guess.mode, guess.change, guess.extremity, env)
+        if self.cfg.warm_start_multipliers and nlp.fits(guess.multipliers):
+            nlp.warm_solver()
+
+    def warm_solve(self, q0, v0, guess: Segment, env: Environment, acc_max: float | None = None,
+                   multipliers: bool | None = None) -> Segment:
         """Re-solve ``guess``'s NLP (same mode and contact change) from a new initial
         state, with ``guess``'s knots, torques and forces as the initial point: one
         IPOPT run, no seed sweep (the online re-plan from a library of plans; paper 2,
@@ -944,7 +989,12 @@ class TrajectoryOptimizer:
         ``acc_max`` (rad/s^2 or m/s^2) replaces ``OptConfig.acc_max`` as the bound on
         the knot accelerations of this solve (a bound, not a structure: the cached NLP
         serves). The tree's polish of a stop the re-simulation check rejected uses it
-        (docs/multicontact.md, "Session 11")."""
+        (docs/multicontact.md, "Session 11").
+
+        ``multipliers`` (None: ``OptConfig.warm_start_multipliers``): when ``guess`` carries IPOPT's
+        multipliers of this structure, start IPOPT from them as well (``SegmentNLP.warm_solver``);
+        measured on the library re-plans (session 25): 20 J entry re-solved at 22 / 25 J, 1.36 / 2.10 s
+        primal only, 0.99 / 1.08 s with them (iterations 130 / 191 -> 93 / 95)."""
         q0 = np.asarray(q0, float)
         v0 = np.asarray(v0, float)
         t0, c0 = time.perf_counter(), time.thread_time()
@@ -957,9 +1007,13 @@ class TrajectoryOptimizer:
         q = guess.q + fade * (q0 - guess.q[0])
         v = guess.v + fade * (v0 - guess.v[0])
         w0 = np.clip(nlp.pack(float(guess.time[-1]), q, v, guess.a, guess.u, guess.lam), lbx, ubx)
+        use_mult = (self.cfg.warm_start_multipliers if multipliers is None else multipliers) \
+            and nlp.fits(guess.multipliers)
+        solver = nlp.warm_solver() if use_mult else nlp.solver
+        mult = {"lam_x0": guess.multipliers[0], "lam_g0": guess.multipliers[1]} if use_mult else {}
         with nlp.lock:
-            sol = nlp.solver(x0=w0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
-            stats = dict(nlp.solver.stats())
+            sol = solver(x0=w0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg, **mult)
+            stats = dict(solver.stats())
         iters = int(stats.get("iter_count", 0))
         w = np.array(sol["x"]).ravel()
         viol = nlp.violation(w, lbx, ubx, lbg, ubg)
@@ -974,9 +1028,9 @@ class TrajectoryOptimizer:
                 "Maximum_Iterations_Exceeded", "Solved_To_Acceptable_Level"):
             restarts += 1
             with nlp.lock:
-                sol = nlp.solver(x0=sol["x"], lam_x0=sol["lam_x"], lam_g0=sol["lam_g"],
-                                 lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
-                stats = dict(nlp.solver.stats())
+                sol = solver(x0=sol["x"], lam_x0=sol["lam_x"], lam_g0=sol["lam_g"],
+                             lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
+                stats = dict(solver.stats())
             iters += int(stats.get("iter_count", 0))
             w = np.array(sol["x"]).ravel()
             viol = nlp.violation(w, lbx, ubx, lbg, ubg)
@@ -986,8 +1040,10 @@ class TrajectoryOptimizer:
         seg = self._segment(nlp, w, guess.mode, guess.target_mode, guess.change, guess.extremity, ok, stats,
                             float(guess.time[-1]), viol)
         seg.objective = float(nlp.f_ke_end(w))
+        seg.multipliers = (np.array(sol["lam_x"]).ravel(), np.array(sol["lam_g"]).ravel())
         seg.nlp_time, seg.build_time, seg.cpu_time = time.perf_counter() - t0, build_time, time.thread_time() - c0
-        seg.attempt_log = [{"seed_T": "warm", "status": seg.status, "iterations": seg.iterations,
+        seg.attempt_log = [{"seed_T": "warm", "multipliers": bool(use_mult), "status": seg.status,
+                            "iterations": seg.iterations,
                             "time": round(seg.nlp_time, 3), "objective": round(seg.objective, 4),
                             "final_ke": round(seg.final_ke, 4), "T": round(float(seg.time[-1]), 4),
                             "violation": viol, "success": bool(ok), "warm_restarts": restarts}]

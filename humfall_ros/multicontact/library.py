@@ -7,7 +7,9 @@ over a grid of pushes (kinetic energy [J], direction ±1, wall distance [m];
 direction and wall presence, keeps its contact sequence, and re-solves each of
 its segments in order from the request's state with the stored segment as the
 initial point (``TrajectoryOptimizer.warm_solve``: one IPOPT run per segment,
-no seed sweep, no tree). Between segments the impact map of eq. 10 gives the
+no seed sweep, no tree; IPOPT starts from the stored solution's multipliers as well, and a
+segment that then fails, or a last one that does not stop, is solved once more from the primal
+guess alone). Between segments the impact map of eq. 10 gives the
 post-impact state of an added contact, as in the tree. The re-plan is accepted
 when every segment converges and the last one ends below eps_KE; otherwise the
 caller falls back to the tree search (``FallPlanner.plan``).
@@ -47,7 +49,7 @@ class LibraryEntry:
     def to_dict(self) -> dict:
         return {"kinetic_energy": self.kinetic_energy, "direction": self.direction,
                 "wall_distance": self.wall_distance, "contact_sequence": self.contact_sequence,
-                "segments": [s.to_dict() for s in self.segments]}
+                "segments": [s.to_dict(multipliers=True) for s in self.segments]}
 
     @staticmethod
     def from_dict(d: dict) -> "LibraryEntry":
@@ -137,10 +139,25 @@ class PlanLibrary:
         segs, lands, times = [], [], []
         t_plan = 0.0
         limits = planner.opt.cfg.landing_limits
-        for stored in entry.segments:
+        eps = planner.opt.cfg.eps_ke
+        for i, stored in enumerate(entry.segments):
             seg = planner.opt.warm_solve(q, v, stored, vr.env)
+            spent = seg.nlp_time
+            last = i == len(entry.segments) - 1
+            if seg.attempt_log[0].get("multipliers") and (not seg.success or (last and seg.final_ke >= eps)):
+                # the stored multipliers led IPOPT to another local optimum (session 25: the 10 J stop
+                # re-solved at 12 J ends at 0.80 J from them, at 0.0 J from the primal guess alone):
+                # the primal start as well, the better of the two kept
+                alt = planner.opt.warm_solve(q, v, stored, vr.env, multipliers=False)
+                spent += alt.nlp_time
+                if alt.success and (not seg.success or (last and alt.final_ke < seg.final_ke)):
+                    alt.attempt_log = seg.attempt_log + alt.attempt_log
+                    seg = alt
+                else:
+                    seg.attempt_log = seg.attempt_log + alt.attempt_log
+            seg.nlp_time = spent
             segs.append(seg)
-            times.append(seg.nlp_time)
+            times.append(spent)
             if not seg.success:
                 return Replan(False, f"warm-started {seg.kind} {mode_label(seg.mode)} -> "
                                      f"{mode_label(seg.target_mode)} did not converge ({seg.status})", entry, segs,

@@ -314,7 +314,8 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
             return True
 
         if rejected is not None and polish_acc_max > 0 and not spent():
-            if accept(opt.warm_solve(d.q, d.v, y, env, acc_max=polish_acc_max), "polish_acc_max", polish_acc_max):
+            polished = opt.warm_solve(d.q, d.v, y, env, acc_max=polish_acc_max, multipliers=False)
+            if accept(polished, "polish_acc_max", polish_acc_max):
                 return True
         if rejected is not None and check_retry_seeds and not spent():
             try:
