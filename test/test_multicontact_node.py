@@ -110,3 +110,33 @@ def test_client_reports_missing_service(in_ros_domain):
     assert out.returncode == 2
     d = json.loads(out.stdout)
     assert d["success"] is False and "not available" in d["reason"]
+
+
+def test_plan_fall_from_the_shipped_library(ros_env, in_ros_domain, tmp_path):
+    """The node with ``library_file`` (the shipped forward library): a 22 J request is answered by a
+    warm re-plan of the 20 J entry (no tree), a NaN request still gets its reason, the client prints
+    the answer's figures (no tree figure), and the node keeps serving."""
+    cmd = python_node_cmd("humfall_ros.nodes.multicontact_planner", "--ros-args", "-p", "warm_up:=false",
+                          "-p", "library_file:=multicontact_library/forward_10-35J.json")
+    proc = subprocess.Popen(cmd, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        run = [sys.executable, "-c", "import sys; from humfall_ros.nodes.plan_fall_client import main; "
+               "sys.exit(main(sys.argv[1:]))", "--wait", "60", "--json"]
+        out = subprocess.run(run + ["--ke", "22", "--plots", str(tmp_path)], env=in_ros_domain,
+                             capture_output=True, text=True, timeout=180)
+        assert out.returncode == 0, out.stdout + out.stderr
+        d = json.loads(out.stdout)
+        assert d["success"] and "re-solved library plan for 20 J" in d["reason"], d["reason"]
+        assert d["tree_nodes"] == 0 and d["final_ke"] < 0.1 and len(d["contact_sequence"]) >= 1
+        assert d["nlp_count"] == len(d["nlp_times_s"]) == len(d["contact_sequence"])
+        assert sorted(pathlib.Path(f).name for f in d["plots"]) == ["plan_22J_ke.png", "plan_22J_sticks.png"]
+        out = subprocess.run(run + ["--ke", "nan"], env=in_ros_domain, capture_output=True, text=True, timeout=60)
+        assert out.returncode == 1 and "not a finite" in json.loads(out.stdout)["reason"]
+        assert proc.poll() is None, "node died"
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

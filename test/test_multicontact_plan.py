@@ -285,6 +285,44 @@ def test_library_replan_reuses_a_stored_plan_warm(tmp_path):
     assert r1.nlp_times_s[0] == pytest.approx(sum(a["time"] for a in r1.segments[0].attempt_log), abs=0.01)
 
 
+SHIPPED_LIBRARY = "multicontact_library/forward_10-35J.json"
+
+
+def test_planner_answers_from_the_shipped_library_and_searches_beyond_it():
+    """``library_file``: a request near an entry is re-solved warm from it (no tree); one further than
+    ``library_max_ke_gap`` from every entry goes to the tree search, which says so."""
+    planner = FallPlanner.from_params(library_file=SHIPPED_LIBRARY, nlp_max_wall_time=120.0)
+    assert [e.kinetic_energy for e in planner.library.entries] == [10.0, 15.0, 20.0, 25.0, 30.0, 35.0]
+    r = planner.plan({"kinetic_energy": 22.0, "direction": 1.0})
+    assert r["success"] and r["source"] == "library", r["reason"]
+    assert "library plan for 20 J" in r["reason"] and r["tree"] is None
+    assert r["contact_sequence"] == planner.library.entries[2].contact_sequence
+    assert r["final_ke"] < planner.opt.cfg.eps_ke and r["initial_ke"] == pytest.approx(22.0, rel=1e-6)
+    assert r["node_ke"][0] == pytest.approx(22.0, rel=1e-6) and len(r["segments"]) == len(r["node_ke"])
+    assert len(r["landings"]) == sum(s.change == "add" for s in r["segments"])
+    far = planner.plan({"kinetic_energy": 60.0, "direction": 1.0, "time_budget": 5.0})
+    assert far["source"] == "tree_search" and "no library entry within 5 J of 60.0 J" in far["library_attempt"]
+    back = planner.plan({"kinetic_energy": 20.0, "direction": -1.0, "time_budget": 5.0})
+    assert back["source"] == "tree_search" and "direction" in back["library_attempt"]
+
+
+def test_library_file_checks(tmp_path):
+    """A library built for other NLPs is refused when the planner is built (not at the first request);
+    the bare list that older sessions saved still loads; a missing file is an error."""
+    from humfall_ros.multicontact.library import PlanLibrary
+    with pytest.raises(ValueError, match="n_knots"):
+        FallPlanner.from_params(library_file=SHIPPED_LIBRARY, n_knots=10)
+    with pytest.raises(ValueError, match="transition_objective"):
+        FallPlanner.from_params(library_file=SHIPPED_LIBRARY, transition_objective="post_impact")
+    lib = FallPlanner.from_params(library_file=SHIPPED_LIBRARY).library
+    assert lib.built_with == {"n_knots": 8, "transition_objective": "pre_impact"}
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps([e.to_dict() for e in lib.entries[:1]]))
+    assert [e.contact_sequence for e in PlanLibrary.load(old).entries] == [lib.entries[0].contact_sequence]
+    with pytest.raises(FileNotFoundError):
+        FallPlanner.from_params(library_file=str(tmp_path / "none.json"))
+
+
 def test_warm_solve_from_its_own_solution_with_multipliers_takes_few_iterations():
     """A solved segment re-solved from its own start: with its multipliers IPOPT starts at the optimum
     (warm_start_init_point) and stops within a few iterations; primal only it pushes the point into

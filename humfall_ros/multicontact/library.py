@@ -22,10 +22,12 @@ import math
 import pathlib
 import time
 
-from humfall_ros.multicontact.collocation import Segment
+from humfall_ros.multicontact.collocation import OptConfig, Segment
 from humfall_ros.multicontact.landing import LandingReport, landing_report
 from humfall_ros.multicontact.modes import mode_label
-from humfall_ros.multicontact.planner import FallPlanner, InvalidRequest, validate
+from humfall_ros.multicontact.planner import FallPlanner, InvalidRequest, ValidRequest, validate
+
+FORMAT = 1
 
 
 @dataclasses.dataclass
@@ -83,15 +85,34 @@ class Replan:
 
 
 class PlanLibrary:
-    def __init__(self, entries: list[LibraryEntry] | None = None):
+    """Stored plans and the warm re-plan from them.
+
+    ``built_with``: what the plans were made with (``n_knots``, ``transition_objective``; saved in the
+    file): a planner whose NLPs differ in these cannot re-solve them (``check_compatible``)."""
+
+    def __init__(self, entries: list[LibraryEntry] | None = None, built_with: dict | None = None):
         self.entries = list(entries or [])
+        self.built_with = dict(built_with or {})
+
+    def check_compatible(self, cfg: OptConfig) -> None:
+        """ValueError unless every stored segment has ``cfg.n_knots`` knots and the library was built
+        with ``cfg.transition_objective`` (when it says)."""
+        bad = {len(s.time) for e in self.entries for s in e.segments} - {cfg.n_knots}
+        if bad:
+            raise ValueError(f"plan library: segments with {sorted(bad)} knots, the planner's NLPs have "
+                             f"{cfg.n_knots} (n_knots): rebuild the library")
+        obj = self.built_with.get("transition_objective")
+        if obj is not None and obj != cfg.transition_objective:
+            raise ValueError(f"plan library built with transition_objective {obj!r}, the planner uses "
+                             f"{cfg.transition_objective!r}: rebuild the library")
 
     # ------------------------------------------------------------- offline
     @staticmethod
     def build(planner: FallPlanner, kinetic_energies, directions=(1.0,), wall_distances=(0.0,),
               time_budget: float = 120.0) -> "PlanLibrary":
         """Full tree searches over the grid; failed pushes are left out."""
-        lib = PlanLibrary()
+        lib = PlanLibrary(built_with={"n_knots": planner.opt.cfg.n_knots,
+                                      "transition_objective": planner.opt.cfg.transition_objective})
         for w in wall_distances:
             for d in directions:
                 for ke in kinetic_energies:
@@ -103,11 +124,18 @@ class PlanLibrary:
         return lib
 
     def save(self, path) -> None:
-        pathlib.Path(path).write_text(json.dumps([e.to_dict() for e in self.entries]))
+        pathlib.Path(path).write_text(json.dumps({"format": FORMAT, "built_with": self.built_with,
+                                                  "entries": [e.to_dict() for e in self.entries]}))
 
     @staticmethod
     def load(path) -> "PlanLibrary":
-        return PlanLibrary([LibraryEntry.from_dict(d) for d in json.loads(pathlib.Path(path).read_text())])
+        """A saved library (also the bare list of entries that sessions before 25 wrote)."""
+        d = json.loads(pathlib.Path(path).read_text())
+        if isinstance(d, list):
+            return PlanLibrary([LibraryEntry.from_dict(x) for x in d])
+        if d.get("format") != FORMAT:
+            raise ValueError(f"plan library {path}: format {d.get('format')!r}, this code reads {FORMAT}")
+        return PlanLibrary([LibraryEntry.from_dict(x) for x in d["entries"]], d.get("built_with"))
 
     # -------------------------------------------------------------- online
     def nearest(self, kinetic_energy: float, direction: float, wall_distance: float) -> LibraryEntry | None:
@@ -120,18 +148,32 @@ class PlanLibrary:
             return None
         return min(cands, key=lambda e: (abs(e.kinetic_energy - kinetic_energy), abs(e.wall_distance - wall_distance)))
 
-    def replan(self, planner: FallPlanner, req: dict) -> Replan:
+    def replan(self, planner: FallPlanner, req: dict, max_ke_gap: float = math.inf) -> Replan:
         """Re-solve the nearest entry's sequence from the request's state (see module doc)."""
         t0 = time.perf_counter()
         try:
             vr = validate(planner.model, req, planner.cfg)
         except InvalidRequest as e:
             return Replan(False, f"invalid request: {e}", None, [], [], math.nan, time.perf_counter() - t0, [])
-        entry = self.nearest(float(req.get("kinetic_energy", 0.0) or 0.0), float(req.get("direction", 1.0) or 1.0),
-                             float(req.get("wall_distance", 0.0) or 0.0))
+        return self.replan_valid(planner, vr, max_ke_gap, t0)
+
+    def replan_valid(self, planner: FallPlanner, vr: ValidRequest, max_ke_gap: float = math.inf,
+                     t0: float | None = None) -> Replan:
+        """``replan`` for a validated request. The entry is chosen by the request state's kinetic
+        energy and the sign of its centre of mass's forward velocity (a request may give a state
+        rather than an energy and a direction); none further than ``max_ke_gap`` J."""
+        t0 = time.perf_counter() if t0 is None else t0
+        model = planner.model
+        ke = model.kinetic_energy(vr.q, vr.v)
+        eps = 1e-6
+        vx = (model.com(vr.q + eps * vr.v)[0] - model.com(vr.q)[0]) / eps
+        entry = self.nearest(ke, 1.0 if vx >= 0 else -1.0, vr.env.wall_x if vr.env.has_wall else 0.0)
         if entry is None:
             return Replan(False, "no library entry for this direction and environment", None, [], [], math.nan,
                           time.perf_counter() - t0, [])
+        if abs(entry.kinetic_energy - ke) > max_ke_gap:
+            return Replan(False, f"no library entry within {max_ke_gap:g} J of {ke:.1f} J (nearest "
+                                 f"{entry.kinetic_energy:g} J)", None, [], [], math.nan, time.perf_counter() - t0, [])
         if mode_label(vr.mode) != entry.contact_sequence[0]:
             return Replan(False, f"library entry starts in {entry.contact_sequence[0]}, request in "
                                  f"{mode_label(vr.mode)}", entry, [], [], math.nan, time.perf_counter() - t0, [])
@@ -175,4 +217,45 @@ class PlanLibrary:
                       final, time.perf_counter() - t0, times)
 
 
-__all__ = ["LibraryEntry", "PlanLibrary", "Replan"]
+def main(argv=None) -> int:
+    """Build a library file: ``python -m humfall_ros.multicontact.library --kes 10,15,20,25,30,35
+    --out FILE [--directions 1] [--walls 0] [--budget 120] [--set name=value,...]`` (the planner from
+    config/multicontact_planner.yaml, ``--set`` overrides by parameter name). Pushes without a plan
+    are left out and listed."""
+    import argparse
+    import sys
+
+    ap = argparse.ArgumentParser(prog="python -m humfall_ros.multicontact.library", description=main.__doc__)
+    ap.add_argument("--kes", required=True, help="push kinetic energies (J), comma-separated")
+    ap.add_argument("--directions", default="1", help="+1 forward, -1 backward, comma-separated")
+    ap.add_argument("--walls", default="0", help="wall distances (m; 0 = no wall), comma-separated")
+    ap.add_argument("--budget", type=float, default=120.0, help="tree-search budget per push (s)")
+    ap.add_argument("--set", default="", help="planner parameter overrides, name=value,...")
+    ap.add_argument("--out", required=True)
+    a = ap.parse_args(argv)
+    overrides = {}
+    for kv in filter(None, a.set.split(",")):
+        k, _, v = kv.partition("=")
+        overrides[k.strip()] = json.loads(v) if v.strip() not in ("", "nan") else v
+    floats = lambda text: [float(x) for x in text.split(",") if x.strip()]  # noqa: E731
+    planner = FallPlanner.from_params(**overrides)
+    t0 = time.perf_counter()
+    lib = PlanLibrary.build(planner, floats(a.kes), floats(a.directions), floats(a.walls), a.budget)
+    lib.save(a.out)
+    have = {(e.kinetic_energy, e.direction, e.wall_distance) for e in lib.entries}
+    missing = [k for k in ((ke, d, w) for w in floats(a.walls) for d in floats(a.directions)
+                           for ke in floats(a.kes)) if k not in have]
+    for e in lib.entries:
+        print(f"{e.kinetic_energy:g} J, direction {e.direction:+g}, wall {e.wall_distance:g} m: "
+              f"{' -> '.join(e.contact_sequence)}")
+    for ke, d, w in missing:
+        print(f"{ke:g} J, direction {d:+g}, wall {w:g} m: no plan (left out)", file=sys.stderr)
+    print(f"{len(lib.entries)} plans in {time.perf_counter() - t0:.1f} s -> {a.out}")
+    return 0 if lib.entries else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
+
+
+__all__ = ["LibraryEntry", "PlanLibrary", "Replan", "main"]

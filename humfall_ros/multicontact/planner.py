@@ -73,6 +73,12 @@ class PlannerConfig:
     # a stopping self-motion rejected by the re-simulation check is re-solved warm from itself with
     # its knot accelerations bounded by this (rad/s^2 or m/s^2; 0: off) before it is given up
     check_polish_acc_max: float = 100.0
+    # a library of precomputed plans (``library.py``; a path, relative ones under the package's config/):
+    # a request whose kinetic energy is within ``library_max_ke_gap`` of an entry's (same direction and
+    # wall presence) is first re-solved warm from that entry (~0.3-1 s), the tree search only when that
+    # is not accepted; "" = no library (the paper's Algorithm 1 for every request)
+    library_file: str = ""
+    library_max_ke_gap: float = 5.0   # J
     stance: dict = dataclasses.field(default_factory=dict)
 
     @staticmethod
@@ -231,6 +237,11 @@ class FallPlanner:
         self.model = model or load_model()
         self.cfg = cfg or PlannerConfig()
         self.opt = TrajectoryOptimizer(self.model, opt_cfg or OptConfig())
+        self.library = None
+        if self.cfg.library_file:
+            from humfall_ros.multicontact.library import PlanLibrary   # library.py imports this module
+            self.library = PlanLibrary.load(library_path(self.cfg.library_file))
+            self.library.check_compatible(self.opt.cfg)
 
     @staticmethod
     def from_params(values: dict | None = None, **overrides) -> FallPlanner:
@@ -245,11 +256,23 @@ class FallPlanner:
         return FallPlanner(opt, cfg)
 
     def plan(self, req: dict) -> dict:
+        """A plan for one request: from the library when one is loaded and its re-plan is accepted
+        (``result["source"] == "library"``), else by the tree search (``"tree_search"``, with what the
+        library said in ``library_attempt``), within the request's time budget all told."""
         t0 = time.perf_counter()
         try:
             vr = validate(self.model, req, self.cfg)
         except InvalidRequest as e:
             return failure(f"invalid request: {e}", time.perf_counter() - t0)
+        attempt = None
+        if self.library is not None:
+            rp = self.library.replan_valid(self, vr, max_ke_gap=self.cfg.library_max_ke_gap)
+            if rp.success:
+                out = replan_dict(self.model, rp, vr)
+                out["total_time_s"] = time.perf_counter() - t0
+                return out
+            attempt = rp.reason
+            vr = dataclasses.replace(vr, time_budget=max(vr.time_budget - (time.perf_counter() - t0), 0.0))
         check = None
         if self.cfg.check_q_error_max > 0:
             def check(segments, env=vr.env):
@@ -265,14 +288,42 @@ class FallPlanner:
                      max_nlps=self.cfg.max_nlps)
         out = result_dict(self.model, res, vr)
         out["total_time_s"] = time.perf_counter() - t0
+        if attempt is not None:
+            out["library_attempt"] = attempt
         return out
 
 
+def library_path(name: str):
+    """``library_file`` as a path: absolute as given, relative under the package's config/."""
+    import pathlib
+
+    from humfall_ros.paths import share_dir
+    p = pathlib.Path(name).expanduser()
+    return p if p.is_absolute() else share_dir() / "config" / p
+
+
 def failure(reason: str, elapsed: float = 0.0) -> dict:
-    return {"success": False, "reason": reason, "contact_sequence": [], "node_ke": [], "final_ke": float("nan"),
+    return {"success": False, "reason": reason, "source": "", "contact_sequence": [], "node_ke": [],
+            "final_ke": float("nan"),
             "segments": [], "nlp_times_s": [], "nlp_cpu_s": [], "nlp_build_s": [], "total_time_s": elapsed,
             "nlp_count": 0, "tree_nodes": 0, "landings": [], "landings_within_limits": False,
             "deepest_depth": 0, "tree": None, "initial_ke": float("nan")}
+
+
+def replan_dict(model: PlanarModel, rp, vr: ValidRequest) -> dict:
+    """``result_dict``'s shape for an accepted library re-plan (``library.Replan``): no tree."""
+    segs = rp.segments
+    return {
+        "success": True, "reason": rp.reason, "source": "library",
+        "contact_sequence": list(rp.entry.contact_sequence), "node_ke": [float(s.ke[0]) for s in segs],
+        "final_ke": rp.final_ke, "initial_ke": model.kinetic_energy(vr.q, vr.v),
+        "segments": segs, "nlp_times_s": list(rp.nlp_times_s), "nlp_cpu_s": [s.cpu_time for s in segs],
+        "nlp_build_s": [s.build_time for s in segs], "total_time_s": rp.time_s,
+        "nlp_count": len(rp.nlp_times_s), "tree_nodes": 0, "deepest_depth": len(segs) - 1,
+        "tree": None, "landings": list(rp.landings),
+        "landings_within_limits": bool(all(x.within_limits for x in rp.landings)),
+        "search": None, "env": vr.env, "wall_x": vr.env.wall_x,
+    }
 
 
 def result_dict(model: PlanarModel, res: SearchResult, vr: ValidRequest) -> dict:
@@ -287,5 +338,5 @@ def result_dict(model: PlanarModel, res: SearchResult, vr: ValidRequest) -> dict
         "deepest_depth": res.deepest_depth, "tree": res.tree_dict(with_trajectories=False),
         "landings": res.landings(),
         "landings_within_limits": bool(res.success and all(x.within_limits for x in res.landings())),
-        "search": res, "env": vr.env, "wall_x": vr.env.wall_x,
+        "search": res, "env": vr.env, "wall_x": vr.env.wall_x, "source": "tree_search",
     }

@@ -46,9 +46,11 @@ class MulticontactPlanner(Node):
         self._closing = False
         if warm:
             threading.Thread(target=self._warm_up, name="nlp-warm-up", daemon=True).start()
+        lib = self.planner.library
         self.get_logger().info(f"plan_fall ready (n={self.planner.model.n}, m={self.planner.model.m}, "
                                f"Nd={opt_cfg.n_knots}, objective={opt_cfg.transition_objective}, "
-                               f"queue_size={self.queue_size})")
+                               f"queue_size={self.queue_size}, library="
+                               + (f"{plan_cfg.library_file}: {len(lib.entries)} plans" if lib else "none") + ")")
 
     def _warm_up(self):
         """Build the NLP structures of the root two-foot mode (the sweep's first
@@ -65,6 +67,17 @@ class MulticontactPlanner(Node):
                 return
             self.planner.opt.structures(mode, change, ext, Environment())   # NLP and seed projector
         self.get_logger().info(f"warm-up: {len(segments)} NLP structures built in {time.perf_counter() - t0:.1f} s")
+        if self.planner.library is not None:
+            # the library's re-plans: their structures and warm-start solvers (~2 s each)
+            t0 = time.perf_counter()
+            stored = [(s, Environment.from_distance(e.wall_distance))
+                      for e in self.planner.library.entries for s in e.segments]
+            for s, env in stored:
+                if self._closing:
+                    return
+                self.planner.opt.prepare_warm(s, env)
+            self.get_logger().info(f"warm-up: the library's {len(stored)} segments ready in "
+                                   f"{time.perf_counter() - t0:.1f} s")
 
     def close(self):
         self._closing = True
@@ -93,6 +106,7 @@ class MulticontactPlanner(Node):
                     result = {"success": False, "reason": f"internal error: {e}", "segments": []}
                 self._fill(response, result)
                 self.get_logger().info(f"plan_fall: success={response.success} "
+                                       f"source={result.get('source', '')} "
                                        f"sequence={list(response.contact_sequence)} "
                                        f"nlps={response.nlp_count} t={response.total_time_s:.1f}s: {response.reason}")
         finally:

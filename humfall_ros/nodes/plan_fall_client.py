@@ -87,8 +87,9 @@ def summary(d: dict) -> str:
     times = d["nlp_times_s"]
     if times:
         med = sorted(times)[len(times) // 2]
-        lines.append(f"{d['nlp_count']} NLPs (median {med:.2f} s), tree of {d['tree_nodes']} nodes, "
-                     f"depth {d['deepest_depth']}, total {d['total_time_s']:.1f} s")
+        where = (f"tree of {d['tree_nodes']} nodes, depth {d['deepest_depth']}" if d["tree_nodes"]
+                 else "no tree (re-solved from the library)")
+        lines.append(f"{d['nlp_count']} NLPs (median {med:.2f} s), {where}, total {d['total_time_s']:.1f} s")
     if d.get("plots"):
         lines.append("plots: " + ", ".join(d["plots"]))
     return "\n".join(lines)
