@@ -233,10 +233,12 @@ def main(argv=None) -> int:
     ap.add_argument("--set", default="", help="planner parameter overrides, name=value,...")
     ap.add_argument("--out", required=True)
     a = ap.parse_args(argv)
+    import yaml
+
     overrides = {}
-    for kv in filter(None, a.set.split(",")):
+    for kv in filter(None, a.set.split(",")):   # values parsed as YAML, as the benchmarks' --set
         k, _, v = kv.partition("=")
-        overrides[k.strip()] = json.loads(v) if v.strip() not in ("", "nan") else v
+        overrides[k.strip()] = yaml.safe_load(v)
     floats = lambda text: [float(x) for x in text.split(",") if x.strip()]  # noqa: E731
     planner = FallPlanner.from_params(**overrides)
     t0 = time.perf_counter()

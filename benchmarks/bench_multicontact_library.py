@@ -1,0 +1,73 @@
+"""Online re-plans from a library of precomputed fall plans (issue 14's speed goal: <= 1 s for 10-50 J).
+Prints one JSON object.
+
+    python benchmarks/bench_multicontact_library.py [--library multicontact_library/forward_10-35J.json]
+        [--queries 12,14,17,19,22,24,27,29,32,34] [--repeats 2] [--set name=value,...]
+
+The planner is the node's (config/multicontact_planner.yaml) with ``library_file`` set: each query is a
+``FallPlanner.plan`` request, answered by a warm re-plan of the nearest entry (or, when that is not
+accepted, by the tree search: ``source``). The library's structures and warm-start solvers are built
+first, as the node's warm-up does (``warm_up_s``, not in the query times). ``--set
+warm_start_multipliers=false`` measures the primal-only warm start of sessions 20-24.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+from bench_multicontact import parse_overrides  # noqa: E402
+
+from humfall_ros.multicontact.modes import Environment  # noqa: E402
+from humfall_ros.multicontact.planner import FallPlanner  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--library", default="multicontact_library/forward_10-35J.json")
+    ap.add_argument("--queries", default="12,14,17,19,22,24,27,29,32,34")
+    ap.add_argument("--repeats", type=int, default=2, help="each query this many times (the median is kept)")
+    ap.add_argument("--set", default="", help="planner parameter overrides, name=value,...")
+    a = ap.parse_args(argv)
+    planner = FallPlanner.from_params(**{"library_file": a.library, **parse_overrides(a.set)})
+    t0 = time.perf_counter()
+    for e in planner.library.entries:
+        for s in e.segments:
+            planner.opt.prepare_warm(s, Environment.from_distance(e.wall_distance))
+    warm_up = time.perf_counter() - t0
+    rows = []
+    for ke in (float(x) for x in a.queries.split(",") if x.strip()):
+        runs = [planner.plan({"kinetic_energy": ke, "direction": 1.0}) for _ in range(max(1, a.repeats))]
+        r = runs[-1]
+        rows.append({"ke": ke, "success": r["success"], "source": r["source"],
+                     "entry": r["reason"].split(" (")[0] if r["source"] == "library" else None,
+                     "sequence": " -> ".join(r["contact_sequence"]), "final_ke": r["final_ke"],
+                     "time_s": round(statistics.median(x["total_time_s"] for x in runs), 3),
+                     "times_s": [round(x["total_time_s"], 3) for x in runs],
+                     "nlp_times_s": [round(t, 3) for t in r["nlp_times_s"]],
+                     "iterations": [s.iterations for s in r["segments"]],
+                     "primal_fallbacks": sum(len(s.attempt_log) > 1 for s in r["segments"])
+                     if r["source"] == "library" else None,
+                     "landings": [f"{x.limb}: {x.normal_speed:.2f} m/s normal, pre {x.pre_impact_ke:.1f} J"
+                                  for x in r["landings"]],
+                     "library_attempt": r.get("library_attempt")})
+    lib_rows = [x for x in rows if x["source"] == "library" and x["success"]]
+    times = [x["time_s"] for x in lib_rows]
+    out = {"library": a.library, "entries": [e.kinetic_energy for e in planner.library.entries],
+           "warm_start_multipliers": planner.opt.cfg.warm_start_multipliers, "warm_up_s": round(warm_up, 2),
+           "queries": rows, "answered_from_library": f"{len(lib_rows)}/{len(rows)}",
+           "within_1s": f"{sum(t <= 1.0 for t in times)}/{len(rows)}",
+           "median_s": round(statistics.median(times), 3) if times else None,
+           "max_s": round(max(times), 3) if times else None,
+           "load_average_1min_at_end": round(os.getloadavg()[0], 2)}
+    print(json.dumps(out, indent=1, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
