@@ -7,8 +7,9 @@ import subprocess
 import sys
 
 HERE = pathlib.Path(__file__).resolve().parent
-BENCHES = ["bench_suite.py", "bench_recorder.py", "bench_multicontact.py", "bench_multicontact_library.py", "bench_walking.py", "bench_fall.py",
-           "bench_estop.py"]  # bench_contract.py (vs a base commit) and bench_campaign.py (long) run on their own
+BENCHES = ["bench_suite.py", "bench_recorder.py", "bench_multicontact.py", "bench_multicontact_library.py",
+           "bench_walking.py", "bench_fall.py", "bench_estop.py"]
+# bench_contract.py (vs a base commit) and bench_campaign.py (long) run on their own
 
 
 def main() -> int:
