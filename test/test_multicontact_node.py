@@ -140,3 +140,13 @@ def test_plan_fall_from_the_shipped_library(ros_env, in_ros_domain, tmp_path):
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+
+
+def test_planner_node_refuses_an_unreadable_library(ros_env, tmp_path):
+    """A ``library_file`` that cannot be used stops the node at start with exit code 2 and the reason."""
+    (tmp_path / "lib.json").write_text('{"format": 99, "entries": []}')
+    cmd = python_node_cmd("humfall_ros.nodes.multicontact_planner", "--ros-args", "-p", "warm_up:=false",
+                          "-p", f"library_file:={tmp_path / 'lib.json'}")
+    out = subprocess.run(cmd, env=ros_env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert "format 99, this code reads 1" in out.stdout + out.stderr

@@ -319,8 +319,11 @@ def test_library_file_checks(tmp_path):
     old = tmp_path / "old.json"
     old.write_text(json.dumps([e.to_dict() for e in lib.entries[:1]]))
     assert [e.contact_sequence for e in PlanLibrary.load(old).entries] == [lib.entries[0].contact_sequence]
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(ValueError, match="none.json.*cannot be read: FileNotFoundError"):
         FallPlanner.from_params(library_file=str(tmp_path / "none.json"))
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(ValueError, match="cannot be read: JSONDecodeError"):
+        FallPlanner.from_params(library_file=str(tmp_path / "bad.json"))
 
 
 def test_warm_solve_from_its_own_solution_with_multipliers_takes_few_iterations():

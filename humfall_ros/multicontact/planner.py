@@ -240,7 +240,12 @@ class FallPlanner:
         self.library = None
         if self.cfg.library_file:
             from humfall_ros.multicontact.library import PlanLibrary   # library.py imports this module
-            self.library = PlanLibrary.load(library_path(self.cfg.library_file))
+            path = library_path(self.cfg.library_file)
+            try:
+                self.library = PlanLibrary.load(path)
+            except (OSError, ValueError, KeyError, TypeError) as e:
+                raise ValueError(f"library_file {self.cfg.library_file!r} ({path}) cannot be read: "
+                                 f"{type(e).__name__}: {e}") from e
             self.library.check_compatible(self.opt.cfg)
 
     @staticmethod

@@ -36,7 +36,11 @@ class MulticontactPlanner(Node):
         self.queue_size = values["queue_size"]
         warm = values["warm_up"]
         opt_cfg, plan_cfg = configs_from_params(values)
-        self.planner = FallPlanner(opt_cfg, plan_cfg)
+        try:
+            self.planner = FallPlanner(opt_cfg, plan_cfg)
+        except ValueError as e:   # a library file that cannot be used: say why and stop (exit 2)
+            self.get_logger().fatal(str(e))
+            raise SystemExit(2) from None
         self._state = threading.Lock()
         self._plan_lock = threading.Lock()
         self._pending = 0
