@@ -117,6 +117,12 @@ def test_imu_heading_drift_steers_the_steps_not_yet_planned(model):
         c.step(observe(model, c.q_ik, t, {"imu": (quat, np.zeros(3))}))
         t += c.dt
     assert c.pattern.steer_target == pytest.approx(-drift, abs=math.radians(0.1))
+    # an unusable reading (NaN, zero quaternion) steers nothing that tick: the filter keeps its value
+    before = c.drift_yaw
+    for bad in (np.full(4, np.nan), np.zeros(4)):
+        c.step(observe(model, c.q_ik, t, {"imu": (bad, np.zeros(3))}))
+        t += c.dt
+        assert c.drift_yaw == before and math.isfinite(c.pattern.steer_target)
     planned = c.pattern.steer_total
     assert 0.0 < planned <= -drift + 1e-9
     c2 = LocomotionController(model)

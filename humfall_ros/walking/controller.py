@@ -428,12 +428,13 @@ class LocomotionController:
         pattern, e.g. by the stance foot's yaw slip) and, while every command has been straight, the
         lateral drift ``e`` of the measured feet centre off the start line. The steps not yet planned
         get a total path heading correction ``-psi_d - k e`` (``WalkingPattern.steer_target``, rate
-        limited per step). Without an IMU input, nothing."""
-        imu = observation.inputs.get("imu")
+        limited per step). Without an IMU input, or with an unusable one (NaN, not a quaternion), nothing
+        this tick."""
         c = self.cfg
-        if imu is None or not c.steer_enabled or self.q_ik is None:
+        quat = imu_quaternion(observation.inputs.get("imu"))
+        if quat is None or not c.steer_enabled or self.q_ik is None:   # an unusable reading steers nothing
             return
-        R = quat_matrix(np.asarray(imu[0], float))
+        R = quat_matrix(quat)
         self.m.forward(self.q_ik)
         R_ik = self.m.frame_placement(self.m.imu_frame).rotation
         d = math.remainder(yaw_of(R) - yaw_of(R_ik), math.tau)
