@@ -336,6 +336,24 @@ def test_base_pitch_feedback_offsets_the_hips_by_the_gain_times_the_pitch_error(
         np.testing.assert_allclose(fb.positions[rest], open_loop.positions[rest])
         np.testing.assert_allclose(fb.velocities, open_loop.velocities)
         assert ex.pitch_error_max == pytest.approx(0.12, abs=1e-9) and ex.pitch_feedback_ticks == 1
+    # a robot pitched far off the plan (fallen): the offset stops at base_pitch_correction_max, and a
+    # hip target never leaves the URDF's limits
+    far = _imu_reading(hm, Rotation.from_euler("y", 1.8).as_matrix(), joints)     # 1.5 rad ahead
+    fb, ex = targets(1.0, hm, far)
+    np.testing.assert_allclose(fb.positions[hips], 0.1 + ExecutorConfig().base_pitch_correction_max, atol=1e-9)
+    assert ex.pitch_error_max == pytest.approx(1.5, abs=1e-9)
+    q_edge = q0.copy()
+    q_edge[[pm.joint_names.index(j) + 3 for j in pm.joint_names if j.endswith("hip_pitch")]] = 0.7
+    edge = MulticontactExecutor([_segment(pm, q_edge, q_edge, 1.0, mode=("LF", "RF"), target=("LF", "RF"))],
+                                pm.joint_names, hm.joint_names, model=hm)
+    edge.step(_obs(hm, 0.0))
+    obs = _obs(hm, 0.5, q=joints)
+    obs.inputs["imu"] = far
+    upper = np.asarray(hm.limits.upper)[hips]
+    assert np.all(upper < 0.7 + 0.3)                     # the offset target would pass the limit
+    np.testing.assert_allclose(edge.step(obs).positions[hips], upper)
+    with pytest.raises(ValueError):
+        ExecutorConfig(base_pitch_correction_max=0.0)
     # no model, or no usable IMU reading: open loop (never a crash)
     for model, reading in ((None, imu), (hm, None), (hm, (np.full(4, np.nan), np.zeros(3)))):
         out, ex = targets(1.0, model, reading)

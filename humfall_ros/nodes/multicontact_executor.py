@@ -66,7 +66,8 @@ def make_controller(p: dict, model):
     cfg = ExecutorConfig.from_params({"landing_wait": p["landing_wait"], "early_switch": p["early_switch"],
                                       "start_time": start, "hold": p["hold"], "both_hands": p["both_hands"],
                                       "velocity_feedforward": p["velocity_feedforward"], "blend_time": p["blend_time"],
-                                      "base_pitch_gain": p["base_pitch_gain"]})
+                                      "base_pitch_gain": p["base_pitch_gain"],
+                                      "base_pitch_correction_max": p["base_pitch_correction_max"]})
     ex = MulticontactExecutor(plan.segments, load_planar().joint_names, model.joint_names, cfg, model=model)
     ex.source = p["source"]
     return ex

@@ -54,7 +54,8 @@ class RunConfig:
         contact_force_min: a limb or link touches when its tick-mean contact force exceeds this [N].
         final_window: the final mode and KE are judged over this last stretch of the run [s].
         time_budget: the planner's wall-clock budget [s].
-        hold, both_hands, velocity_feedforward, blend_time, base_pitch_gain: as in ``ExecutorConfig``.
+        hold, both_hands, velocity_feedforward, blend_time, base_pitch_gain, base_pitch_correction_max: as in
+            ``ExecutorConfig``.
         plan_latency: the plan is made from the state at the push's end but the executor takes over
             this much later [s] (the standing balance in between): what a planner that needs that
             long would do without pausing the simulator. 0: paused (the plan's state is the take-over's).
@@ -76,6 +77,7 @@ class RunConfig:
     velocity_feedforward: bool = True
     blend_time: float = 0.0
     base_pitch_gain: float = ExecutorConfig.base_pitch_gain
+    base_pitch_correction_max: float = ExecutorConfig.base_pitch_correction_max
     plan_latency: float = 0.0
     speed_limit: str = "motor"
 
@@ -249,7 +251,8 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
     t_start = t_start + cfg.plan_latency
     ex_cfg = ExecutorConfig(start_time=t_start, hold=cfg.hold, both_hands=cfg.both_hands,
                             velocity_feedforward=cfg.velocity_feedforward, blend_time=cfg.blend_time,
-                            base_pitch_gain=cfg.base_pitch_gain)
+                            base_pitch_gain=cfg.base_pitch_gain,
+                            base_pitch_correction_max=cfg.base_pitch_correction_max)
     hm = _model()
     executor = MulticontactExecutor([], pm.joint_names, _joint_names(), ex_cfg,
                                     plan_source=plan_source if segments is None else stored_source, model=hm)
