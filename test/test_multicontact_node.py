@@ -2,6 +2,7 @@
 and an invalid request, keeps serving, and the CLI client prints JSON."""
 from __future__ import annotations
 
+import contextlib
 import json
 import pathlib
 import subprocess
@@ -13,17 +14,27 @@ import pytest
 from conftest import python_node_cmd
 
 
+@contextlib.contextmanager
+def planner_node(ros_env, *params: str):
+    """The planner node as a process (no warm-up), with ``name:=value`` parameters; stopped after."""
+    cmd = python_node_cmd("humfall_ros.nodes.multicontact_planner", "--ros-args", "-p", "warm_up:=false",
+                          *[x for p in params for x in ("-p", p)])
+    proc = subprocess.Popen(cmd, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        yield proc
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
 @pytest.fixture
 def planner_process(ros_env):
-    cmd = python_node_cmd("humfall_ros.nodes.multicontact_planner", "--ros-args", "-p", "warm_up:=false")
-    proc = subprocess.Popen(cmd, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    yield proc
-    proc.terminate()
-    try:
-        proc.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
+    with planner_node(ros_env) as proc:
+        yield proc
 
 
 def test_plan_fall_service_valid_and_invalid(planner_process, in_ros_domain, tmp_path):
@@ -116,10 +127,7 @@ def test_plan_fall_from_the_shipped_library(ros_env, in_ros_domain, tmp_path):
     """The node with ``library_file`` (the shipped forward library): a 22 J request is answered by a
     warm re-plan of the 20 J entry (no tree), a NaN request still gets its reason, the client prints
     the answer's figures (no tree figure), and the node keeps serving."""
-    cmd = python_node_cmd("humfall_ros.nodes.multicontact_planner", "--ros-args", "-p", "warm_up:=false",
-                          "-p", "library_file:=multicontact_library/forward_10-35J.json")
-    proc = subprocess.Popen(cmd, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
+    with planner_node(ros_env, "library_file:=multicontact_library/forward_10-35J.json") as proc:
         run = [sys.executable, "-c", "import sys; from humfall_ros.nodes.plan_fall_client import main; "
                "sys.exit(main(sys.argv[1:]))", "--wait", "60", "--json"]
         out = subprocess.run(run + ["--ke", "22", "--plots", str(tmp_path)], env=in_ros_domain,
@@ -133,13 +141,6 @@ def test_plan_fall_from_the_shipped_library(ros_env, in_ros_domain, tmp_path):
         out = subprocess.run(run + ["--ke", "nan"], env=in_ros_domain, capture_output=True, text=True, timeout=60)
         assert out.returncode == 1 and "not a finite" in json.loads(out.stdout)["reason"]
         assert proc.poll() is None, "node died"
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 def test_planner_node_refuses_an_unreadable_library(ros_env, tmp_path):
