@@ -319,6 +319,14 @@ def test_library_file_checks(tmp_path):
     old = tmp_path / "old.json"
     old.write_text(json.dumps([e.to_dict() for e in lib.entries[:1]]))
     assert [e.contact_sequence for e in PlanLibrary.load(old).entries] == [lib.entries[0].contact_sequence]
+    # the build CLI: existing files merged without a search; nothing to build is a usage error
+    from humfall_ros.multicontact.library import main as library_main
+    from humfall_ros.multicontact.planner import library_path
+    merged = tmp_path / "merged.json"
+    assert library_main(["--add", str(library_path(SHIPPED_LIBRARY)), "--add", str(old), "--out", str(merged)]) == 0
+    assert [e.kinetic_energy for e in PlanLibrary.load(merged).entries] == [10.0, 10.0, 15.0, 20.0, 25.0, 30.0, 35.0]
+    with pytest.raises(SystemExit):
+        library_main(["--out", str(tmp_path / "empty.json")])
     with pytest.raises(ValueError, match="none.json.*cannot be read: FileNotFoundError"):
         FallPlanner.from_params(library_file=str(tmp_path / "none.json"))
     (tmp_path / "bad.json").write_text("{not json")
