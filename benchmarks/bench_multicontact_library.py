@@ -2,7 +2,7 @@
 Prints one JSON object.
 
     python benchmarks/bench_multicontact_library.py [--library multicontact_library/forward_10-35J.json]
-        [--queries 12,14,17,19,22,24,27,29,32,34] [--repeats 2] [--set name=value,...]
+        [--queries 12,14,17,19,22,24,27,29,32,34] [--direction 1] [--wall 0] [--repeats 2] [--set name=value,...]
 
 The planner is the node's (config/multicontact_planner.yaml) with ``library_file`` set: each query is a
 ``FallPlanner.plan`` request, answered by a warm re-plan of the nearest entry (or, when that is not
@@ -31,6 +31,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--library", default="multicontact_library/forward_10-35J.json")
     ap.add_argument("--queries", default="12,14,17,19,22,24,27,29,32,34")
+    ap.add_argument("--direction", type=float, default=1.0, help="of every query: +1 forward, -1 backward")
+    ap.add_argument("--wall", type=float, default=0.0, help="of every query: wall distance (m; 0 = none)")
     ap.add_argument("--repeats", type=int, default=2, help="each query this many times (the median is kept)")
     ap.add_argument("--set", default="", help="planner parameter overrides, name=value,...")
     a = ap.parse_args(argv)
@@ -42,7 +44,8 @@ def main(argv=None) -> int:
     warm_up = time.perf_counter() - t0
     rows = []
     for ke in (float(x) for x in a.queries.split(",") if x.strip()):
-        runs = [planner.plan({"kinetic_energy": ke, "direction": 1.0}) for _ in range(max(1, a.repeats))]
+        req = {"kinetic_energy": ke, "direction": a.direction, "wall_distance": a.wall}
+        runs = [planner.plan(req) for _ in range(max(1, a.repeats))]
         r = runs[-1]
         rows.append({"ke": ke, "success": r["success"], "source": r["source"],
                      "entry": r["reason"].split(" (")[0] if r["source"] == "library" else None,
@@ -58,7 +61,8 @@ def main(argv=None) -> int:
                      "library_attempt": r.get("library_attempt")})
     lib_rows = [x for x in rows if x["source"] == "library" and x["success"]]
     times = [x["time_s"] for x in lib_rows]
-    out = {"library": a.library, "entries": [e.kinetic_energy for e in planner.library.entries],
+    out = {"library": a.library, "direction": a.direction, "wall": a.wall,
+           "entries": [(e.kinetic_energy, e.direction, e.wall_distance) for e in planner.library.entries],
            "warm_start_multipliers": planner.opt.cfg.warm_start_multipliers, "warm_up_s": round(warm_up, 2),
            "queries": rows, "answered_from_library": f"{len(lib_rows)}/{len(rows)}",
            "within_1s": f"{sum(t <= 1.0 for t in times)}/{len(rows)}",
