@@ -320,7 +320,7 @@ def test_library_file_checks(tmp_path):
     old.write_text(json.dumps([e.to_dict() for e in lib.entries[:1]]))
     assert [e.contact_sequence for e in PlanLibrary.load(old).entries] == [lib.entries[0].contact_sequence]
     # the build CLI: existing files merged without a search; nothing to build is a usage error
-    from humfall_ros.multicontact.library import main as library_main
+    from humfall_ros.multicontact.build_library import main as library_main
     from humfall_ros.multicontact.planner import library_path
     merged = tmp_path / "merged.json"
     assert library_main(["--add", str(library_path(SHIPPED_LIBRARY)), "--add", str(old), "--out", str(merged)]) == 0

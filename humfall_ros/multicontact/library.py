@@ -25,7 +25,7 @@ import time
 from humfall_ros.multicontact.collocation import OptConfig, Segment
 from humfall_ros.multicontact.landing import LandingReport, landing_report
 from humfall_ros.multicontact.modes import mode_label
-from humfall_ros.multicontact.planner import FallPlanner, InvalidRequest, ValidRequest, validate
+from humfall_ros.multicontact.request import InvalidRequest, ValidRequest, validate
 
 FORMAT = 1
 
@@ -108,7 +108,7 @@ class PlanLibrary:
 
     # ------------------------------------------------------------- offline
     @staticmethod
-    def build(planner: FallPlanner, kinetic_energies, directions=(1.0,), wall_distances=(0.0,),
+    def build(planner, kinetic_energies, directions=(1.0,), wall_distances=(0.0,),
               time_budget: float = 120.0) -> "PlanLibrary":
         """Full tree searches over the grid; failed pushes are left out."""
         lib = PlanLibrary(built_with={"n_knots": planner.opt.cfg.n_knots,
@@ -148,7 +148,7 @@ class PlanLibrary:
             return None
         return min(cands, key=lambda e: (abs(e.kinetic_energy - kinetic_energy), abs(e.wall_distance - wall_distance)))
 
-    def replan(self, planner: FallPlanner, req: dict, max_ke_gap: float = math.inf) -> Replan:
+    def replan(self, planner, req: dict, max_ke_gap: float = math.inf) -> Replan:
         """Re-solve the nearest entry's sequence from the request's state (see module doc)."""
         t0 = time.perf_counter()
         try:
@@ -157,7 +157,7 @@ class PlanLibrary:
             return Replan(False, f"invalid request: {e}", None, [], [], math.nan, time.perf_counter() - t0, [])
         return self.replan_valid(planner, vr, max_ke_gap, t0)
 
-    def replan_valid(self, planner: FallPlanner, vr: ValidRequest, max_ke_gap: float = math.inf,
+    def replan_valid(self, planner, vr: ValidRequest, max_ke_gap: float = math.inf,
                      t0: float | None = None) -> Replan:
         """``replan`` for a validated request. The entry is chosen by the request state's kinetic
         energy and the sign of its centre of mass's forward velocity (a request may give a state
@@ -217,56 +217,4 @@ class PlanLibrary:
                       final, time.perf_counter() - t0, times)
 
 
-def main(argv=None) -> int:
-    """Build a library file: ``python -m humfall_ros.multicontact.library --kes 10,15,20,25,30,35
-    --out FILE [--directions 1] [--walls 0] [--budget 120] [--set name=value,...] [--add LIB ...]``
-    (the planner from config/multicontact_planner.yaml, ``--set`` overrides by parameter name; ``--add``
-    takes the entries of existing library files too, which must fit the planner). Pushes without a plan
-    are left out and listed."""
-    import argparse
-    import sys
-
-    ap = argparse.ArgumentParser(prog="python -m humfall_ros.multicontact.library", description=main.__doc__)
-    ap.add_argument("--kes", default="", help="push kinetic energies (J), comma-separated")
-    ap.add_argument("--add", action="append", default=[], help="a library file whose entries to include")
-    ap.add_argument("--directions", default="1", help="+1 forward, -1 backward, comma-separated")
-    ap.add_argument("--walls", default="0", help="wall distances (m; 0 = no wall), comma-separated")
-    ap.add_argument("--budget", type=float, default=120.0, help="tree-search budget per push (s)")
-    ap.add_argument("--set", default="", help="planner parameter overrides, name=value,...")
-    ap.add_argument("--out", required=True)
-    a = ap.parse_args(argv)
-    import yaml
-
-    overrides = {}
-    for kv in filter(None, a.set.split(",")):   # values parsed as YAML, as the benchmarks' --set
-        k, _, v = kv.partition("=")
-        overrides[k.strip()] = yaml.safe_load(v)
-    floats = lambda text: [float(x) for x in text.split(",") if x.strip()]  # noqa: E731
-    if not floats(a.kes) and not a.add:
-        ap.error("nothing to put in the library: give --kes and/or --add")
-    planner = FallPlanner.from_params(**overrides)
-    t0 = time.perf_counter()
-    lib = PlanLibrary.build(planner, floats(a.kes), floats(a.directions), floats(a.walls), a.budget)
-    for path in a.add:
-        other = PlanLibrary.load(path)
-        other.check_compatible(planner.opt.cfg)
-        lib.entries += other.entries
-    lib.entries.sort(key=lambda e: (e.wall_distance, -e.direction, e.kinetic_energy))
-    lib.save(a.out)
-    have = {(e.kinetic_energy, e.direction, e.wall_distance) for e in lib.entries}
-    missing = [k for k in ((ke, d, w) for w in floats(a.walls) for d in floats(a.directions)
-                           for ke in floats(a.kes)) if k not in have]
-    for e in lib.entries:
-        print(f"{e.kinetic_energy:g} J, direction {e.direction:+g}, wall {e.wall_distance:g} m: "
-              f"{' -> '.join(e.contact_sequence)}")
-    for ke, d, w in missing:
-        print(f"{ke:g} J, direction {d:+g}, wall {w:g} m: no plan (left out)", file=sys.stderr)
-    print(f"{len(lib.entries)} plans in {time.perf_counter() - t0:.1f} s -> {a.out}")
-    return 0 if lib.entries else 1
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
-
-
-__all__ = ["LibraryEntry", "PlanLibrary", "Replan", "main"]
+__all__ = ["LibraryEntry", "PlanLibrary", "Replan"]

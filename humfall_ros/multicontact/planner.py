@@ -1,5 +1,7 @@
-"""The planner behind the ``plan_fall`` service: request validation, initial
-state, tree search, and a plain-dict result (no ROS types here).
+"""The planner behind the ``plan_fall`` service: a request (validated by
+``request.py``: the initial state) answered from a library of plans when one is
+loaded and fits (``library.py``), else by the tree search, as a plain-dict result
+(no ROS types here).
 
 Request fields mirror humfall_interfaces/srv/PlanFall: q, v (planar, may be
 empty), kinetic_energy, direction, initial_mode, wall_distance, time_budget.
@@ -11,22 +13,17 @@ the plane x = wall_distance (so it is "ahead of the stance").
 from __future__ import annotations
 
 import dataclasses
-import math
+import pathlib
 import time
 
-import numpy as np
-
 from humfall_ros import params
-from humfall_ros.multicontact import contacts as C
+from humfall_ros.paths import share_dir
 from humfall_ros.multicontact.collocation import OptConfig, TrajectoryOptimizer
-from humfall_ros.multicontact.initial_state import (
-    nominal_configuration,
-    velocity_for_energy,
-)
 from humfall_ros.multicontact.landing import LandingLimits
-from humfall_ros.multicontact.model import EXTREMITIES, FEET, PlanarModel, load_model
-from humfall_ros.multicontact.modes import Environment, mode_label, parse_mode
+from humfall_ros.multicontact.library import PlanLibrary
+from humfall_ros.multicontact.model import PlanarModel, load_model
 from humfall_ros.multicontact.resim import plan_check
+from humfall_ros.multicontact.request import InvalidRequest, ValidRequest, validate  # noqa: F401 (re-exported)
 from humfall_ros.multicontact.tree import SearchResult, search
 
 
@@ -129,106 +126,6 @@ def configs_from_params(values: dict) -> tuple[OptConfig, PlannerConfig]:
     return OptConfig.from_params(opt), PlannerConfig.from_params({**plan, "stance": stance})
 
 
-@dataclasses.dataclass
-class ValidRequest:
-    q: np.ndarray
-    v: np.ndarray
-    mode: tuple
-    env: Environment
-    time_budget: float
-
-
-class InvalidRequest(ValueError):
-    pass
-
-
-def _finite(name, values):
-    arr = np.asarray(values, float).ravel()
-    if not np.all(np.isfinite(arr)):
-        raise InvalidRequest(f"{name} contains a non-finite number")
-    return arr
-
-
-def validate(model: PlanarModel, req: dict, cfg: PlannerConfig) -> ValidRequest:
-    """Check a request and build the initial state; raises InvalidRequest(reason)."""
-    n = model.n
-    q = _finite("q", req.get("q") or [])
-    v = _finite("v", req.get("v") or [])
-    ke = float(req.get("kinetic_energy", 0.0) or 0.0)
-    direction = float(req.get("direction", 1.0) if req.get("direction", None) is not None else 1.0)
-    wall = float(req.get("wall_distance", 0.0) or 0.0)
-    budget = float(req.get("time_budget", 0.0) or 0.0)
-    for name, x in (("kinetic_energy", ke), ("direction", direction), ("wall_distance", wall),
-                    ("time_budget", budget)):
-        if not math.isfinite(x):
-            raise InvalidRequest(f"{name} is not a finite number")
-    if len(q) not in (0, n):
-        raise InvalidRequest(f"q has {len(q)} entries, expected {n} ({', '.join(model.coordinate_names)}) or none")
-    if len(v) not in (0, n):
-        raise InvalidRequest(f"v has {len(v)} entries, expected {n} or none")
-    try:
-        mode = parse_mode(req.get("initial_mode") or "LF/RF")
-    except ValueError as e:
-        raise InvalidRequest(f"initial_mode: {e}") from None
-    env = Environment.from_distance(wall)
-    if budget < 0:
-        raise InvalidRequest("time_budget must be >= 0 (0: node default)")
-    budget = cfg.time_budget if budget == 0 else budget
-    if budget > cfg.max_time_budget:
-        raise InvalidRequest(f"time_budget {budget:g} s exceeds the maximum {cfg.max_time_budget:g} s")
-    if len(q) == 0:
-        q = nominal_configuration(model, cfg.stance)
-    # configuration: limits, penetration, wall, mode consistency
-    j = q[3:]
-    bad = [model.joint_names[i] for i in range(model.m)
-           if j[i] < model.q_min[i] - 1e-9 or j[i] > model.q_max[i] + 1e-9]
-    if bad:
-        i = model.joint_names.index(bad[0])
-        raise InvalidRequest(f"configuration outside joint limits: {bad[0]} = {j[i]:.3f} not in "
-                             f"[{model.q_min[i]:.3f}, {model.q_max[i]:.3f}]")
-    if not -math.pi <= q[2] <= math.pi:
-        raise InvalidRequest("root_pitch must be in [-pi, pi]")
-    pts = model.all_points(q)
-    low = min(pts, key=lambda k: pts[k][1])
-    if pts[low][1] < -cfg.penetration_tolerance:
-        raise InvalidRequest(f"configuration penetrates the ground: {low} at z = {pts[low][1]:.3f} m")
-    if env.has_wall:
-        com = model.com(q)
-        if env.wall_x <= com[0]:
-            raise InvalidRequest(f"impossible environment: wall at x = {env.wall_x:.3f} m is behind the "
-                                 f"robot's centre of mass (x = {com[0]:.3f} m)")
-        front = max(pts, key=lambda k: pts[k][0])
-        if pts[front][0] >= env.wall_x - cfg.penetration_tolerance:
-            raise InvalidRequest(f"impossible environment: wall at x = {env.wall_x:.3f} m is inside the "
-                                 f"robot ({front} at x = {pts[front][0]:.3f} m)")
-    for e in EXTREMITIES:
-        names = [f"{e}_toe", f"{e}_heel"] if e in FEET else [e]
-        surf = env.surface_of(e)
-        dist = [C.signed_distance(model, p, surf, env, q) for p in names]
-        if e in mode and max(abs(x) for x in dist) > cfg.contact_tolerance:
-            raise InvalidRequest(f"contact mode {mode_label(mode)} does not match the configuration: "
-                                 f"{e} is {max(dist):.3f} m from the {surf}"
-                                 + (" (a foot in contact must be flat)" if e in FEET else ""))
-    rows = C.contact_rows(mode, env)
-    if len(v) == 0:
-        if ke < 0:
-            raise InvalidRequest("kinetic_energy must be >= 0")
-        if ke > cfg.max_kinetic_energy:
-            raise InvalidRequest(f"kinetic_energy {ke:g} J exceeds the maximum {cfg.max_kinetic_energy:g} J")
-        if direction == 0:
-            raise InvalidRequest("direction must be +1 (forward) or -1 (backward)")
-        v = velocity_for_energy(model, q, mode, ke, direction, env)
-    else:
-        cv = C.rows_jacobian(model, rows, q) @ v
-        if len(cv) and np.abs(cv).max() > cfg.velocity_tolerance:
-            raise InvalidRequest(f"velocity moves the contacts of mode {mode_label(mode)} "
-                                 f"(|J v| = {np.abs(cv).max():.3f} m/s)")
-    fast = [model.joint_names[i] for i in range(model.m) if abs(v[3 + i]) > model.v_max[i] + 1e-9]
-    if fast:
-        raise InvalidRequest(f"joint velocity above its limit: {fast[0]}")
-    return ValidRequest(q=q, v=v, mode=mode, env=env, time_budget=budget)
-
-
 class FallPlanner:
     """Holds the planar model and the cached NLP structures across requests."""
 
@@ -239,7 +136,6 @@ class FallPlanner:
         self.opt = TrajectoryOptimizer(self.model, opt_cfg or OptConfig())
         self.library = None
         if self.cfg.library_file:
-            from humfall_ros.multicontact.library import PlanLibrary   # library.py imports this module
             path = library_path(self.cfg.library_file)
             try:
                 self.library = PlanLibrary.load(path)
@@ -300,9 +196,6 @@ class FallPlanner:
 
 def library_path(name: str):
     """``library_file`` as a path: absolute as given, relative under the package's config/."""
-    import pathlib
-
-    from humfall_ros.paths import share_dir
     p = pathlib.Path(name).expanduser()
     return p if p.is_absolute() else share_dir() / "config" / p
 

@@ -1,0 +1,60 @@
+"""Build a library of fall plans (``library.py``) by the tree search, or merge library files:
+``python -m humfall_ros.multicontact.build_library --kes 10,15,20,25,30,35 --out FILE``."""
+from __future__ import annotations
+
+import time
+
+from humfall_ros.multicontact.library import PlanLibrary
+from humfall_ros.multicontact.planner import FallPlanner
+
+
+def main(argv=None) -> int:
+    """Build a library file: ``python -m humfall_ros.multicontact.build_library --kes 10,15,20,25,30,35
+    --out FILE [--directions 1] [--walls 0] [--budget 120] [--set name=value,...] [--add LIB ...]``
+    (the planner from config/multicontact_planner.yaml, ``--set`` overrides by parameter name; ``--add``
+    takes the entries of existing library files too, which must fit the planner). Pushes without a plan
+    are left out and listed."""
+    import argparse
+    import sys
+
+    ap = argparse.ArgumentParser(prog="python -m humfall_ros.multicontact.build_library", description=main.__doc__)
+    ap.add_argument("--kes", default="", help="push kinetic energies (J), comma-separated")
+    ap.add_argument("--add", action="append", default=[], help="a library file whose entries to include")
+    ap.add_argument("--directions", default="1", help="+1 forward, -1 backward, comma-separated")
+    ap.add_argument("--walls", default="0", help="wall distances (m; 0 = no wall), comma-separated")
+    ap.add_argument("--budget", type=float, default=120.0, help="tree-search budget per push (s)")
+    ap.add_argument("--set", default="", help="planner parameter overrides, name=value,...")
+    ap.add_argument("--out", required=True)
+    a = ap.parse_args(argv)
+    import yaml
+
+    overrides = {}
+    for kv in filter(None, a.set.split(",")):   # values parsed as YAML, as the benchmarks' --set
+        k, _, v = kv.partition("=")
+        overrides[k.strip()] = yaml.safe_load(v)
+    floats = lambda text: [float(x) for x in text.split(",") if x.strip()]  # noqa: E731
+    if not floats(a.kes) and not a.add:
+        ap.error("nothing to put in the library: give --kes and/or --add")
+    planner = FallPlanner.from_params(**overrides)
+    t0 = time.perf_counter()
+    lib = PlanLibrary.build(planner, floats(a.kes), floats(a.directions), floats(a.walls), a.budget)
+    for path in a.add:
+        other = PlanLibrary.load(path)
+        other.check_compatible(planner.opt.cfg)
+        lib.entries += other.entries
+    lib.entries.sort(key=lambda e: (e.wall_distance, -e.direction, e.kinetic_energy))
+    lib.save(a.out)
+    have = {(e.kinetic_energy, e.direction, e.wall_distance) for e in lib.entries}
+    missing = [k for k in ((ke, d, w) for w in floats(a.walls) for d in floats(a.directions)
+                           for ke in floats(a.kes)) if k not in have]
+    for e in lib.entries:
+        print(f"{e.kinetic_energy:g} J, direction {e.direction:+g}, wall {e.wall_distance:g} m: "
+              f"{' -> '.join(e.contact_sequence)}")
+    for ke, d, w in missing:
+        print(f"{ke:g} J, direction {d:+g}, wall {w:g} m: no plan (left out)", file=sys.stderr)
+    print(f"{len(lib.entries)} plans in {time.perf_counter() - t0:.1f} s -> {a.out}")
+    return 0 if lib.entries else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
