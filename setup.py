@@ -17,7 +17,7 @@ setup(
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/config/scenarios", glob("config/scenarios/*.yaml")),
         (f"share/{PACKAGE}/config/multicontact_plans", glob("config/multicontact_plans/*.json")),
-        (f"share/{PACKAGE}/config/multicontact_library", glob("config/multicontact_library/*.json")),
+        (f"share/{PACKAGE}/config/multicontact_library", glob("config/multicontact_library/*.json*")),
         (f"share/{PACKAGE}/urdf", glob("urdf/*.urdf")),
     ],
     install_requires=["setuptools"],

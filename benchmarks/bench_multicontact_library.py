@@ -1,7 +1,7 @@
 """Online re-plans from a library of precomputed fall plans (issue 14's speed goal: <= 1 s for 10-50 J).
 Prints one JSON object.
 
-    python benchmarks/bench_multicontact_library.py [--library multicontact_library/forward_10-35J.json]
+    python benchmarks/bench_multicontact_library.py [--library multicontact_library/standing_pushes.json.gz]
         [--queries 12,14,17,19,22,24,27,29,32,34] [--direction 1] [--wall 0] [--repeats 2] [--set name=value,...]
 
 The planner is the node's (config/multicontact_planner.yaml) with ``library_file`` set: each query is a
@@ -29,7 +29,7 @@ from humfall_ros.multicontact.planner import FallPlanner  # noqa: E402
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--library", default="multicontact_library/forward_10-35J.json")
+    ap.add_argument("--library", default="multicontact_library/standing_pushes.json.gz")
     ap.add_argument("--queries", default="12,14,17,19,22,24,27,29,32,34")
     ap.add_argument("--direction", type=float, default=1.0, help="of every query: +1 forward, -1 backward")
     ap.add_argument("--wall", type=float, default=0.0, help="of every query: wall distance (m; 0 = none)")

@@ -127,7 +127,7 @@ def test_plan_fall_from_the_shipped_library(ros_env, in_ros_domain, tmp_path):
     """The node with ``library_file`` (the shipped forward library): a 22 J request is answered by a
     warm re-plan of the 20 J entry (no tree), a NaN request still gets its reason, the client prints
     the answer's figures (no tree figure), and the node keeps serving."""
-    with planner_node(ros_env, "library_file:=multicontact_library/forward_10-35J.json") as proc:
+    with planner_node(ros_env, "library_file:=multicontact_library/standing_pushes.json.gz") as proc:
         run = [sys.executable, "-c", "import sys; from humfall_ros.nodes.plan_fall_client import main; "
                "sys.exit(main(sys.argv[1:]))", "--wait", "60", "--json"]
         out = subprocess.run(run + ["--ke", "22", "--plots", str(tmp_path)], env=in_ros_domain,

@@ -285,25 +285,40 @@ def test_library_replan_reuses_a_stored_plan_warm(tmp_path):
     assert r1.nlp_times_s[0] == pytest.approx(sum(a["time"] for a in r1.segments[0].attempt_log), abs=0.01)
 
 
-SHIPPED_LIBRARY = "multicontact_library/forward_10-35J.json"
+SHIPPED_LIBRARY = "multicontact_library/standing_pushes.json.gz"
 
 
 def test_planner_answers_from_the_shipped_library_and_searches_beyond_it():
-    """``library_file``: a request near an entry is re-solved warm from it (no tree); one further than
-    ``library_max_ke_gap`` from every entry goes to the tree search, which says so."""
+    """``library_file``: a request near an entry of its direction and wall is re-solved warm from it (no
+    tree); one further than ``library_max_ke_gap`` from every such entry goes to the tree search, which
+    says so. The shipped library: forward 10-35 J, backward 15-35 J, a wall at 0.6 / 0.8 / 1.0 m."""
     planner = FallPlanner.from_params(library_file=SHIPPED_LIBRARY, nlp_max_wall_time=120.0)
-    assert [e.kinetic_energy for e in planner.library.entries] == [10.0, 15.0, 20.0, 25.0, 30.0, 35.0]
+    grid = {(e.direction, e.wall_distance): [] for e in planner.library.entries}
+    for e in planner.library.entries:
+        grid[(e.direction, e.wall_distance)].append(e.kinetic_energy)
+    assert grid[(1.0, 0.0)] == [10.0, 15.0, 20.0, 25.0, 30.0, 35.0]
+    assert grid[(-1.0, 0.0)] == [15.0, 20.0, 25.0, 30.0, 35.0]
+    assert grid[(1.0, 0.8)] == [20.0, 30.0, 40.0, 50.0]
     r = planner.plan({"kinetic_energy": 22.0, "direction": 1.0})
     assert r["success"] and r["source"] == "library", r["reason"]
     assert "library plan for 20 J" in r["reason"] and r["tree"] is None
-    assert r["contact_sequence"] == planner.library.entries[2].contact_sequence
+    entry = planner.library.nearest(22.0, 1.0, 0.0)
+    assert entry.kinetic_energy == 20.0 and r["contact_sequence"] == entry.contact_sequence
     assert r["final_ke"] < planner.opt.cfg.eps_ke and r["initial_ke"] == pytest.approx(22.0, rel=1e-6)
     assert r["node_ke"][0] == pytest.approx(22.0, rel=1e-6) and len(r["segments"]) == len(r["node_ke"])
     assert len(r["landings"]) == sum(s.change == "add" for s in r["segments"])
+    # backward and with a wall: their own entries
+    back = planner.plan({"kinetic_energy": 22.0, "direction": -1.0})
+    assert back["success"] and back["source"] == "library" and "for 20 J" in back["reason"], back["reason"]
+    assert planner.library.nearest(22.0, -1.0, 0.0).direction == -1.0
+    wall = planner.plan({"kinetic_energy": 43.0, "direction": 1.0, "wall_distance": 0.8})
+    assert wall["success"] and wall["source"] == "library" and "for 40 J" in wall["reason"], wall["reason"]
+    assert [x.limb for x in wall["landings"]] == ["LH"] and wall["landings"][0].surface == "wall"
+    # beyond the library: the tree search, with the reason
     far = planner.plan({"kinetic_energy": 60.0, "direction": 1.0, "time_budget": 5.0})
     assert far["source"] == "tree_search" and "no library entry within 5 J of 60.0 J" in far["library_attempt"]
-    back = planner.plan({"kinetic_energy": 20.0, "direction": -1.0, "time_budget": 5.0})
-    assert back["source"] == "tree_search" and "direction" in back["library_attempt"]
+    low = planner.plan({"kinetic_energy": 5.0, "direction": -1.0, "time_budget": 5.0})
+    assert low["source"] == "tree_search" and "(nearest 15 J)" in low["library_attempt"]
 
 
 def test_library_file_checks(tmp_path):
@@ -324,7 +339,12 @@ def test_library_file_checks(tmp_path):
     from humfall_ros.multicontact.planner import library_path
     merged = tmp_path / "merged.json"
     assert library_main(["--add", str(library_path(SHIPPED_LIBRARY)), "--add", str(old), "--out", str(merged)]) == 0
-    assert [e.kinetic_energy for e in PlanLibrary.load(merged).entries] == [10.0, 10.0, 15.0, 20.0, 25.0, 30.0, 35.0]
+    both = PlanLibrary.load(merged).entries
+    assert len(both) == len(lib.entries) + 1
+    assert sum(e.kinetic_energy == 10.0 and e.direction > 0 and e.wall_distance == 0 for e in both) == 2
+    gz = tmp_path / "merged.json.gz"      # compressed by the name, and read back the same
+    PlanLibrary.load(merged).save(gz)
+    assert gz.read_bytes()[:2] == b"\x1f\x8b" and len(PlanLibrary.load(gz).entries) == len(both)
     with pytest.raises(SystemExit):
         library_main(["--out", str(tmp_path / "empty.json")])
     with pytest.raises(ValueError, match="none.json.*cannot be read: FileNotFoundError"):

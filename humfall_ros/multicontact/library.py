@@ -17,6 +17,7 @@ caller falls back to the tree search (``FallPlanner.plan``).
 from __future__ import annotations
 
 import dataclasses
+import gzip
 import json
 import math
 import pathlib
@@ -124,13 +125,20 @@ class PlanLibrary:
         return lib
 
     def save(self, path) -> None:
-        pathlib.Path(path).write_text(json.dumps({"format": FORMAT, "built_with": self.built_with,
-                                                  "entries": [e.to_dict() for e in self.entries]}))
+        """JSON, gzip-compressed when the name ends in ``.gz``."""
+        text = json.dumps({"format": FORMAT, "built_with": self.built_with,
+                           "entries": [e.to_dict() for e in self.entries]})
+        p = pathlib.Path(path)
+        if p.suffix == ".gz":
+            p.write_bytes(gzip.compress(text.encode(), mtime=0))
+        else:
+            p.write_text(text)
 
     @staticmethod
     def load(path) -> "PlanLibrary":
-        """A saved library (also the bare list of entries that sessions before 25 wrote)."""
-        d = json.loads(pathlib.Path(path).read_text())
+        """A saved library (``.gz``: compressed; also the bare list of entries that sessions before 25 wrote)."""
+        p = pathlib.Path(path)
+        d = json.loads(gzip.decompress(p.read_bytes()) if p.suffix == ".gz" else p.read_text())
         if isinstance(d, list):
             return PlanLibrary([LibraryEntry.from_dict(x) for x in d])
         if d.get("format") != FORMAT:
