@@ -17,7 +17,6 @@ import pathlib
 import time
 
 from humfall_ros import params
-from humfall_ros.paths import share_dir
 from humfall_ros.multicontact.collocation import OptConfig, TrajectoryOptimizer
 from humfall_ros.multicontact.landing import LandingLimits
 from humfall_ros.multicontact.library import PlanLibrary
@@ -25,6 +24,7 @@ from humfall_ros.multicontact.model import PlanarModel, load_model
 from humfall_ros.multicontact.resim import plan_check
 from humfall_ros.multicontact.request import InvalidRequest, ValidRequest, validate  # noqa: F401 (re-exported)
 from humfall_ros.multicontact.tree import SearchResult, search
+from humfall_ros.paths import share_dir
 
 
 # Named parameter sets of earlier planners, as ``FallPlanner.from_params(**...)`` overrides (the benchmarks'
