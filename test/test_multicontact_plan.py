@@ -315,9 +315,10 @@ def test_planner_answers_from_the_shipped_library_and_searches_beyond_it():
     assert wall["success"] and wall["source"] == "library" and "for 40 J" in wall["reason"], wall["reason"]
     assert [x.limb for x in wall["landings"]] == ["LH"] and wall["landings"][0].surface == "wall"
     # beyond the library: the tree search, with the reason
-    far = planner.plan({"kinetic_energy": 60.0, "direction": 1.0, "time_budget": 5.0})
+    # (a short budget: only where the request went is asserted, not the search)
+    far = planner.plan({"kinetic_energy": 60.0, "direction": 1.0, "time_budget": 0.5})
     assert far["source"] == "tree_search" and "no library entry within 5 J of 60.0 J" in far["library_attempt"]
-    low = planner.plan({"kinetic_energy": 5.0, "direction": -1.0, "time_budget": 5.0})
+    low = planner.plan({"kinetic_energy": 5.0, "direction": -1.0, "time_budget": 0.5})
     assert low["source"] == "tree_search" and "(nearest 15 J)" in low["library_attempt"]
 
 

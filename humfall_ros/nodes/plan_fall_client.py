@@ -89,7 +89,8 @@ def summary(d: dict) -> str:
         med = sorted(times)[len(times) // 2]
         where = (f"tree of {d['tree_nodes']} nodes, depth {d['deepest_depth']}" if d["tree_nodes"]
                  else "no tree (re-solved from the library)")
-        lines.append(f"{d['nlp_count']} NLPs (median {med:.2f} s), {where}, total {d['total_time_s']:.1f} s")
+        nlps = f"{d['nlp_count']} NLP" + ("" if d["nlp_count"] == 1 else "s")
+        lines.append(f"{nlps} (median {med:.2f} s), {where}, total {d['total_time_s']:.1f} s")
     if d.get("plots"):
         lines.append("plots: " + ", ".join(d["plots"]))
     return "\n".join(lines)
