@@ -999,6 +999,9 @@ class TrajectoryOptimizer:
         v0 = np.asarray(v0, float)
         t0, c0 = time.perf_counter(), time.thread_time()
         nlp, _ = self.structures(guess.mode, guess.change, guess.extremity, env)
+        use_mult = (self.cfg.warm_start_multipliers if multipliers is None else multipliers) \
+            and nlp.fits(guess.multipliers)
+        solver = nlp.warm_solver() if use_mult else nlp.solver   # built on first use: part of build_time
         build_time = time.perf_counter() - t0
         lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env, acc_max=acc_max)
         # the stored knots moved so that they start at the new state, the shift fading
@@ -1007,9 +1010,6 @@ class TrajectoryOptimizer:
         q = guess.q + fade * (q0 - guess.q[0])
         v = guess.v + fade * (v0 - guess.v[0])
         w0 = np.clip(nlp.pack(float(guess.time[-1]), q, v, guess.a, guess.u, guess.lam), lbx, ubx)
-        use_mult = (self.cfg.warm_start_multipliers if multipliers is None else multipliers) \
-            and nlp.fits(guess.multipliers)
-        solver = nlp.warm_solver() if use_mult else nlp.solver
         mult = {"lam_x0": guess.multipliers[0], "lam_g0": guess.multipliers[1]} if use_mult else {}
         with nlp.lock:
             sol = solver(x0=w0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg, **mult)
