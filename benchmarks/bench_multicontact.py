@@ -35,10 +35,9 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import yaml  # noqa: E402
-
 from humfall_ros.multicontact.modes import Environment  # noqa: E402
 from humfall_ros.multicontact.planner import DEPARTURE, FallPlanner  # noqa: E402  (DEPARTURE: the planner before issue 14)
+from humfall_ros.params import parse_overrides  # noqa: E402
 
 PAPER = {10: "inertial shaping", 20: "inertial shaping", 30: "protective step", 40: "protective step",
          50: "protective step", 60: "hand contact", 70: "hand contact", 80: "hand contact"}
@@ -142,15 +141,6 @@ def _worker_case(args) -> dict:
     case["build_s_worker_total"] = round(sum(_PLANNER.opt.build_times.values()), 2)
     case["worker_pid"] = os.getpid()
     return case
-
-
-def parse_overrides(text: str) -> dict:
-    """``name=value,...`` by the yaml's parameter names (values parsed as YAML; lists in [] with ';')."""
-    out = {}
-    for kv in filter(None, text.split(",")):
-        k, v = kv.split("=", 1)
-        out[k.strip()] = yaml.safe_load(v.replace(";", ","))
-    return out
 
 
 def run_sweep(args, overrides: dict) -> dict:

@@ -21,10 +21,9 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from bench_multicontact import parse_overrides  # noqa: E402
-
 from humfall_ros.multicontact.modes import Environment  # noqa: E402
 from humfall_ros.multicontact.planner import FallPlanner  # noqa: E402
+from humfall_ros.params import parse_overrides  # noqa: E402
 
 
 def main(argv=None) -> int:

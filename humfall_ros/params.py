@@ -174,3 +174,13 @@ def config_from(cls: type, values: dict[str, Any], where: str | None = None, ign
         raise ParamError(f"{where or cls.__name__}: unknown parameters {unknown} (a {cls.__name__} has "
                          f"{', '.join(sorted(names))})")
     return cls(**kept)
+
+
+def parse_overrides(text: str) -> dict:
+    """``name=value,...`` by a node's yaml parameter names (values parsed as YAML; lists in [] with ';'): the
+    ``--set`` of the benchmarks and of ``multicontact.build_library``."""
+    out = {}
+    for kv in filter(None, text.split(",")):
+        k, v = kv.split("=", 1)
+        out[k.strip()] = yaml.safe_load(v.replace(";", ","))
+    return out

@@ -147,3 +147,13 @@ def test_config_dataclass_defaults_do_not_drift_from_the_declaration(path):
             got = tuple(got)
         assert got == want or (isinstance(got, float) and math.isnan(got) and math.isnan(want)), \
             f"{name}.{field}: dataclass {got!r}, config/{node}.yaml {want!r}"
+
+
+def test_parse_overrides_reads_yaml_values_and_semicolon_lists():
+    """The ``--set`` of the benchmarks and of ``build_library``: YAML values, lists written with ';'."""
+    assert params.parse_overrides("") == {}
+    got = params.parse_overrides("max_iter=300, transition_objective=post_impact,seed_retry_durations=[0.5;1.2],a=true")
+    assert got == {"max_iter": 300, "transition_objective": "post_impact", "seed_retry_durations": [0.5, 1.2],
+                   "a": True}
+    with pytest.raises(ValueError):
+        params.parse_overrides("no_value")

@@ -6,6 +6,7 @@ import time
 
 from humfall_ros.multicontact.library import PlanLibrary
 from humfall_ros.multicontact.planner import FallPlanner
+from humfall_ros.params import parse_overrides
 
 
 def main(argv=None) -> int:
@@ -23,15 +24,10 @@ def main(argv=None) -> int:
     ap.add_argument("--directions", default="1", help="+1 forward, -1 backward, comma-separated")
     ap.add_argument("--walls", default="0", help="wall distances (m; 0 = no wall), comma-separated")
     ap.add_argument("--budget", type=float, default=120.0, help="tree-search budget per push (s)")
-    ap.add_argument("--set", default="", help="planner parameter overrides, name=value,...")
+    ap.add_argument("--set", default="", help="planner parameter overrides, name=value,... (YAML values)")
     ap.add_argument("--out", required=True)
     a = ap.parse_args(argv)
-    import yaml
-
-    overrides = {}
-    for kv in filter(None, a.set.split(",")):   # values parsed as YAML, as the benchmarks' --set
-        k, _, v = kv.partition("=")
-        overrides[k.strip()] = yaml.safe_load(v)
+    overrides = parse_overrides(a.set)
     floats = lambda text: [float(x) for x in text.split(",") if x.strip()]  # noqa: E731
     if not floats(a.kes) and not a.add:
         ap.error("nothing to put in the library: give --kes and/or --add")

@@ -774,11 +774,8 @@ def parabolic_seed(model: PlanarModel, q0, v0, qg, T, N, rows):
 def capture_point(model: PlanarModel, q, v) -> float:
     """Instantaneous capture point x_com + xdot_com / omega, omega = sqrt(g / z_com) [m]
     (linear inverted pendulum over the ground; the step seed's reference)."""
-    q = np.asarray(q, float)
-    v = np.asarray(v, float)
-    eps = 1e-6
     c = model.com(q)
-    dc = (model.com(q + eps * v) - model.com(q - eps * v)) / (2 * eps)
+    dc = model.com_velocity(q, v)
     return float(c[0] + dc[0] / math.sqrt(9.81 / max(c[1], 1e-3)))
 
 

@@ -134,7 +134,7 @@ class MulticontactExecutor:
         self.model = model
         self._data = model.model.createData() if model is not None else None
         # URDF limits of the plan's joints (planar order): the feedback's hip targets stay within them
-        self._hip_limits = ((np.asarray(model.limits.lower)[self.index], np.asarray(model.limits.upper)[self.index])
+        self._plan_limits = ((np.asarray(model.limits.lower)[self.index], np.asarray(model.limits.upper)[self.index])
                             if model is not None else (None, None))
         # the plan's hip pitch joints (planar indices) by foot: the base pitch feedback acts on the stance legs'
         self._hips = {("LF" if j.startswith("l_") else "RF"): i for i, j in enumerate(self.planar_joint_names)
@@ -280,7 +280,7 @@ class MulticontactExecutor:
                 q = q.copy()
                 bound = self.cfg.base_pitch_correction_max
                 q[stance] += float(np.clip(self.cfg.base_pitch_gain * err, -bound, bound))
-                lo, hi = self._hip_limits
+                lo, hi = self._plan_limits
                 q[stance] = np.clip(q[stance], lo[stance], hi[stance])
                 self.pitch_error_max = max(self.pitch_error_max, abs(err))
                 self.pitch_feedback_ticks += 1

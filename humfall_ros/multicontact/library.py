@@ -173,8 +173,7 @@ class PlanLibrary:
         t0 = time.perf_counter() if t0 is None else t0
         model = planner.model
         ke = model.kinetic_energy(vr.q, vr.v)
-        h = 1e-6   # the CoM's forward velocity by a difference along v (its Jacobian times v)
-        vx = (model.com(vr.q + h * vr.v)[0] - model.com(vr.q)[0]) / h
+        vx = model.com_velocity(vr.q, vr.v)[0]
         entry = self.nearest(ke, 1.0 if vx >= 0 else -1.0, vr.env.wall_x if vr.env.has_wall else 0.0)
         if entry is None:
             return Replan(False, "no library entry for this direction and environment", None, [], [], math.nan,

@@ -261,6 +261,12 @@ class PlanarModel:
     def com(self, q) -> np.ndarray:
         return np.array(self.f_com(q)).ravel()
 
+    def com_velocity(self, q, v, eps: float = 1e-6) -> np.ndarray:
+        """(x, z) velocity of the centre of mass: its Jacobian times v, by a central difference along v."""
+        q = np.asarray(q, float)
+        v = np.asarray(v, float)
+        return (self.com(q + eps * v) - self.com(q - eps * v)) / (2 * eps)
+
     def point(self, name: str, q) -> np.ndarray:
         return np.array(self.f_point[name](q)).ravel()
 
