@@ -3,7 +3,7 @@
     python benchmarks/bench_multicontact_exec.py [--kes 20,40,60] [--objective departure|paper]
                                                  [--budget 120] [--save-plans DIR] [--plots DIR]
                                                  [--calibrate 300,400,500] [--set name=value,...]
-                                                 [--replay DIR] [--pitch-gain 1.0]
+                                                 [--replay DIR] [--pitch-gain 1.0] [--run name=value,...]
 
 Per case: the push of ``config/scenarios/multicontact_push.yaml`` with the force that gives the
 requested sagittal kinetic energy at the push's end (found by a few secant steps on KE ~ F^2, each a
@@ -34,6 +34,7 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from humfall_ros import params  # noqa: E402
 from humfall_ros import scenario as scenario_mod  # noqa: E402
 from humfall_ros.multicontact.executor import StoredPlan  # noqa: E402
 from humfall_ros.multicontact.planner import DEPARTURE, FallPlanner  # noqa: E402
@@ -116,6 +117,7 @@ def main() -> int:
     ap.add_argument("--latency", type=float, default=0.0, help="RunConfig.plan_latency [s]")
     ap.add_argument("--one-hand", action="store_true", help="ExecutorConfig.both_hands off")
     ap.add_argument("--set", default="", help="planner parameters name=value,... (yaml names)")
+    ap.add_argument("--run", default="", help="RunConfig fields name=value,... (e.g. swing_control=task)")
     ap.add_argument("--series", action="store_true", help="keep the per-tick series in the JSON")
     a = ap.parse_args()
     sc = scenario_mod.load(SCENARIO)
@@ -138,7 +140,7 @@ def main() -> int:
     run_cfg = mr.RunConfig(time_budget=a.budget, hold=a.hold, both_hands=not a.one_hand, plan_latency=a.latency,
                            velocity_feedforward=not a.no_velocity_feedforward,
                            speed_limit=a.speed_limit, blend_time=a.blend,
-                           base_pitch_gain=a.pitch_gain)
+                           base_pitch_gain=a.pitch_gain, **params.parse_overrides(a.run))
     out["run_config"] = run_cfg.__dict__
     cases = []
     for ke in [float(x) for x in a.kes.split(",")]:

@@ -167,6 +167,10 @@ def test_executor_without_a_plan_releases_for_good_and_says_why(models):
         MulticontactExecutor([], pm.joint_names, hm.joint_names)
     with pytest.raises(ValueError, match="hold"):
         ExecutorConfig(hold="sideways")
+    with pytest.raises(ValueError, match="swing_control"):
+        ExecutorConfig(swing_control="feet")
+    with pytest.raises(ValueError, match="swing_clearance"):
+        ExecutorConfig(swing_clearance=float("nan"))
     with pytest.raises(ValueError, match="unknown parameters"):
         ExecutorConfig.from_params({"landing_wait": 0.1, "typo": 1})
 
@@ -175,7 +179,9 @@ def test_executor_config_matches_the_node_declaration():
     from humfall_ros import params
     d = params.defaults("multicontact_executor")
     cfg = ExecutorConfig()
-    for k in ("landing_wait", "early_switch", "hold", "both_hands", "velocity_feedforward", "blend_time"):
+    for k in ("landing_wait", "early_switch", "hold", "both_hands", "velocity_feedforward", "blend_time",
+              "base_pitch_gain", "base_pitch_correction_max", "swing_control", "swing_over_release", "swing_clearance",
+              "landing_blend_time"):
         assert d[k] == getattr(cfg, k), k
 
 

@@ -27,6 +27,7 @@ pitches the pelvis by -d: a gain of 1 takes the whole error out at the hips.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from typing import Callable
@@ -37,12 +38,14 @@ from scipy.spatial.transform import Rotation
 
 from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
+from humfall_ros.fall.step_control import LEG_JOINTS, StepControlConfig, StepController, configuration_from_sensors
 from humfall_ros.model.humanoid import base_rotation_from_imu, imu_quaternion
 from humfall_ros.multicontact.collocation import Segment, hermite_eval
 from humfall_ros.multicontact.model import FEET
 
 
 HOLD_MODES = ("planar", "measured")
+SWING_CONTROLS = ("joints", "task")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,6 +71,18 @@ class ExecutorConfig:
             URDF's hip limits. Runs that ended at rest saw errors <= 0.13 rad (session 24); a robot that
             has already fallen (errors of 1 rad and more) would otherwise have its hips driven to their
             stops, also after the plan's end, where the feedback keeps acting on the final posture.
+        swing_control: how a protective step's swing leg is driven. ``"joints"``: it tracks the plan's joints
+            like every other joint (sessions 5-25). ``"task"`` (ours): from the release of a foot that the plan
+            lands again, both legs follow the shared IK of paper 1's step controller
+            (``fall.step_control.StepController``: stance sole held where it is measured, swing sole on a world
+            trajectory to the plan's landing placement relative to the stance sole, flat, at the plan's
+            touchdown time); the planar plan has no lateral coordinate, and tracked joint by joint its swing
+            foot never left the ground on the 3-D robot (session 24). Needs ``model`` and the IMU.
+        swing_over_release: the task-space swing starts with the release segment (True) or with the landing
+            segment (False, the release's joints tracked as planned).
+        swing_clearance: the task-space swing's lift at mid-swing [m].
+        landing_blend_time: after a task-space swing, the legs' targets go from the last IK command to the
+            plan's over this time [s].
     """
 
     landing_wait: float = 0.2
@@ -79,10 +94,20 @@ class ExecutorConfig:
     blend_time: float = 0.0
     base_pitch_gain: float = 1.0
     base_pitch_correction_max: float = 0.3
+    swing_control: str = "joints"
+    swing_over_release: bool = True
+    swing_clearance: float = 0.1
+    landing_blend_time: float = 0.1
 
     def __post_init__(self):
         if self.hold not in HOLD_MODES:
             raise ValueError(f"hold must be one of {HOLD_MODES}, got {self.hold!r}")
+        if self.swing_control not in SWING_CONTROLS:
+            raise ValueError(f"swing_control must be one of {SWING_CONTROLS}, got {self.swing_control!r}")
+        for name in ("swing_clearance", "landing_blend_time"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and 0.0 <= v <= 1.0):
+                raise ValueError(f"{name} must be in [0, 1], got {v!r}")
         if not (math.isfinite(self.base_pitch_gain) and 0.0 <= self.base_pitch_gain <= 10.0):
             raise ValueError(f"base_pitch_gain must be in [0, 10], got {self.base_pitch_gain!r}")
         if not (math.isfinite(self.base_pitch_correction_max) and 0.0 < self.base_pitch_correction_max <= 3.0):
@@ -139,6 +164,12 @@ class MulticontactExecutor:
         # the plan's hip pitch joints (planar indices) by foot: the base pitch feedback acts on the stance legs'
         self._hips = {("LF" if j.startswith("l_") else "RF"): i for i, j in enumerate(self.planar_joint_names)
                       if j.endswith("hip_pitch")}
+        self.stepper = None
+        if self.cfg.swing_control == "task" and model is not None:
+            own = copy.copy(model)             # the IK's forward kinematics must not overwrite a shared data
+            own.data = model.model.createData()
+            self.stepper = StepController(own, StepControlConfig(clearance=self.cfg.swing_clearance))
+            self._legs = np.array([model.joint_index(f"{s}_{j}") for s in ("l", "r") for j in LEG_JOINTS])
         self.reset()
 
     def _arm_copy(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -167,6 +198,12 @@ class MulticontactExecutor:
         self.switches: list[tuple[int, float, str]] = []   # (segment entered, plan time, why)
         self.pitch_error_max = 0.0      # largest |base pitch - plan's| seen [rad]
         self.pitch_feedback_ticks = 0   # ticks with the feedback applied
+        self._swings: list[tuple[str, int, int]] = []   # (foot, first segment, landing segment) of task swings
+        self._swing_started: set[int] = set()           # landing segments whose task swing has started
+        self._legs_last: np.ndarray | None = None       # the last IK leg command of a task swing
+        self._blend: tuple[float, np.ndarray] | None = None   # (plan time, leg targets) the landing blend starts at
+        self._last_time: float | None = None
+        self.task_swings: list[dict] = []               # per task swing: foot, landing target, start, duration
 
     @property
     def take_over_time(self) -> float | None:
@@ -223,6 +260,7 @@ class MulticontactExecutor:
                 return False
             self.segments = list(segs)
         self._copy = self._arm_copy()
+        self._swings = self._task_swings()
         self._t0 = observation.time
         if self.cfg.hold == "planar":
             self._hold = np.zeros(self.n_joints)         # the planar model's locked joints are at 0
@@ -230,6 +268,74 @@ class MulticontactExecutor:
             self._hold = self._servo_targets(observation)
         self._start = self._servo_targets(observation)[self.index]
         return True
+
+    def _task_swings(self) -> list[tuple[str, int, int]]:
+        """The plan's foot landings that the task-space swing drives (``swing_control`` "task")."""
+        if self.stepper is None:
+            return []
+        out = []
+        for i, seg in enumerate(self.segments):
+            if seg.change != "add" or seg.extremity not in FEET:
+                continue
+            prev = self.segments[i - 1] if i > 0 else None
+            first = (i - 1 if self.cfg.swing_over_release and prev is not None and prev.change == "remove"
+                     and prev.extremity == seg.extremity else i)
+            out.append((seg.extremity, first, i))
+        return out
+
+    def _plan_configuration(self, seg: Segment, t: float) -> np.ndarray:
+        """The 3-D configuration of the plan at ``t`` in ``seg`` (base in the sagittal plane, the joints the
+        planar model lacks at 0, as it locks them)."""
+        qp, _ = self.planar(seg, t)
+        joints = np.zeros(self.n_joints)
+        joints[self.index] = qp[3:]
+        quat = Rotation.from_euler("y", float(qp[2])).as_quat()
+        return self.stepper.m.configuration([qp[0], 0.0, qp[1]], quat, joints)
+
+    def _landing_target(self, q: np.ndarray, foot: str, landing: Segment) -> pin.SE3:
+        """The swing sole's landing placement in the measured world: the plan's landing sole relative to its stance
+        sole at the landing's last knot (x, z: the planar plan has no lateral offset), from the measured stance sole;
+        the swing sole keeps its measured lateral position and heading, and lands flat (paper 1 eq. 9's relative
+        landing pose)."""
+        m = self.stepper.m
+        swing = "l" if foot == "LF" else "r"
+        stance = "r" if swing == "l" else "l"
+        m.forward(self._plan_configuration(landing, float(landing.time[-1])))
+        dx = float(m.frame_placement(m.sole_frame[swing]).translation[0]
+                   - m.frame_placement(m.sole_frame[stance]).translation[0])
+        m.forward(q)
+        st = m.frame_placement(m.sole_frame[stance]).translation
+        sw = m.frame_placement(m.sole_frame[swing])
+        yaw = math.atan2(sw.rotation[1, 0], sw.rotation[0, 0])
+        return self.stepper.landing_placement(float(st[0]) + dx, float(sw.translation[1]), yaw, 0.0)
+
+    def _task_swing(self, observation: Observation, tp: float,
+                    posture: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Both legs' joint position and velocity targets (``_legs`` order) of a task-space swing at this tick, or
+        None (no swing now, or no usable IMU: the plan's joints are tracked)."""
+        active = [(f, a, b) for f, a, b in self._swings if a <= self._seg <= b]
+        if not active:
+            return None
+        foot, _, land = active[0]
+        quat = imu_quaternion(observation.inputs.get("imu"))
+        if quat is None:
+            return None
+        q = configuration_from_sensors(self.stepper.m, observation.joint_position, quat, observation.state.com)
+        if land not in self._swing_started:
+            # the swing lasts as planned: what is left of this segment and every planned duration up to the landing
+            left = float(self.segments[self._seg].time[-1]) - (tp - self._seg_start)
+            left += sum(float(self.segments[k].time[-1]) for k in range(self._seg + 1, land + 1))
+            target = self._landing_target(q, foot, self.segments[land])
+            self.stepper.start(q, "l" if foot == "LF" else "r", target, observation.time, left)
+            self._swing_started.add(land)
+            self.task_swings.append({"foot": foot, "start_plan_time": tp, "duration": left,
+                                     "landing": [float(x) for x in target.translation]})
+        dt = 0.002 if self._last_time is None else max(observation.time - self._last_time, 1e-4)
+        # the IK's posture reference is this tick's plan (the stance leg, its pitch feedback included, follows it;
+        # the swing sole's task overrides its own leg)
+        self.stepper.posture = np.asarray(posture, float).copy()
+        pos, vel, _ = self.stepper.command(q, observation.time, dt)
+        return pos[self._legs], vel[self._legs]
 
     @staticmethod
     def _servo_targets(observation: Observation) -> np.ndarray:
@@ -289,6 +395,20 @@ class MulticontactExecutor:
         pos[self.index] = q
         if self.cfg.velocity_feedforward:
             vel[self.index] = dq
+        if self.stepper is not None:
+            legs = self._task_swing(observation, tp, pos)
+            if legs is not None:
+                pos[self._legs], vel[self._legs] = legs
+                self._legs_last, self._blend = legs[0], None
+            elif self._legs_last is not None and self.cfg.landing_blend_time > 0:
+                # after the swing: from the IK's landing posture to the plan's legs
+                if self._blend is None:
+                    self._blend = (tp, self._legs_last)
+                w = min(1.0, (tp - self._blend[0]) / self.cfg.landing_blend_time)
+                if w < 1.0:
+                    pos[self._legs] = (1 - w) * self._blend[1] + w * pos[self._legs]
+                    vel[self._legs] *= w
+        self._last_time = observation.time
         return JointTargets(positions=pos, velocities=vel)
 
 

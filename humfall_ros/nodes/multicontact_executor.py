@@ -67,7 +67,9 @@ def make_controller(p: dict, model):
                                       "start_time": start, "hold": p["hold"], "both_hands": p["both_hands"],
                                       "velocity_feedforward": p["velocity_feedforward"], "blend_time": p["blend_time"],
                                       "base_pitch_gain": p["base_pitch_gain"],
-                                      "base_pitch_correction_max": p["base_pitch_correction_max"]})
+                                      "base_pitch_correction_max": p["base_pitch_correction_max"],
+                                      **{k: p[k] for k in ("swing_control", "swing_over_release", "swing_clearance",
+                                                           "landing_blend_time")}})
     ex = MulticontactExecutor(plan.segments, load_planar().joint_names, model.joint_names, cfg, model=model)
     ex.source = p["source"]
     return ex

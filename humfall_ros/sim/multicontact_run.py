@@ -54,8 +54,8 @@ class RunConfig:
         contact_force_min: a limb or link touches when its tick-mean contact force exceeds this [N].
         final_window: the final mode and KE are judged over this last stretch of the run [s].
         time_budget: the planner's wall-clock budget [s].
-        hold, both_hands, velocity_feedforward, blend_time, base_pitch_gain, base_pitch_correction_max: as in
-            ``ExecutorConfig``.
+        hold, both_hands, velocity_feedforward, blend_time, base_pitch_gain, base_pitch_correction_max,
+            swing_control, swing_over_release, swing_clearance, landing_blend_time: as in ``ExecutorConfig``.
         plan_latency: the plan is made from the state at the push's end but the executor takes over
             this much later [s] (the standing balance in between): what a planner that needs that
             long would do without pausing the simulator. 0: paused (the plan's state is the take-over's).
@@ -78,6 +78,10 @@ class RunConfig:
     blend_time: float = 0.0
     base_pitch_gain: float = ExecutorConfig.base_pitch_gain
     base_pitch_correction_max: float = ExecutorConfig.base_pitch_correction_max
+    swing_control: str = ExecutorConfig.swing_control
+    swing_over_release: bool = ExecutorConfig.swing_over_release
+    swing_clearance: float = ExecutorConfig.swing_clearance
+    landing_blend_time: float = ExecutorConfig.landing_blend_time
     plan_latency: float = 0.0
     speed_limit: str = "motor"
 
@@ -127,6 +131,7 @@ class _Probe:
         self.fastest_joint: list[int] = []
         self._p_prev = None
         self.final_heights: dict[str, float] = {}
+        self.foot_height: dict[str, list[float]] = {"LF": [], "RF": []}   # lowest sole corner per tick [m]
 
     def kinetic_energy(self) -> float:
         q, v = self.world.pinocchio_state()
@@ -180,6 +185,11 @@ class _Probe:
         ratio = np.abs(w.joint_states()[1]) / w.model.limits.velocity
         self.joint_speed_ratio.append(float(ratio.max()))
         self.fastest_joint.append(int(ratio.argmax()))
+        hm = self.hm
+        pin.framesForwardKinematics(hm.model, self.data, self.world.pinocchio_configuration())
+        for e, side in (("LF", "l"), ("RF", "r")):
+            self.foot_height[e].append(float(min(self.data.oMf[hm.frame_ids[f]].translation[2]
+                                                 for f in hm.corner_frames[side])))
         for e in LIMBS:
             self.limb_force[e].append(float(np.linalg.norm(force[e])))
             self.limb_point[e].append(moment[e] / normal[e] if normal[e] > 1e-9 else None)
@@ -252,7 +262,9 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
     ex_cfg = ExecutorConfig(start_time=t_start, hold=cfg.hold, both_hands=cfg.both_hands,
                             velocity_feedforward=cfg.velocity_feedforward, blend_time=cfg.blend_time,
                             base_pitch_gain=cfg.base_pitch_gain,
-                            base_pitch_correction_max=cfg.base_pitch_correction_max)
+                            base_pitch_correction_max=cfg.base_pitch_correction_max,
+                            swing_control=cfg.swing_control, swing_over_release=cfg.swing_over_release,
+                            swing_clearance=cfg.swing_clearance, landing_blend_time=cfg.landing_blend_time)
     hm = _model()
     executor = MulticontactExecutor([], pm.joint_names, _joint_names(), ex_cfg,
                                     plan_source=plan_source if segments is None else stored_source, model=hm)
@@ -365,11 +377,17 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
     if mirror:
         planned_events += [dataclasses.replace(ev, extremity=mirror) for ev in planned_events
                            if ev.extremity in ("LH", "RH") and ev.extremity != mirror]
+    search_from = {e: k0 for e in LIMBS}   # a foot's landing after its release is searched after the release
     for ev in planned_events:
         row = {"extremity": ev.extremity, "change": ev.change, "planned_time": ev.time,
                "planned_x": ev.position[0], "planned_z": ev.position[1]}
         want = ev.change == "add"
-        k = _first(touching[ev.extremity] == want, k0)
+        k = _first(touching[ev.extremity] == want, search_from[ev.extremity])
+        if k is not None:
+            if want and ev.extremity in probe.foot_height and search_from[ev.extremity] > k0:
+                # a foot's swing: how high its lowest sole corner got between its release and this landing
+                row["swing_clearance_m"] = float(max(probe.foot_height[ev.extremity][search_from[ev.extremity]:k + 1]))
+            search_from[ev.extremity] = k
         row["executed_time"] = None if k is None else float(t[k] - t0)
         if k is not None and want:
             # how hard the executed touchdown is against the plan's: the 3-D energy on the tick before it,
