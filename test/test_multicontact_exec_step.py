@@ -4,7 +4,8 @@
 the right foot steps 0.6 m forward in 0.44 s). Tracked joint by joint (``swing_control`` "joints") the swing foot
 never leaves the ground on the 3-D robot (the planar plan has no lateral weight transfer; docs/multicontact.md
 "Session 24"); with ``swing_control`` "task" the legs follow paper 1's step controller (``fall.step_control``) and
-the step happens where and when the plan puts it. The robot still falls after the step (the plan's stop is not
+the step happens where and when the plan puts it, and with ``swing_attitude_weight`` the base keeps the plan's
+pitch through the swing. The robot still falls after the step (the plan's stop is not
 reproduced in 3-D, "Session 26"), which is why these tests judge the step, not the end.
 """
 import pytest
@@ -15,18 +16,19 @@ from humfall_ros.nodes.multicontact_executor import plan_path
 from humfall_ros.sim.multicontact_run import RunConfig, execute
 
 
-def _run(swing_control: str) -> tuple[StoredPlan, dict]:
+def _run(**run) -> tuple[StoredPlan, dict]:
     plan = StoredPlan.load(plan_path("multicontact_push_30J"))
     force = plan.meta["push_force"]
     sc = scenario.load("multicontact_push", [f"push.0.force=[{force[0]}, {force[1]}, {force[2]}]"])
     sc["controllers"] = []
     return plan, execute(sc, segments=plan.segments, start_time=plan.take_over_time,
-                         cfg=RunConfig(swing_control=swing_control, settle=0.5))
+                         cfg=RunConfig(settle=0.5, **run))
 
 
 @pytest.fixture(scope="module")
 def runs():
-    return {mode: _run(mode) for mode in ("joints", "task")}
+    return {"joints": _run(swing_control="joints"), "task": _run(swing_control="task"),
+            "task_no_attitude": _run(swing_control="task", swing_attitude_weight=0.0)}
 
 
 def _landing(r: dict) -> dict:
@@ -48,6 +50,15 @@ def test_the_task_space_swing_lifts_the_foot_and_lands_it_where_and_when_planned
     assert abs(ev["executed_time"] - ev["planned_time"]) < 0.06, ev
     assert abs(ev["executed_x"] - ev["planned_x"]) < 0.1, ev       # a 0.6 m step
     assert r["switches"][-1]["why"] == "touchdown"
+    (swing,) = r["task_swings"]
+    assert swing["foot"] == "RF" and swing["duration"] == pytest.approx(ev["planned_time"], abs=0.003)
+
+
+def test_the_attitude_task_keeps_the_base_on_the_plans_pitch_through_the_swing(runs):
+    """The stance leg's hip / ankle strategy (``swing_attitude_weight``): without it the base runs ahead."""
+    with_task = runs["task"][1]["task_swings"][0]["pitch_error_max"]
+    without = runs["task_no_attitude"][1]["task_swings"][0]["pitch_error_max"]
+    assert with_task < 0.06 and without > 2 * with_task, (with_task, without)
 
 
 def test_tracking_the_joints_drags_the_swing_foot(runs):

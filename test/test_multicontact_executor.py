@@ -181,7 +181,7 @@ def test_executor_config_matches_the_node_declaration():
     cfg = ExecutorConfig()
     for k in ("landing_wait", "early_switch", "hold", "both_hands", "velocity_feedforward", "blend_time",
               "base_pitch_gain", "base_pitch_correction_max", "swing_control", "swing_over_release", "swing_clearance",
-              "landing_blend_time"):
+              "landing_blend_time", "swing_attitude_weight"):
         assert d[k] == getattr(cfg, k), k
 
 
@@ -378,7 +378,9 @@ def test_base_pitch_feedback_acts_on_the_stance_legs_hips_only(models):
     q0 = np.zeros(pm.n)
     q0[3:] = 0.1
     swing = _segment(pm, q0, q0, 1.0, "add", "RF", ("LF",), ("LF", "RF"))     # the right foot in the air
-    ex = MulticontactExecutor([swing, swing], pm.joint_names, hm.joint_names, model=hm)
+    # the plan's joints tracked (a task-space swing, the default, drives both legs by the IK instead)
+    ex = MulticontactExecutor([swing, swing], pm.joint_names, hm.joint_names, ExecutorConfig(swing_control="joints"),
+                              model=hm)
     joints = np.full(len(hm.joint_names), 0.05)
     ex.step(_obs(hm, 0.0))
     obs = _obs(hm, 0.2, q=joints)

@@ -224,3 +224,35 @@ def test_transition_ke_cap_bounds_the_inner_knots_of_a_landing_only_when_asked(m
                                rtol=1e-9, atol=1e-9)
     # a release has no landing to soften
     assert "ke_path" not in opt.nlp(StructureKey("remove", ("LF", "RF"), "LF", False, nlp.key.n_knots))._block_idx
+
+
+def test_foot_cop_margin_keeps_each_sole_point_loaded_in_the_solved_stop(model):
+    """foot_cop_margin (departure, session 26): rows lam_n(point) - r (lam_n(toe) + lam_n(heel)) >= 0 per foot and
+    knot, absent when 0; a solved 10 J stop from two feet then has its centre of pressure inside the middle of each
+    sole at every knot, which without the rows it is not (the plans ride the toe)."""
+    from humfall_ros.multicontact import contacts as C
+
+    q0 = nominal_configuration(model)
+    env = Environment()
+    v0 = velocity_for_energy(model, q0, ("LF", "RF"), 10.0, 1.0, env)
+    key = StructureKey("", ("LF", "RF"), "", False, OptConfig().n_knots)
+    assert "cop" not in TrajectoryOptimizer(model, OptConfig()).nlp(key)._block_idx
+    r = 0.2
+    opt = TrajectoryOptimizer(model, OptConfig(foot_cop_margin=r, nlp_max_wall_time=60.0))
+    nlp = opt.nlp(key)
+    assert len(nlp._block_idx["cop"]) == 2 * 2 * nlp.key.n_knots     # two feet, toe and heel, every knot
+    lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env)
+    assert np.all(lbg[nlp._block_idx["cop"]] == 0.0) and np.all(np.isposinf(ubg[nlp._block_idx["cop"]]))
+
+    def worst_share(seg):
+        shares = []
+        for _, ni in C.friction_groups(seg.rows):
+            fn = seg.lam[:, ni]
+            shares.append((fn.min(axis=1) / np.maximum(fn.sum(axis=1), 1e-9)).min())
+        return min(shares)
+
+    seg = opt.opt_self_motion(q0, v0, ("LF", "RF"), env)
+    assert seg.success, seg.status
+    assert worst_share(seg) >= r - 1e-3
+    free = TrajectoryOptimizer(model, OptConfig(nlp_max_wall_time=60.0)).opt_self_motion(q0, v0, ("LF", "RF"), env)
+    assert free.success and worst_share(free) < r

@@ -166,8 +166,9 @@ class StepController:
         omega = R @ (ds * dR)
         return pin.SE3(R, pos), np.concatenate([vel, omega])
 
-    def command(self, q, t: float, dt: float) -> tuple[np.ndarray, np.ndarray, float]:
-        """One tick: (joint positions [rad], joint velocities [rad/s], swing error [m])."""
+    def command(self, q, t: float, dt: float, extra_tasks=()) -> tuple[np.ndarray, np.ndarray, float]:
+        """One tick: (joint positions [rad], joint velocities [rad/s], swing error [m]); ``extra_tasks``: further
+        weighted IK tasks (e.g. a trunk orientation) beside the soles and the posture."""
         p = self.plan
         stance = "r" if p.swing == "l" else "l"
         self.m.forward(q)
@@ -177,7 +178,7 @@ class StepController:
         tasks = [FrameTask(self.m.sole_frame[stance], stance_now, hard=True),
                  FrameTask(self.m.sole_frame[p.swing], target, weight=c.swing_weight, gain=c.swing_gain,
                            twist=twist),
-                 PostureTask(self.posture, weight=self.posture_weights)]
+                 PostureTask(self.posture, weight=self.posture_weights), *extra_tasks]
         r = self.ik.solve(q, tasks, dt)
         return r.q[7:].copy(), r.v[6:].copy(), float(r.errors[1]) if len(r.errors) > 1 else math.nan
 

@@ -151,6 +151,10 @@ class OptConfig:
     # eq. 5 on the impulses of eq. 10 (|Lambda_t| <= mu Lambda_n per contact): the
     # paper's impact map sticks whatever friction that needs (departure, off by default)
     impact_friction_cone: bool = False
+    # each of a foot's two points (toe, heel) carries at least this fraction of the foot's normal force at every
+    # knot: the centre of pressure stays inside the middle (1 - 2 r) of the sole (departure, 0 = off, the paper's
+    # contact model): the planar plans ride their support's edge, and the 3-D robot then rolls over it
+    foot_cop_margin: float = 0.0
     step_capture_margin: float = 0.12
     # J/m^2, terminal cost w * s^2 of a foot landing, s = how far the post-impact capture point is past the
     # landing foot's toe (forward push; heel backward) less step_capture_margin (departure, 0 = off, the paper):
@@ -401,6 +405,8 @@ class SegmentNLP:
             for ti, ni in C.friction_groups(self.rows):   # eq. 5 (planar: two half-planes)
                 fn = sum(lam[i] for i in ni)
                 add("fric", k, ca.vertcat(cfg.mu * fn - lam[ti], cfg.mu * fn + lam[ti]))
+                if cfg.foot_cop_margin > 0 and len(ni) == 2:   # a foot: toe and heel (bounded >= 0 in bounds())
+                    add("cop", k, ca.vertcat(*[lam[i] - cfg.foot_cop_margin * fn for i in ni]))
         for k in range(1, N):
             qk = knots[k]["q"]
             for (pt, surf) in self.clear_pts:            # eq. 3, non-contact clearance
@@ -630,6 +636,8 @@ class SegmentNLP:
         if len(idx):
             lo, hi = self._clearance_bounds(q0, env)
             lbg[idx], ubg[idx] = lo, hi
+        idx = self._block_idx.get("cop", np.array([], int))
+        lbg[idx], ubg[idx] = 0.0, np.inf
         idx = self._block_idx.get("imp_fric", np.array([], int))
         if len(idx):
             lbg[idx], ubg[idx] = (0.0 if cfg.impact_friction_cone else -np.inf), np.inf

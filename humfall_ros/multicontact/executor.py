@@ -39,6 +39,7 @@ from scipy.spatial.transform import Rotation
 from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.fall.step_control import LEG_JOINTS, StepControlConfig, StepController, configuration_from_sensors
+from humfall_ros.model.ik import OrientationTask
 from humfall_ros.model.humanoid import base_rotation_from_imu, imu_quaternion
 from humfall_ros.multicontact.collocation import Segment, hermite_eval
 from humfall_ros.multicontact.model import FEET
@@ -72,17 +73,21 @@ class ExecutorConfig:
             has already fallen (errors of 1 rad and more) would otherwise have its hips driven to their
             stops, also after the plan's end, where the feedback keeps acting on the final posture.
         swing_control: how a protective step's swing leg is driven. ``"joints"``: it tracks the plan's joints
-            like every other joint (sessions 5-25). ``"task"`` (ours): from the release of a foot that the plan
-            lands again, both legs follow the shared IK of paper 1's step controller
+            like every other joint (sessions 5-25). ``"task"`` (ours, default since session 26): from the
+            release of a foot that the plan lands again, both legs follow the shared IK of paper 1's step controller
             (``fall.step_control.StepController``: stance sole held where it is measured, swing sole on a world
             trajectory to the plan's landing placement relative to the stance sole, flat, at the plan's
-            touchdown time); the planar plan has no lateral coordinate, and tracked joint by joint its swing
-            foot never left the ground on the 3-D robot (session 24). Needs ``model`` and the IMU.
+            touchdown time; the stance leg's posture reference is the plan's joints of the tick); the planar plan
+            has no lateral coordinate, and tracked joint by joint its swing foot never left the ground on the 3-D
+            robot (session 24). Needs ``model`` and the IMU; the plan's hand plans have no foot landing and are
+            tracked as before.
         swing_over_release: the task-space swing starts with the release segment (True) or with the landing
             segment (False, the release's joints tracked as planned).
         swing_clearance: the task-space swing's lift at mid-swing [m].
         landing_blend_time: after a task-space swing, the legs' targets go from the last IK command to the
             plan's over this time [s].
+        swing_attitude_weight: IK weight of the base's orientation during a task-space swing (upright in roll,
+            the plan's pitch; ``_attitude_task``) [-]; 0: none (the stance leg then holds the plan's joints).
     """
 
     landing_wait: float = 0.2
@@ -94,16 +99,19 @@ class ExecutorConfig:
     blend_time: float = 0.0
     base_pitch_gain: float = 1.0
     base_pitch_correction_max: float = 0.3
-    swing_control: str = "joints"
+    swing_control: str = "task"
     swing_over_release: bool = True
     swing_clearance: float = 0.1
     landing_blend_time: float = 0.1
+    swing_attitude_weight: float = 100.0
 
     def __post_init__(self):
         if self.hold not in HOLD_MODES:
             raise ValueError(f"hold must be one of {HOLD_MODES}, got {self.hold!r}")
         if self.swing_control not in SWING_CONTROLS:
             raise ValueError(f"swing_control must be one of {SWING_CONTROLS}, got {self.swing_control!r}")
+        if not (math.isfinite(self.swing_attitude_weight) and 0.0 <= self.swing_attitude_weight <= 1e4):
+            raise ValueError(f"swing_attitude_weight must be in [0, 1e4], got {self.swing_attitude_weight!r}")
         for name in ("swing_clearance", "landing_blend_time"):
             v = getattr(self, name)
             if not (math.isfinite(v) and 0.0 <= v <= 1.0):
@@ -203,7 +211,7 @@ class MulticontactExecutor:
         self._legs_last: np.ndarray | None = None       # the last IK leg command of a task swing
         self._blend: tuple[float, np.ndarray] | None = None   # (plan time, leg targets) the landing blend starts at
         self._last_time: float | None = None
-        self.task_swings: list[dict] = []               # per task swing: foot, landing target, start, duration
+        self.task_swings: list[dict] = []   # per task swing: foot, landing target, start, duration, pitch_error_max
 
     @property
     def take_over_time(self) -> float | None:
@@ -334,8 +342,27 @@ class MulticontactExecutor:
         # the IK's posture reference is this tick's plan (the stance leg, its pitch feedback included, follows it;
         # the swing sole's task overrides its own leg)
         self.stepper.posture = np.asarray(posture, float).copy()
-        pos, vel, _ = self.stepper.command(q, observation.time, dt)
+        qp, _ = self.planar(self.segments[self._seg], tp - self._seg_start)
+        err = self._pitch_error(observation, float(qp[2]))
+        if err is not None:
+            log = self.task_swings[-1]
+            log["pitch_error_max"] = max(log.get("pitch_error_max", 0.0), abs(err))
+        extra = (self._attitude_task(q, float(qp[2])),) if self.cfg.swing_attitude_weight > 0 else ()
+        pos, vel, _ = self.stepper.command(q, observation.time, dt, extra)
         return pos[self._legs], vel[self._legs]
+
+    def _attitude_task(self, q: np.ndarray, plan_pitch: float) -> OrientationTask:
+        """The base (root link) upright in roll, at the plan's pitch of this plan time and at its measured heading.
+
+        Through the stance leg (the IK holds the stance sole where it is) this is the hip and ankle strategy of
+        the single support: without it the base ran 0.1-0.15 rad ahead of the plan's pitch and rolled 0.2 rad
+        toward the swing side by the touchdown (the planar plan has no lateral weight transfer); with weight 100
+        the 30 J step kept both within 0.04 rad (docs/multicontact.md "Session 26")."""
+        m = self.stepper.m
+        m.forward(q)
+        R = m.frame_placement(m.root_link).rotation
+        target = Rotation.from_euler("ZY", [math.atan2(R[1, 0], R[0, 0]), plan_pitch]).as_matrix()
+        return OrientationTask(m.root_link, target, weight=self.cfg.swing_attitude_weight)
 
     @staticmethod
     def _servo_targets(observation: Observation) -> np.ndarray:

@@ -69,7 +69,7 @@ def make_controller(p: dict, model):
                                       "base_pitch_gain": p["base_pitch_gain"],
                                       "base_pitch_correction_max": p["base_pitch_correction_max"],
                                       **{k: p[k] for k in ("swing_control", "swing_over_release", "swing_clearance",
-                                                           "landing_blend_time")}})
+                                                           "landing_blend_time", "swing_attitude_weight")}})
     ex = MulticontactExecutor(plan.segments, load_planar().joint_names, model.joint_names, cfg, model=model)
     ex.source = p["source"]
     return ex

@@ -55,7 +55,8 @@ class RunConfig:
         final_window: the final mode and KE are judged over this last stretch of the run [s].
         time_budget: the planner's wall-clock budget [s].
         hold, both_hands, velocity_feedforward, blend_time, base_pitch_gain, base_pitch_correction_max,
-            swing_control, swing_over_release, swing_clearance, landing_blend_time: as in ``ExecutorConfig``.
+            swing_control, swing_over_release, swing_clearance, landing_blend_time, swing_attitude_weight: as in
+            ``ExecutorConfig``.
         plan_latency: the plan is made from the state at the push's end but the executor takes over
             this much later [s] (the standing balance in between): what a planner that needs that
             long would do without pausing the simulator. 0: paused (the plan's state is the take-over's).
@@ -82,6 +83,7 @@ class RunConfig:
     swing_over_release: bool = ExecutorConfig.swing_over_release
     swing_clearance: float = ExecutorConfig.swing_clearance
     landing_blend_time: float = ExecutorConfig.landing_blend_time
+    swing_attitude_weight: float = ExecutorConfig.swing_attitude_weight
     plan_latency: float = 0.0
     speed_limit: str = "motor"
 
@@ -264,7 +266,8 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
                             base_pitch_gain=cfg.base_pitch_gain,
                             base_pitch_correction_max=cfg.base_pitch_correction_max,
                             swing_control=cfg.swing_control, swing_over_release=cfg.swing_over_release,
-                            swing_clearance=cfg.swing_clearance, landing_blend_time=cfg.landing_blend_time)
+                            swing_clearance=cfg.swing_clearance, landing_blend_time=cfg.landing_blend_time,
+                            swing_attitude_weight=cfg.swing_attitude_weight)
     hm = _model()
     executor = MulticontactExecutor([], pm.joint_names, _joint_names(), ex_cfg,
                                     plan_source=plan_source if segments is None else stored_source, model=hm)
@@ -341,6 +344,7 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
         "executor_failed": executor.failed,
         "executor_reason": executor.reason, "ke_max": float(ke.max()) if len(ke) else float("nan"),
         "base_pitch_error_max": executor.pitch_error_max, "base_pitch_feedback_ticks": executor.pitch_feedback_ticks,
+        "task_swings": executor.task_swings,
     }
     if executor.take_over_time is None:
         out["success"] = False
