@@ -14,6 +14,13 @@ last knot is held (up to ``landing_wait``) while the foot is still in the air at
 its planned end. Hands have no contact flag in the observation, so hand landings
 switch at their planned times. After the last segment the final posture is held.
 
+**Task-space swing** (ours, ``ExecutorConfig.swing_control`` "task", the default since session 26): a plan's
+protective step (a foot released, then landed again) is not tracked joint by joint: from the release to the landing
+both legs follow paper 1's step controller (``fall.step_control``: the stance sole held where it is measured, the
+swing sole on a world trajectory to the plan's landing relative to the stance sole, at the plan's touchdown time),
+with the base held upright at the plan's pitch; tracked joint by joint the swing foot never left the ground (a
+planar plan has no lateral weight transfer). The arms track the plan.
+
 **Base pitch feedback** (ours; the paper re-simulates its plans in the planar model, open loop): the
 base is unactuated, so joint tracking alone leaves its pitch to the 3-D contacts. Executed open loop,
 the soles roll onto their toes (the planar feet are flat) and the base pitch runs ahead of the plan
