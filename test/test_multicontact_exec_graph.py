@@ -11,7 +11,7 @@ from humfall_ros.model.humanoid import load_model as load_humanoid
 from humfall_ros.multicontact.collocation import Segment
 from humfall_ros.multicontact.executor import StoredPlan
 from humfall_ros.multicontact.model import load_model as load_planar
-from humfall_ros.nodes.multicontact_executor import make_controller
+from humfall_ros.nodes.multicontact_executor import make_controller, plan_path
 from humfall_ros.sim.closed_loop import run_scenario
 from humfall_ros.suite import locomotion_controller
 
@@ -62,3 +62,28 @@ def test_the_executor_node_takes_over_at_the_plan_time_and_matches_the_in_proces
     hm = load_humanoid()
     k = hm.joint_names.index("l_shoulder_pitch")
     assert mine.joint_positions[-1, k] - mine.joint_positions[int(TAKE_OVER * 500), k] < -0.4
+
+
+def test_a_protective_step_over_ros_matches_the_in_process_loop(in_ros_domain, tmp_path):
+    """The shipped 30 J step plan (``multicontact_push_30J.json``) with the task-space swing (the default): the
+    swing's IK reads the IMU and the estimator's CoM from the node's inputs; over ROS the joint states equal the
+    in-process loop's bit for bit through the swing, and the swing foot lands near its planned time."""
+    stored = StoredPlan.load(plan_path("multicontact_push_30J"))
+    f = stored.meta["push_force"]
+    ov = ["duration=1.2", f"push.0.force=[{f[0]}, {f[1]}, {f[2]}]",
+          "controllers.0.params.plan_file=multicontact_push_30J"]
+    status, r = launch.up("multicontact_push", None, ov, runs_dir=str(tmp_path / "runs"), quiet=True)
+    assert status == 0, r
+    sc = scenario.load("multicontact_push", ov)
+    p = {**params.defaults("multicontact_executor"), "plan_file": "multicontact_push_30J"}
+    assert p["swing_control"] == "task"
+    hm = load_humanoid()
+    ex = make_controller(p, hm)
+    mine = run_scenario(sc, controllers=[locomotion_controller(sc, hm), ex], priorities={"multicontact": 40})
+    ros = _rows(r, len(mine.joint_positions))
+    assert np.array_equal(ros, mine.joint_positions)
+    assert ex.task_swings and ex.task_swings[0]["foot"] == "RF"
+    # the landing segment ended on the right foot's touchdown near its planned end (0.437 s): the foot was in the
+    # air until then (tracked joint by joint it stays loaded and the switch comes at the window's first tick, 0.288 s)
+    seg, when, why = ex.switches[-1]
+    assert why == "touchdown" and when > sum(float(s.time[-1]) for s in stored.segments[:2]) - 0.05, ex.switches

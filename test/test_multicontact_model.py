@@ -256,3 +256,23 @@ def test_foot_cop_margin_keeps_each_sole_point_loaded_in_the_solved_stop(model):
     assert worst_share(seg) >= r - 1e-3
     free = TrajectoryOptimizer(model, OptConfig(nlp_max_wall_time=60.0)).opt_self_motion(q0, v0, ("LF", "RF"), env)
     assert free.success and worst_share(free) < r
+
+
+def test_post_impact_speed_fraction_scales_the_eq6_bounds_of_the_impact_state_only(model):
+    """post_impact_speed_fraction (departure when < 1, session 26): the post-impact joint velocities of a landing are
+    bounded by the fraction x the URDF limits; the knots keep eq. 6 as it is."""
+    q0 = nominal_configuration(model)
+    env = Environment()
+    v0 = velocity_for_energy(model, q0, ("LF", "RF"), 20.0, 1.0, env)
+    key = StructureKey("add", ("LF", "RF"), "LH", False, OptConfig().n_knots)
+    full = TrajectoryOptimizer(model, OptConfig()).nlp(key)
+    part = TrajectoryOptimizer(model, OptConfig(post_impact_speed_fraction=0.5)).nlp(key)
+    n = model.n
+    oi = 1 + key.n_knots * full.nk            # the impact variables: post-impact velocities first
+    lf, uf = full.bounds(q0, v0, env)[:2]
+    lp, up = part.bounds(q0, v0, env)[:2]
+    np.testing.assert_allclose(uf[oi + 3:oi + n], model.v_max)
+    np.testing.assert_allclose(up[oi + 3:oi + n], 0.5 * np.asarray(model.v_max))
+    np.testing.assert_allclose(lp[oi + 3:oi + n], -0.5 * np.asarray(model.v_max))
+    a, b = full.knot_slices[2]
+    np.testing.assert_array_equal(up[a:b], uf[a:b])             # a knot's bounds unchanged

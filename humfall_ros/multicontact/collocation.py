@@ -117,6 +117,9 @@ class OptConfig:
     force_max_mg: float = 3.0       # contact force component cap, in units of M g
     knee_margin: float = 0.05      # rad, lower knee bound used by the NLP (URDF lower limit is 0)
     post_impact_velocity_limits: bool = True  # eq. 6 velocity limits on the post-impact joint velocities too
+    # ... at this fraction of the limits (departure when < 1): a child that starts at a joint's speed limit next to
+    # its position limit cannot brake it (the 60 / 80 J hand nodes, session 25)
+    post_impact_speed_fraction: float = 1.0
     # rad, upper elbow bound -elbow_margin (URDF: 0, the straight arm); 0.1 measured worse
     elbow_margin: float = 0.0
     contact_pos_tol: float = 0.002   # m, eq. 3 at the knots (drift bound)
@@ -609,7 +612,8 @@ class SegmentNLP:
             # left the child up to 2.6 v_max, and the child's NLPs could not
             # converge from a start outside their own bounds)
             if cfg.post_impact_velocity_limits:
-                lbx[oi + 3:oi + n], ubx[oi + 3:oi + n] = -model.v_max, model.v_max
+                vmax = cfg.post_impact_speed_fraction * np.asarray(model.v_max, float)
+                lbx[oi + 3:oi + n], ubx[oi + 3:oi + n] = -vmax, vmax
         if key.change == "remove":
             # the released contact carries no force at the end (mode sigma_j dynamics)
             lo = self.knot_slices[-1][0] + 3 * n + m
