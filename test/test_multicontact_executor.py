@@ -1,6 +1,8 @@
 """The multicontact executor as a contract controller, on synthetic observations (no simulator)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -388,3 +390,39 @@ def test_base_pitch_feedback_acts_on_the_stance_legs_hips_only(models):
     out = ex.step(obs)
     assert out.positions[hm.joint_names.index("l_hip_pitch")] == pytest.approx(0.2, abs=1e-9)   # 0.1 + 1 x 0.1
     assert out.positions[hm.joint_names.index("r_hip_pitch")] == pytest.approx(0.1, abs=1e-9)   # swinging: the plan
+
+
+def test_task_space_swing_drives_both_legs_and_holds_them_when_the_imu_is_lost(models):
+    """``swing_control`` "task" (the default): during a foot landing segment both legs come from the step
+    controller's IK (not the plan's joints); an unusable IMU reading mid-swing holds the legs' last command instead
+    of jumping to the plan's joints; the other joints track the plan either way."""
+    pm, hm = models
+    q0 = np.zeros(pm.n)
+    for i, j in enumerate(pm.joint_names):
+        q0[3 + i] = hm.standing_posture.get(j, 0.0)
+    swing = _segment(pm, q0, q0, 0.5, "add", "RF", ("LF",), ("LF", "RF"))     # the right foot lands at 0.5 s
+    stop = _segment(pm, q0, q0, 0.5, "", "", ("LF", "RF"), ("LF", "RF"))
+    ex = MulticontactExecutor([swing, stop], pm.joint_names, hm.joint_names, model=hm)
+    joints = hm.joint_vector(hm.standing_posture)
+    legs = [hm.joint_index(f"{s}_{j}") for s in ("l", "r") for j in ("hip_pitch", "knee", "ankle_pitch")]
+
+    def obs(t, imu=True):
+        o = _obs(hm, t, left=True, right=False, q=joints)
+        o = dataclasses.replace(o, state=dataclasses.replace(o.state, com=np.array([0.0, 0.0, 0.8])))
+        if imu:
+            o.inputs["imu"] = _imu_reading(hm, np.eye(3), joints)
+        return o
+
+    ex.step(obs(0.0))
+    out = ex.step(obs(0.1))
+    assert ex.task_swings and ex.task_swings[0]["foot"] == "RF"
+    plan_q, _ = ex.sample(swing, 0.1)
+    planned = np.array([plan_q[pm.joint_names.index(hm.joint_names[k])] for k in legs])
+    assert np.abs(out.positions[legs] - planned).max() > 1e-3      # the legs are the IK's, not the plan's
+    held = ex.step(obs(0.102, imu=False))
+    np.testing.assert_array_equal(held.positions[legs], out.positions[legs])
+    arm = hm.joint_index("l_elbow")
+    assert held.positions[arm] == pytest.approx(plan_q[pm.joint_names.index("l_elbow")])
+    # the IMU back: the IK again (the swing target moves on, so the command does)
+    again = ex.step(obs(0.2))
+    assert np.abs(again.positions[legs] - out.positions[legs]).max() > 1e-4

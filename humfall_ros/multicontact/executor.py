@@ -329,14 +329,16 @@ class MulticontactExecutor:
     def _task_swing(self, observation: Observation, tp: float,
                     posture: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """Both legs' joint position and velocity targets (``_legs`` order) of a task-space swing at this tick, or
-        None (no swing now, or no usable IMU: the plan's joints are tracked)."""
+        None (no swing now, or no usable IMU before it started: the plan's joints are tracked)."""
         active = [(f, a, b) for f, a, b in self._swings if a <= self._seg <= b]
         if not active:
             return None
         foot, _, land = active[0]
         quat = imu_quaternion(observation.inputs.get("imu"))
         if quat is None:
-            return None
+            # no usable IMU: before the swing the plan's joints are tracked; during it the legs hold their last
+            # command (a jump to the plan's joints mid-swing would kick the swing foot into the ground)
+            return None if self._legs_last is None else (self._legs_last.copy(), np.zeros(len(self._legs)))
         q = configuration_from_sensors(self.stepper.m, observation.joint_position, quat, observation.state.com)
         if land not in self._swing_started:
             # the swing lasts as planned: what is left of this segment and every planned duration up to the landing
