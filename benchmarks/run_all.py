@@ -8,6 +8,7 @@ import sys
 
 HERE = pathlib.Path(__file__).resolve().parent
 BENCHES = ["bench_suite.py", "bench_recorder.py", "bench_multicontact.py", "bench_multicontact_library.py",
+           "bench_multicontact_exec_tick.py",
            "bench_walking.py", "bench_fall.py", "bench_estop.py"]
 # bench_contract.py (vs a base commit) and bench_campaign.py (long) run on their own
 
