@@ -69,12 +69,14 @@ def force_for_energy(sc: dict, ke: float, f0: float = 500.0, tol: float = 0.02, 
 
 
 def plots(case: dict, path: pathlib.Path) -> None:
+    """Kinetic energy, base pitch, the feet's heights (plan vs executed) and the contact forces over time."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     s = case["series"]
-    fig, (a, b) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    plan = s.get("plan") or {}
+    fig, (a, p, h, b) = plt.subplots(4, 1, figsize=(8, 10), sharex=True)
     a.plot(s["t"], s["ke"], label="executed (3-D, PyBullet)")
     curve = case["plan"].get("ke_curve") or []
     if curve:
@@ -82,12 +84,26 @@ def plots(case: dict, path: pathlib.Path) -> None:
     a.set_ylabel("kinetic energy (J)")
     a.legend()
     a.set_title(f"{case['target_ke']:g} J: {' -> '.join(case['plan'].get('contact_sequence') or [])}")
+    if s.get("base_pitch"):
+        p.plot(s["t"], s["base_pitch"], label="executed")
+    if plan.get("t"):
+        p.plot(plan["t"], plan["base_pitch"], "--", label="plan")
+    p.set_ylabel("base pitch (rad)")
+    p.legend(fontsize=7)
+    for e, color in (("LF", "C0"), ("RF", "C1")):
+        if s.get("foot_height"):
+            h.plot(s["t"], s["foot_height"][e], color=color, label=f"{e} executed")
+        if plan.get("t"):
+            h.plot(plan["t"], plan["foot_height"][e], "--", color=color, label=f"{e} plan")
+    h.set_ylabel("lowest sole point (m)")
+    h.legend(fontsize=7, ncol=2)
     for e, f in s["limb_force"].items():
         b.plot(s["t"], f, label=e)
     for n, f in s["other_force"].items():
         b.plot(s["t"], f, ":", label=n)
     for ev in case.get("contact_events", []):
-        b.axvline(ev["planned_time"], color="k", lw=0.5, ls="--")
+        for ax in (h, b):
+            ax.axvline(ev["planned_time"], color="k", lw=0.5, ls="--")
     b.set_xlabel("time from take-over (s)")
     b.set_ylabel("contact force (N)")
     b.legend(fontsize=7, ncol=3)

@@ -50,6 +50,11 @@ def test_the_task_space_swing_lifts_the_foot_and_lands_it_where_and_when_planned
     assert abs(ev["executed_time"] - ev["planned_time"]) < 0.06, ev
     assert abs(ev["executed_x"] - ev["planned_x"]) < 0.1, ev       # a 0.6 m step
     assert r["switches"][-1]["why"] == "touchdown"
+    s = r["series"]                                                # per tick, for the plots: the same swing
+    assert len(s["base_pitch"]) == len(s["t"]) == len(s["foot_height"]["RF"])
+    in_swing = [h for t, h in zip(s["t"], s["foot_height"]["RF"]) if 0.0 < t <= ev["executed_time"] + 1e-9]
+    assert max(in_swing) == pytest.approx(ev["swing_clearance_m"])
+    assert 0 < s["plan"]["t"][-1] <= r["plan"]["duration"] and max(s["plan"]["foot_height"]["RF"]) < 0.05
     (swing,) = r["task_swings"]
     assert swing["foot"] == "RF" and swing["duration"] == pytest.approx(ev["planned_time"], abs=0.003)
 

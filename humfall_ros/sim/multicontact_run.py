@@ -31,12 +31,13 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 import pybullet as pb
+from scipy.spatial.transform import Rotation
 
 from humfall_ros import scenario as scenario_mod
 from humfall_ros.dynamics.pendulum import GRAVITY
 from humfall_ros.multicontact.collocation import Segment
-from humfall_ros.multicontact.executor import (ExecutorConfig, MulticontactExecutor, planar_state, planned_contacts,
-                                               project_to_mode)
+from humfall_ros.multicontact.executor import (ExecutorConfig, MulticontactExecutor, pitch_of, planar_state,
+                                               planned_contacts, project_to_mode)
 from humfall_ros.multicontact.modes import mode_label, parse_mode
 from humfall_ros.sim.closed_loop import ClosedLoop
 from humfall_ros.suite import locomotion_controller
@@ -134,6 +135,7 @@ class _Probe:
         self._p_prev = None
         self.final_heights: dict[str, float] = {}
         self.foot_height: dict[str, list[float]] = {"LF": [], "RF": []}   # lowest sole corner per tick [m]
+        self.base_pitch: list[float] = []     # the base's planar pitch per tick (ground truth) [rad]
 
     def kinetic_energy(self) -> float:
         q, v = self.world.pinocchio_state()
@@ -188,7 +190,9 @@ class _Probe:
         self.joint_speed_ratio.append(float(ratio.max()))
         self.fastest_joint.append(int(ratio.argmax()))
         hm = self.hm
-        pin.framesForwardKinematics(hm.model, self.data, self.world.pinocchio_configuration())
+        q = self.world.pinocchio_configuration()
+        self.base_pitch.append(pitch_of(Rotation.from_quat(q[3:7]).as_matrix()))
+        pin.framesForwardKinematics(hm.model, self.data, q)
         for e, side in (("LF", "l"), ("RF", "r")):
             self.foot_height[e].append(float(min(self.data.oMf[hm.frame_ids[f]].translation[2]
                                                  for f in hm.corner_frames[side])))
@@ -451,11 +455,30 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
     out["feet_airborne_s"] = {e: float((~touching[e][k0:k_end]).sum() * (t[1] - t[0])) for e in ("LF", "RF")}
     out["ke_at_plan_end"] = float(ke[min(len(ke) - 1, int(np.searchsorted(t, t0 + out["plan"]["duration"])))])
     out["series"] = {"t": (t - t0).tolist(), "ke": ke.tolist(),
+                     "base_pitch": list(probe.base_pitch),
+                     "foot_height": {e: list(h) for e, h in probe.foot_height.items()},
+                     "plan": _plan_series(pm, segs),
                      "limb_force": {e: list(map(float, probe.limb_force[e])) for e in LIMBS},
                      "other_force": {n: [float(by.get(k, 0.0)) for k in range(len(t))]
                                      for n, by in probe.link_force.items()}}
     out["success"] = bool(out["final_ke"] < 0.5 and out["final_mode_touching_matches_plan"] and not others
                           and not unplanned_limbs)
+    return out
+
+
+def _plan_series(pm, segs, dt: float = 0.01) -> dict:
+    """The plan's root pitch and each foot's lowest point (toe or heel) over plan time, every ``dt`` [s]."""
+    out = {"t": [], "base_pitch": [], "foot_height": {"LF": [], "RF": []}}
+    off = 0.0
+    for seg in segs:
+        T = float(seg.time[-1])
+        for tl in np.arange(0.0, T, dt):
+            qp, _ = MulticontactExecutor.planar(seg, float(tl))
+            out["t"].append(off + float(tl))
+            out["base_pitch"].append(float(qp[2]))
+            for e in ("LF", "RF"):
+                out["foot_height"][e].append(float(min(pm.point(f"{e}_toe", qp)[1], pm.point(f"{e}_heel", qp)[1])))
+        off += T
     return out
 
 
