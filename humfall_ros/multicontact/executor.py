@@ -355,36 +355,33 @@ class MulticontactExecutor:
         # the swing sole's task overrides its own leg)
         self.stepper.posture = np.asarray(posture, float).copy()
         qp, _ = self.planar(self.segments[self._seg], tp - self._seg_start)
-        err = self._pitch_error(observation, float(qp[2]))
-        if err is not None:
-            log = self.task_swings[-1]
-            log["pitch_error_max"] = max(log.get("pitch_error_max", 0.0), abs(err))
-        extra = (self._attitude_task(q, float(qp[2])),) if self.cfg.swing_attitude_weight > 0 else ()
-        # the base's heading against the swing's start: the swinging leg's momentum about the vertical turns the
-        # body about the stance sole (0.1 rad in the 30 J step, 0.6 with foot_cop_margin 0.1), which the planar plan
-        # cannot see
+        plan_pitch = float(qp[2])
+        # the base's rotation as the IMU and the joints give it (the root link is the base: the same frame
+        # ``base_pitch_from_imu`` reads)
         R = Rotation.from_quat(q[3:7]).as_matrix()
         yaw = math.atan2(R[1, 0], R[0, 0])
+        log = self.task_swings[-1]
+        log["pitch_error_max"] = max(log.get("pitch_error_max", 0.0), abs(pitch_of(R) - plan_pitch))
+        # the heading against the swing's start: the swinging leg's momentum about the vertical turns the body
+        # about the stance sole (0.1 rad in the 30 J step, 0.6 with foot_cop_margin 0.1), which the planar plan
+        # cannot see
         if self._yaw0 is None:
             self._yaw0 = yaw
-        yaw_err = math.remainder(yaw - self._yaw0, math.tau)
-        log = self.task_swings[-1]
-        log["yaw_error_max"] = max(log.get("yaw_error_max", 0.0), abs(yaw_err))
+        log["yaw_error_max"] = max(log.get("yaw_error_max", 0.0), abs(math.remainder(yaw - self._yaw0, math.tau)))
+        extra = (self._attitude_task(yaw, plan_pitch),) if self.cfg.swing_attitude_weight > 0 else ()
         pos, vel, _ = self.stepper.command(q, observation.time, dt, extra)
         return pos[self._legs], vel[self._legs]
 
-    def _attitude_task(self, q: np.ndarray, plan_pitch: float) -> OrientationTask:
-        """The base (root link) upright in roll, at the plan's pitch of this plan time and at its measured heading.
+    def _attitude_task(self, yaw: float, plan_pitch: float) -> OrientationTask:
+        """The base (root link) upright in roll, at the plan's pitch of this plan time and at its measured heading
+        ``yaw``.
 
         Through the stance leg (the IK holds the stance sole where it is) this is the hip and ankle strategy of
         the single support: without it the base ran 0.1-0.15 rad ahead of the plan's pitch and rolled 0.2 rad
         toward the swing side by the touchdown (the planar plan has no lateral weight transfer); with weight 100
         the 30 J step kept both within 0.04 rad (docs/multicontact.md "Session 26")."""
-        m = self.stepper.m
-        m.forward(q)
-        R = m.frame_placement(m.root_link).rotation
-        target = Rotation.from_euler("ZY", [math.atan2(R[1, 0], R[0, 0]), plan_pitch]).as_matrix()
-        return OrientationTask(m.root_link, target, weight=self.cfg.swing_attitude_weight)
+        target = Rotation.from_euler("ZY", [yaw, plan_pitch]).as_matrix()
+        return OrientationTask(self.stepper.m.root_link, target, weight=self.cfg.swing_attitude_weight)
 
     @staticmethod
     def _servo_targets(observation: Observation) -> np.ndarray:
