@@ -265,13 +265,9 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
 
     t_plan = t_start
     t_start = t_start + cfg.plan_latency
-    ex_cfg = ExecutorConfig(start_time=t_start, hold=cfg.hold, both_hands=cfg.both_hands,
-                            velocity_feedforward=cfg.velocity_feedforward, blend_time=cfg.blend_time,
-                            base_pitch_gain=cfg.base_pitch_gain,
-                            base_pitch_correction_max=cfg.base_pitch_correction_max,
-                            swing_control=cfg.swing_control, swing_over_release=cfg.swing_over_release,
-                            swing_clearance=cfg.swing_clearance, landing_blend_time=cfg.landing_blend_time,
-                            swing_attitude_weight=cfg.swing_attitude_weight)
+    # RunConfig's executor options carry ExecutorConfig's names
+    shared = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(ExecutorConfig) if hasattr(cfg, f.name)}
+    ex_cfg = ExecutorConfig(start_time=t_start, **shared)
     hm = _model()
     executor = MulticontactExecutor([], pm.joint_names, _joint_names(), ex_cfg,
                                     plan_source=plan_source if segments is None else stored_source, model=hm)
