@@ -28,7 +28,8 @@ def _run(**run) -> tuple[StoredPlan, dict]:
 @pytest.fixture(scope="module")
 def runs():
     return {"joints": _run(swing_control="joints"), "task": _run(swing_control="task"),
-            "task_no_attitude": _run(swing_control="task", swing_attitude_weight=0.0)}
+            "task_no_attitude": _run(swing_control="task", swing_attitude_weight=0.0),
+            "task_deadbeat": _run(swing_control="task", swing_attitude_gain=1.0, swing_posture_gain=1.0)}
 
 
 def _landing(r: dict) -> dict:
@@ -72,3 +73,12 @@ def test_tracking_the_joints_drags_the_swing_foot(runs):
     ev = _landing(r)
     assert ev["swing_clearance_m"] < 0.01, ev
     assert ev["executed_time"] < 0.1 and ev["executed_x"] < ev["planned_x"] - 0.3, ev
+
+
+def test_the_stance_foot_stays_loaded_through_the_swing(runs):
+    """With per-tick gains of 1 on the IK's posture and attitude tasks (session 26) the first swing tick drove the
+    stance leg at its speed limits and the robot left the ground for ~0.1 s at the lift-off (the estimator's
+    stance contact flag off); the defaults keep the stance foot on the ground through the swing."""
+    default = runs["task"][1]["task_swings"][0]["stance_unloaded_s"]
+    deadbeat = runs["task_deadbeat"][1]["task_swings"][0]["stance_unloaded_s"]
+    assert default < 0.01 and deadbeat > 0.05, (default, deadbeat)

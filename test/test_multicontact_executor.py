@@ -181,10 +181,11 @@ def test_executor_config_matches_the_node_declaration():
     from humfall_ros import params
     d = params.defaults("multicontact_executor")
     cfg = ExecutorConfig()
-    for k in ("landing_wait", "early_switch", "hold", "both_hands", "velocity_feedforward", "blend_time",
-              "base_pitch_gain", "base_pitch_correction_max", "swing_control", "swing_over_release", "swing_clearance",
-              "landing_blend_time", "swing_attitude_weight"):
-        assert d[k] == getattr(cfg, k), k
+    # every field but the take-over time (the node's start_time < 0 means the plan file's) is declared, with the
+    # dataclass's default (the node builds its config from the declared values of the fields' names)
+    for f in dataclasses.fields(ExecutorConfig):
+        if f.name != "start_time":
+            assert d[f.name] == getattr(cfg, f.name), f.name
 
 
 def test_project_to_mode_puts_the_feet_flat_and_still_and_only_removes_energy(models):
@@ -426,3 +427,42 @@ def test_task_space_swing_drives_both_legs_and_holds_them_when_the_imu_is_lost(m
     # the IMU back: the IK again (the swing target moves on, so the command does)
     again = ex.step(obs(0.2))
     assert np.abs(again.positions[legs] - out.positions[legs]).max() > 1e-4
+
+
+def test_task_space_swing_takes_a_posture_error_out_over_ticks_not_at_the_speed_limit(models):
+    """The plan's posture and base pitch start off the measured ones (the take-over's projection to the two-foot
+    mode: up to 0.04 rad; the 30 J step's base 0.03 rad ahead of the plan's). With per-tick gains of 1 on the
+    posture and attitude tasks (session 26) the IK's first command drove the stance leg's joints at their speed
+    limits (the robot left the ground for ~0.1 s at the lift-off); with the default gains the same error is taken
+    out at a fraction of the limits. (The swing leg follows the swing sole's task, whose lift starts at once.)"""
+    from scipy.spatial.transform import Rotation
+
+    pm, hm = models
+    q0 = np.zeros(pm.n)
+    for i, j in enumerate(pm.joint_names):
+        q0[3 + i] = hm.standing_posture.get(j, 0.0)
+    swing = _segment(pm, q0, q0, 0.5, "add", "RF", ("LF",), ("LF", "RF"))
+    stop = _segment(pm, q0, q0, 0.5, "", "", ("LF", "RF"), ("LF", "RF"))
+    legs = [hm.joint_index(f"{s}_{j}") for s in ("l", "r") for j in ("hip_pitch", "knee", "ankle_pitch")]
+    stance = legs[:3]               # the left leg: the right foot is the one that swings
+    measured = hm.joint_vector(hm.standing_posture)
+    measured[legs] += 0.04          # the measured legs 0.04 rad off the plan's
+    limit = np.asarray(hm.limits.velocity)[stance]
+
+    def first_command(**gains):
+        ex = MulticontactExecutor([swing, stop], pm.joint_names, hm.joint_names, ExecutorConfig(**gains), model=hm)
+        o = _obs(hm, 0.0, left=True, right=False, q=measured)
+        o = dataclasses.replace(o, state=dataclasses.replace(o.state, com=np.array([0.0, 0.0, 0.8])))
+        o.inputs["imu"] = _imu_reading(hm, Rotation.from_euler("y", 0.03).as_matrix(), measured)
+        out = ex.step(o)
+        assert ex.task_swings, "the swing starts at the take-over"
+        return np.abs(out.velocities[stance]) / limit
+
+    default = first_command()
+    deadbeat = first_command(swing_attitude_gain=1.0, swing_posture_gain=1.0)
+    assert deadbeat.max() > 0.9, deadbeat         # a stance joint at (0.95 of) its speed limit
+    assert default.max() < 0.5 * deadbeat.max(), (default, deadbeat)
+    with pytest.raises(ValueError, match="swing_posture_gain"):
+        ExecutorConfig(swing_posture_gain=0.0)
+    with pytest.raises(ValueError, match="swing_attitude_gain"):
+        ExecutorConfig(swing_attitude_gain=float("nan"))

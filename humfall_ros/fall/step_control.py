@@ -79,6 +79,9 @@ class StepControlConfig:
         stance_leg_weight: posture weight of the stance leg's joints [-] (ours: with the posture weight
             alone the IK lifted the swing sole by extending the stance leg, which pushed the CoM up 3 cm
             and forward: the passive pendulum the decision predicted was not what the robot did).
+        posture_gain: per-tick gain of the posture task [-] (1: the whole posture error in one tick; the safe
+            fall's posture is the configuration at the swing's start, so its error starts at 0; the
+            multi-contact executor's is the plan's, which starts off the measured joints).
     """
 
     clearance: float = 0.05
@@ -89,6 +92,7 @@ class StepControlConfig:
     velocity_fraction: float = 0.95
     damping: float = 1e-6
     stance_leg_weight: float = 10.0
+    posture_gain: float = 1.0
 
 
 @dataclasses.dataclass
@@ -178,7 +182,7 @@ class StepController:
         tasks = [FrameTask(self.m.sole_frame[stance], stance_now, hard=True),
                  FrameTask(self.m.sole_frame[p.swing], target, weight=c.swing_weight, gain=c.swing_gain,
                            twist=twist),
-                 PostureTask(self.posture, weight=self.posture_weights), *extra_tasks]
+                 PostureTask(self.posture, weight=self.posture_weights, gain=c.posture_gain), *extra_tasks]
         r = self.ik.solve(q, tasks, dt)
         return r.q[7:].copy(), r.v[6:].copy(), float(r.errors[1]) if len(r.errors) > 1 else math.nan
 

@@ -95,6 +95,12 @@ class ExecutorConfig:
             plan's over this time [s].
         swing_attitude_weight: IK weight of the base's orientation during a task-space swing (upright in roll,
             the plan's pitch; ``_attitude_task``) [-]; 0: none (the stance leg then holds the plan's joints).
+        swing_attitude_gain, swing_posture_gain: per-tick gains of the task-space swing's attitude and posture
+            tasks (the IK asks for gain x error / tick; 1 corrects the whole error in one tick) [-]. Session 26
+            had both at 1: at the take-over the plan's posture is 0.01-0.04 rad off the measured joints (the
+            projection to the two-foot mode), and the IK drove every leg joint at its speed limit in the first
+            tick, which threw the robot off the ground for ~0.1 s at the lift-off (docs/multicontact.md
+            "Session 27").
     """
 
     landing_wait: float = 0.2
@@ -111,6 +117,8 @@ class ExecutorConfig:
     swing_clearance: float = 0.1
     landing_blend_time: float = 0.1
     swing_attitude_weight: float = 100.0
+    swing_attitude_gain: float = 0.2
+    swing_posture_gain: float = 0.05
 
     def __post_init__(self):
         if self.hold not in HOLD_MODES:
@@ -123,6 +131,10 @@ class ExecutorConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and 0.0 <= v <= 1.0):
                 raise ValueError(f"{name} must be in [0, 1], got {v!r}")
+        for name in ("swing_attitude_gain", "swing_posture_gain"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and 0.0 < v <= 1.0):
+                raise ValueError(f"{name} must be in (0, 1], got {v!r}")
         if not (math.isfinite(self.base_pitch_gain) and 0.0 <= self.base_pitch_gain <= 10.0):
             raise ValueError(f"base_pitch_gain must be in [0, 10], got {self.base_pitch_gain!r}")
         if not (math.isfinite(self.base_pitch_correction_max) and 0.0 < self.base_pitch_correction_max <= 3.0):
@@ -183,7 +195,8 @@ class MulticontactExecutor:
         if self.cfg.swing_control == "task" and model is not None:
             own = copy.copy(model)             # the IK's forward kinematics must not overwrite a shared data
             own.data = model.model.createData()
-            self.stepper = StepController(own, StepControlConfig(clearance=self.cfg.swing_clearance))
+            self.stepper = StepController(own, StepControlConfig(clearance=self.cfg.swing_clearance,
+                                                                 posture_gain=self.cfg.swing_posture_gain))
             self._legs = np.array([model.joint_index(f"{s}_{j}") for s in ("l", "r") for j in LEG_JOINTS])
         self.reset()
 
@@ -362,6 +375,10 @@ class MulticontactExecutor:
         yaw = math.atan2(R[1, 0], R[0, 0])
         log = self.task_swings[-1]
         log["pitch_error_max"] = max(log.get("pitch_error_max", 0.0), abs(pitch_of(R) - plan_pitch))
+        # time with the stance foot unloaded (the estimator's contact flag): the robot off the ground mid-swing
+        stance_foot = "RF" if foot == "LF" else "LF"
+        log["stance_unloaded_s"] = log.get("stance_unloaded_s", 0.0) + (
+            0.0 if self._foot_loaded(observation, stance_foot) else dt)
         # the heading against the swing's start: the swinging leg's momentum about the vertical turns the body
         # about the stance sole (0.1 rad in the 30 J step, 0.6 with foot_cop_margin 0.1), which the planar plan
         # cannot see
@@ -381,7 +398,8 @@ class MulticontactExecutor:
         toward the swing side by the touchdown (the planar plan has no lateral weight transfer); with weight 100
         the 30 J step kept both within 0.04 rad (docs/multicontact.md "Session 26")."""
         target = Rotation.from_euler("ZY", [yaw, plan_pitch]).as_matrix()
-        return OrientationTask(self.stepper.m.root_link, target, weight=self.cfg.swing_attitude_weight)
+        return OrientationTask(self.stepper.m.root_link, target, weight=self.cfg.swing_attitude_weight,
+                               gain=self.cfg.swing_attitude_gain)
 
     @staticmethod
     def _servo_targets(observation: Observation) -> np.ndarray:

@@ -19,6 +19,8 @@ directory, then in ``config/multicontact_plans/``.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import pathlib
 import sys
 
@@ -63,13 +65,10 @@ def make_controller(p: dict, model):
 
     plan = StoredPlan.load(plan_path(p["plan_file"]))
     start = plan.take_over_time if p["start_time"] < 0 else p["start_time"]
-    cfg = ExecutorConfig.from_params({"landing_wait": p["landing_wait"], "early_switch": p["early_switch"],
-                                      "start_time": start, "hold": p["hold"], "both_hands": p["both_hands"],
-                                      "velocity_feedforward": p["velocity_feedforward"], "blend_time": p["blend_time"],
-                                      "base_pitch_gain": p["base_pitch_gain"],
-                                      "base_pitch_correction_max": p["base_pitch_correction_max"],
-                                      **{k: p[k] for k in ("swing_control", "swing_over_release", "swing_clearance",
-                                                           "landing_blend_time", "swing_attitude_weight")}})
+    # every declared parameter named like an ExecutorConfig field is that field (a test checks the declaration
+    # has them all); start_time < 0 means the plan file's
+    fields = {f.name for f in dataclasses.fields(ExecutorConfig)}
+    cfg = ExecutorConfig.from_params({**{k: v for k, v in p.items() if k in fields}, "start_time": start})
     ex = MulticontactExecutor(plan.segments, load_planar().joint_names, model.joint_names, cfg, model=model)
     ex.source = p["source"]
     return ex

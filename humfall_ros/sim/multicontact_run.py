@@ -56,7 +56,8 @@ class RunConfig:
         final_window: the final mode and KE are judged over this last stretch of the run [s].
         time_budget: the planner's wall-clock budget [s].
         hold, both_hands, velocity_feedforward, blend_time, base_pitch_gain, base_pitch_correction_max,
-            swing_control, swing_over_release, swing_clearance, landing_blend_time, swing_attitude_weight: as in
+            swing_control, swing_over_release, swing_clearance, landing_blend_time, swing_attitude_weight,
+            swing_attitude_gain, swing_posture_gain: as in
             ``ExecutorConfig``.
         plan_latency: the plan is made from the state at the push's end but the executor takes over
             this much later [s] (the standing balance in between): what a planner that needs that
@@ -85,6 +86,8 @@ class RunConfig:
     swing_clearance: float = ExecutorConfig.swing_clearance
     landing_blend_time: float = ExecutorConfig.landing_blend_time
     swing_attitude_weight: float = ExecutorConfig.swing_attitude_weight
+    swing_attitude_gain: float = ExecutorConfig.swing_attitude_gain
+    swing_posture_gain: float = ExecutorConfig.swing_posture_gain
     plan_latency: float = 0.0
     speed_limit: str = "motor"
 
