@@ -25,6 +25,7 @@ from humfall_ros.estop.frame import FootPose
 from humfall_ros.estop.planner import EstopPlanner, PatternState
 from humfall_ros.estop.posture import configuration_from_feet
 from humfall_ros.model.humanoid import load_model
+from timing import timing_ms  # benchmarks/timing.py
 
 PERIOD = 0.8      # s per step, as paper 3's Fig. 8
 COG = 0.742       # m, the standing posture's CoG height
@@ -39,12 +40,6 @@ def state_at(model, speed_kmh: float) -> PatternState:
     zmp = feet["r"].sole_center(model, "r")
     return PatternState(np.array([0.35 * step, -0.02, COG]), np.array([v, 0.1, 0.0]),
                         np.array([zmp[0], zmp[1], 0.0]), feet, COG)
-
-
-def stats(samples: list[float]) -> dict:
-    a = np.array(samples) * 1e3
-    return {"median_ms": round(float(np.median(a)), 4), "p99_ms": round(float(np.percentile(a, 99)), 4),
-            "min_ms": round(float(a.min()), 4), "n": len(a)}
 
 
 def main() -> int:
@@ -72,12 +67,12 @@ def main() -> int:
         full = planner.plan_with_posture(st, q)
         posture_s = time.perf_counter() - t0
         out["speeds"][str(speed)] = {
-            "plan": stats(times), "posture_ms": round(posture_s * 1e3, 2),
+            "plan": timing_ms(times, extra=("min",)), "posture_ms": round(posture_s * 1e3, 2),
             "n3_m": round(full.major.n3, 4), "lower_bound_m": round(full.major.lower_bound, 4),
             "max_zmp_minor_m": round(full.minor.max_zmp, 4), "min_zmp_margin_m": round(full.min_zmp_margin, 4),
             "crouch_to_m": round(full.crouch.end_height, 3) if full.crouch else None,
             "feasible": full.feasible, "fallback": full.fallback, "reason": full.reason}
-    out["plan"] = stats(plan_times)
+    out["plan"] = timing_ms(plan_times, extra=("min",))
     out["plan_meets_goal"] = out["plan"]["median_ms"] <= 0.5
     print(json.dumps(out, indent=2))
     return 0

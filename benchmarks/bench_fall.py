@@ -25,14 +25,7 @@ from humfall_ros import params, scenario  # noqa: E402
 from humfall_ros.dynamics.toppling import time_to_lean  # noqa: E402
 from humfall_ros.fall.controller import SafeFallConfig, SafeFallController  # noqa: E402
 from humfall_ros.fall.ftb import FtbConfig, FtbMonitor  # noqa: E402
-
-
-def _stats(xs: list[float]) -> dict:
-    xs = sorted(xs)
-    if not xs:
-        return {"median_ms": None, "p99_ms": None, "n": 0}
-    return {"median_ms": round(statistics.median(xs) * 1e3, 4), "p99_ms": round(xs[int(0.99 * (len(xs) - 1))] * 1e3, 4),
-            "n": len(xs)}
+from timing import timing_ms  # noqa: E402  (benchmarks/timing.py)
 
 
 def capture_takeover(name: str = "standing_push", overrides: list[str] | None = None, sc: dict | None = None):
@@ -102,7 +95,7 @@ def recorded_cases(repeats: int = 5, overrides: dict | None = None) -> dict:
     out = {}
     for k, v in rows.items():
         w = [x for x, _, _ in v]
-        out[k] = {**_stats(w), "max_ms": round(max(w) * 1e3, 3) if w else None, "cpu": _stats([c for _, c, _ in v]),
+        out[k] = {**timing_ms(w, extra=("max",)), "cpu": timing_ms([c for _, c, _ in v]),
                   "cells_median": int(statistics.median(n for _, _, n in v)) if v else None}
     return out
 
@@ -294,18 +287,18 @@ def main() -> None:
         return None if not math.isfinite(x) else round(math.degrees(x), 2)
 
     out = {
-        "ftb_per_message": {**_stats(ftb_t), "goal_ms": 0.1, "cpu": _stats(ftb_cpu)},
-        "control_duration": {**_stats(cd_t), "value_s": r.time, "outcome": r.outcome.value},
-        "decision": {**_stats(dec_t), "goal_ms": 2.0, "cells": d.cell_count, "case": d.case,
+        "ftb_per_message": {**timing_ms(ftb_t), "goal_ms": 0.1, "cpu": timing_ms(ftb_cpu)},
+        "control_duration": {**timing_ms(cd_t), "value_s": r.time, "outcome": r.outcome.value},
+        "decision": {**timing_ms(dec_t), "goal_ms": 2.0, "cells": d.cell_count, "case": d.case,
                      "alpha2_deg": deg(d.alpha2), "captured": d.captured, "zone_size_m": d.zone_size.tolist()},
         "decision_min_ms": round(min(dec_t) * 1e3, 4),
         # the same span in CPU time: what the decision costs without the waits for a core of a loaded machine
-        "decision_cpu": _stats(dec_cpu),
+        "decision_cpu": timing_ms(dec_cpu),
         "decision_recorded_cases": recorded_cases(),
-        "ik_check_and_start": _stats(ik_t),
+        "ik_check_and_start": timing_ms(ik_t),
         # CPU time of the whole take-over tick (decision + IK check + first swing command): what the
         # decision costs without the waits of a shared, overloaded machine
-        "takeover_tick_cpu": _stats(cpu_t),
+        "takeover_tick_cpu": timing_ms(cpu_t),
         "load_average": [round(x, 2) for x in __import__("os").getloadavg()],
         "halved_cells": {"cells": fd.cell_count, "case": fd.case, "alpha2_deg": deg(fd.alpha2), "captured": fd.captured,
                          "landing_change_m": float(np.linalg.norm(fd.landing[:2] - d.landing[:2]))

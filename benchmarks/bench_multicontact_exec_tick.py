@@ -13,7 +13,6 @@ import argparse
 import json
 import os
 import pathlib
-import statistics
 import sys
 import time
 
@@ -23,14 +22,7 @@ from humfall_ros import scenario  # noqa: E402
 from humfall_ros.multicontact.executor import MulticontactExecutor, StoredPlan  # noqa: E402
 from humfall_ros.nodes.multicontact_executor import plan_path  # noqa: E402
 from humfall_ros.sim.multicontact_run import execute  # noqa: E402
-
-
-def _stats(xs: list[float]) -> dict:
-    xs = sorted(xs)
-    if not xs:
-        return {"median_ms": None, "p99_ms": None, "max_ms": None, "n": 0}
-    return {"median_ms": round(statistics.median(xs) * 1e3, 4), "p99_ms": round(xs[int(0.99 * (len(xs) - 1))] * 1e3, 4),
-            "max_ms": round(xs[-1] * 1e3, 4), "n": len(xs)}
+from timing import timing_ms  # noqa: E402  (benchmarks/timing.py)
 
 
 def time_plan(name: str) -> dict:
@@ -55,8 +47,9 @@ def time_plan(name: str) -> dict:
         r = execute(sc, segments=plan.segments, start_time=plan.take_over_time)
     finally:
         MulticontactExecutor.step = original
-    return {"plan": name, "contact_sequence": plan.meta.get("contact_sequence"), "task_swing_ticks": _stats(swing),
-            "tracking_ticks": _stats(track), "final_mode": r.get("final_mode")}
+    return {"plan": name, "contact_sequence": plan.meta.get("contact_sequence"),
+            "task_swing_ticks": timing_ms(swing, extra=("max",)), "tracking_ticks": timing_ms(track, extra=("max",)),
+            "final_mode": r.get("final_mode")}
 
 
 def main(argv: list[str] | None = None) -> int:
