@@ -69,14 +69,15 @@ def force_for_energy(sc: dict, ke: float, f0: float = 500.0, tol: float = 0.02, 
 
 
 def plots(case: dict, path: pathlib.Path) -> None:
-    """Kinetic energy, base pitch, the feet's heights (plan vs executed) and the contact forces over time."""
+    """Kinetic energy, base pitch, the feet's heights, the CoM and capture point against the feet's toes (plan vs
+    executed) and the contact forces over time."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     s = case["series"]
     plan = s.get("plan") or {}
-    fig, (a, p, h, b) = plt.subplots(4, 1, figsize=(8, 10), sharex=True)
+    fig, (a, p, h, x, b) = plt.subplots(5, 1, figsize=(8, 12), sharex=True)
     a.plot(s["t"], s["ke"], label="executed (3-D, PyBullet)")
     curve = case["plan"].get("ke_curve") or []
     if curve:
@@ -97,12 +98,25 @@ def plots(case: dict, path: pathlib.Path) -> None:
             h.plot(plan["t"], plan["foot_height"][e], "--", color=color, label=f"{e} plan")
     h.set_ylabel("lowest sole point (m)")
     h.legend(fontsize=7, ncol=2)
+    # where a stop is won or lost: the capture point against the front toe (paper 1 eq. 1-2)
+    for key, color, name in (("com_x", "C2", "CoM"), ("capture_point_x", "C3", "capture point")):
+        if s.get(key):
+            x.plot(s["t"], s[key], color=color, label=f"{name} executed")
+        if plan.get(key):
+            x.plot(plan["t"], plan[key], "--", color=color, label=f"{name} plan")
+    for e, color in (("LF", "C0"), ("RF", "C1")):
+        if s.get("toe_x"):
+            x.plot(s["t"], s["toe_x"][e], ":", color=color, label=f"{e} toe executed")
+        if plan.get("toe_x"):
+            x.plot(plan["t"], plan["toe_x"][e], "-.", color=color, lw=0.7, label=f"{e} toe plan")
+    x.set_ylabel("x (m)")
+    x.legend(fontsize=7, ncol=3)
     for e, f in s["limb_force"].items():
         b.plot(s["t"], f, label=e)
     for n, f in s["other_force"].items():
         b.plot(s["t"], f, ":", label=n)
     for ev in case.get("contact_events", []):
-        for ax in (h, b):
+        for ax in (h, x, b):
             ax.axvline(ev["planned_time"], color="k", lw=0.5, ls="--")
     b.set_xlabel("time from take-over (s)")
     b.set_ylabel("contact force (N)")

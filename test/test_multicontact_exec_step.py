@@ -56,6 +56,13 @@ def test_the_task_space_swing_lifts_the_foot_and_lands_it_where_and_when_planned
     in_swing = [h for t, h in zip(s["t"], s["foot_height"]["RF"]) if 0.0 < t <= ev["executed_time"] + 1e-9]
     assert max(in_swing) == pytest.approx(ev["swing_clearance_m"])
     assert 0 < s["plan"]["t"][-1] <= r["plan"]["duration"] and max(s["plan"]["foot_height"]["RF"]) < 0.05
+    # the CoM, capture point and toes beside the plan's: both start from the take-over's state, and the right toe
+    # ends where the step put it
+    assert len(s["com_x"]) == len(s["capture_point_x"]) == len(s["toe_x"]["RF"]) == len(s["t"])
+    k0 = next(k for k, t in enumerate(s["t"]) if t >= 0.0)
+    assert abs(s["capture_point_x"][k0] - s["plan"]["capture_point_x"][0]) < 0.03
+    assert abs(s["com_x"][k0] - s["plan"]["com_x"][0]) < 0.01
+    assert s["toe_x"]["RF"][-1] > s["toe_x"]["RF"][k0] + 0.5 and s["plan"]["toe_x"]["RF"][-1] > 0.7
     (swing,) = r["task_swings"]
     assert swing["foot"] == "RF" and swing["duration"] == pytest.approx(ev["planned_time"], abs=0.003)
 

@@ -34,8 +34,9 @@ import pybullet as pb
 from scipy.spatial.transform import Rotation
 
 from humfall_ros import scenario as scenario_mod
-from humfall_ros.dynamics.pendulum import GRAVITY
+from humfall_ros.dynamics.pendulum import GRAVITY, capture_point
 from humfall_ros.multicontact.collocation import Segment
+from humfall_ros.multicontact.collocation import capture_point as planar_capture_point
 from humfall_ros.multicontact.executor import (ExecutorConfig, MulticontactExecutor, pitch_of, planar_state,
                                                planned_contacts, project_to_mode)
 from humfall_ros.multicontact.modes import mode_label, parse_mode
@@ -139,6 +140,9 @@ class _Probe:
         self.final_heights: dict[str, float] = {}
         self.foot_height: dict[str, list[float]] = {"LF": [], "RF": []}   # lowest sole corner per tick [m]
         self.base_pitch: list[float] = []     # the base's planar pitch per tick (ground truth) [rad]
+        self.com_x: list[float] = []          # CoM x per tick (ground truth) [m]
+        self.capture_x: list[float] = []      # capture point x = x + vx sqrt(z / g) per tick [m]
+        self.toe_x: dict[str, list[float]] = {"LF": [], "RF": []}   # each sole's foremost corner x per tick [m]
 
     def kinetic_energy(self) -> float:
         q, v = self.world.pinocchio_state()
@@ -153,11 +157,6 @@ class _Probe:
         for ext, side in (("LH", "l"), ("RH", "r")):
             out[ext] = float(hm.frame_position(hm.hand_frame[side])[2])
         return out
-
-    def momentum(self) -> np.ndarray:
-        q, v = self.world.pinocchio_state()
-        pin.centerOfMass(self.hm.model, self.data, q, v)
-        return self.mass * np.array(self.data.vcom[0])
 
     def record(self) -> None:
         w = self.world
@@ -181,7 +180,12 @@ class _Probe:
         for cp in w.ground_contacts():
             if cp[3] not in self.limb_of_link:
                 total = total + cp[9] * np.asarray(cp[7]) + cp[10] * np.asarray(cp[11]) + cp[12] * np.asarray(cp[13])
-        p = self.momentum()
+        q, v = self.world.pinocchio_state()
+        pin.centerOfMass(self.hm.model, self.data, q, v)
+        c, vc = self.data.com[0], self.data.vcom[0]
+        self.com_x.append(float(c[0]))
+        self.capture_x.append(float(capture_point(c, vc)[0]))
+        p = self.mass * np.array(vc)
         if self._p_prev is not None:
             dt = 1.0 / w.control_rate
             self.momentum_error.append(float(np.linalg.norm(p - self._p_prev - (total - [0, 0, self.mass * GRAVITY])
@@ -197,8 +201,9 @@ class _Probe:
         self.base_pitch.append(pitch_of(Rotation.from_quat(q[3:7]).as_matrix()))
         pin.framesForwardKinematics(hm.model, self.data, q)
         for e, side in (("LF", "l"), ("RF", "r")):
-            self.foot_height[e].append(float(min(self.data.oMf[hm.frame_ids[f]].translation[2]
-                                                 for f in hm.corner_frames[side])))
+            corners = [self.data.oMf[hm.frame_ids[f]].translation for f in hm.corner_frames[side]]
+            self.foot_height[e].append(float(min(c[2] for c in corners)))
+            self.toe_x[e].append(float(max(c[0] for c in corners)))
         for e in LIMBS:
             self.limb_force[e].append(float(np.linalg.norm(force[e])))
             self.limb_point[e].append(moment[e] / normal[e] if normal[e] > 1e-9 else None)
@@ -456,6 +461,8 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
     out["series"] = {"t": (t - t0).tolist(), "ke": ke.tolist(),
                      "base_pitch": list(probe.base_pitch),
                      "foot_height": {e: list(h) for e, h in probe.foot_height.items()},
+                     "com_x": list(probe.com_x), "capture_point_x": list(probe.capture_x),
+                     "toe_x": {e: list(x) for e, x in probe.toe_x.items()},
                      "plan": _plan_series(pm, segs),
                      "limb_force": {e: list(map(float, probe.limb_force[e])) for e in LIMBS},
                      "other_force": {n: [float(by.get(k, 0.0)) for k in range(len(t))]
@@ -466,17 +473,23 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
 
 
 def _plan_series(pm, segs, dt: float = 0.01) -> dict:
-    """The plan's root pitch and each foot's lowest point (toe or heel) over plan time, every ``dt`` [s]."""
-    out = {"t": [], "base_pitch": [], "foot_height": {"LF": [], "RF": []}}
+    """The plan's root pitch, each foot's lowest point (toe or heel) and foremost x, the CoM's x and the capture
+    point's x over plan time, every ``dt`` [s]."""
+    out = {"t": [], "base_pitch": [], "foot_height": {"LF": [], "RF": []}, "toe_x": {"LF": [], "RF": []},
+           "com_x": [], "capture_point_x": []}
     off = 0.0
     for seg in segs:
         T = float(seg.time[-1])
         for tl in np.arange(0.0, T, dt):
-            qp, _ = MulticontactExecutor.planar(seg, float(tl))
+            qp, vp = MulticontactExecutor.planar(seg, float(tl))
             out["t"].append(off + float(tl))
             out["base_pitch"].append(float(qp[2]))
+            out["com_x"].append(float(pm.com(qp)[0]))
+            out["capture_point_x"].append(planar_capture_point(pm, qp, vp))
             for e in ("LF", "RF"):
-                out["foot_height"][e].append(float(min(pm.point(f"{e}_toe", qp)[1], pm.point(f"{e}_heel", qp)[1])))
+                toe, heel = pm.point(f"{e}_toe", qp), pm.point(f"{e}_heel", qp)
+                out["foot_height"][e].append(float(min(toe[1], heel[1])))
+                out["toe_x"][e].append(float(max(toe[0], heel[0])))
         off += T
     return out
 
