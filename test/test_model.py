@@ -31,6 +31,17 @@ def test_urdf_is_hrp2_class(model):
     assert model.imu_frame in model.frame_ids
 
 
+def test_leg_joints_are_the_kinematic_chain_from_the_pelvis_to_the_sole(model):
+    """``leg_joint_indices`` (the one list of a leg's joints every controller uses) names, hip to ankle, exactly the
+    joints that move the sole relative to the root: the pinocchio chain of the sole frame."""
+    for side in ("l", "r"):
+        idx = model.leg_joint_indices(side)
+        assert len(idx) == 6 and all(model.joint_names[i].startswith(f"{side}_") for i in idx)
+        sole = model.model.frames[model.model.getFrameId(model.sole_frame[side])].parentJoint
+        chain = [j for j in model.model.supports[sole].tolist() if j > 1]     # 0: universe, 1: the free flyer
+        assert [model.model.names[j] for j in chain] == [model.joint_names[i] for i in idx]
+
+
 def test_pinocchio_and_pybullet_agree_on_mass_and_standing_com(model):
     world = SimWorld(model=model)
     try:

@@ -3,7 +3,7 @@
 ``config/multicontact_plans/multicontact_push_30J.json`` is the paper objective's 30 J plan (LF/RF -> LF -> LF/RF:
 the right foot steps 0.6 m forward in 0.44 s). Tracked joint by joint (``swing_control`` "joints") the swing foot
 never leaves the ground on the 3-D robot (the planar plan has no lateral weight transfer; docs/multicontact.md
-"Session 24"); with ``swing_control`` "task" the legs follow paper 1's step controller (``fall.step_control``) and
+"Session 24"); with ``swing_control`` "task" the legs follow paper 1's step controller (``control.step_control``) and
 the step happens where and when the plan puts it, and with ``swing_attitude_weight`` the base keeps the plan's
 pitch through the swing. The robot still falls after the step (the plan's stop is not
 reproduced in 3-D, "Session 26"), which is why these tests judge the step, not the end.

@@ -7,7 +7,7 @@ arrives; then it takes over until the robot is balanced again (the hand-back, be
    the touchdown time (the control duration clipped to [min_swing_s, max_swing_s]), the
    stepping zones (``fall.stepping_zone``), the search of eq. 4 (``fall.step_search``), then the
    eq.-9 IK check of the chosen landing at the predicted landed stance foot;
-2. the swing (``fall.step_control``, eq. 9-10) to the landing pose, foot flat;
+2. the swing (``control.step_control``, eq. 9-10) to the landing pose, foot flat;
 3. from touchdown, inertia shaping (``fall.inertia_shaping``, eq. 11-14) when enabled; after a captured
    step the capture balance (settle posture + ankle balance, ours);
 4. the **hand-back** (ours; ``handback``): once the robot balances (phase ``landed`` past ``settle_s``, or
@@ -47,7 +47,7 @@ from humfall_ros.fall.ftb import FtbState, features_of
 from humfall_ros.fall.geometry import polygon_margin_xy
 from humfall_ros.fall.push_residual import PushResidual
 from humfall_ros.fall.inertia_shaping import ClearBox, ShapingConfig, shaping_velocities
-from humfall_ros.fall.step_control import (
+from humfall_ros.control.step_control import (
     StepControlConfig,
     StepController,
     configuration_from_sensors,

@@ -36,8 +36,6 @@ import pinocchio as pin
 
 from humfall_ros.model.humanoid import HumanoidModel
 
-LEG_JOINTS = ("hip_yaw", "hip_roll", "hip_pitch", "knee", "ankle_pitch", "ankle_roll")
-
 
 @dataclasses.dataclass(frozen=True)
 class SteppingZone:
@@ -119,7 +117,7 @@ def leg_joint_indices(model: HumanoidModel, side: str) -> list[int]:
 
 @functools.lru_cache(maxsize=16)
 def _leg_joint_indices(model: HumanoidModel, side: str) -> tuple[int, ...]:
-    return tuple(model.joint_index(f"{side}_{j}") for j in LEG_JOINTS)
+    return tuple(model.leg_joint_indices(side))
 
 
 @functools.lru_cache(maxsize=16)
@@ -137,7 +135,7 @@ def _leg_limits(model: HumanoidModel, swing: str) -> tuple[np.ndarray, np.ndarra
 def foot_to_foot_jacobian(model: HumanoidModel, q, swing: str) -> np.ndarray:
     """Eq. 7: J_hat = [J_swing  -J_stance] (6 x 12) of the soles, world axes (LOCAL_WORLD_ALIGNED).
 
-    Columns: the swing leg's six joints, then the stance leg's (``LEG_JOINTS`` order).
+    Columns: the swing leg's six joints, then the stance leg's (``model.humanoid.LEG_JOINTS`` order).
     """
     stance = "r" if swing == "l" else "l"
     m, d = model.model, model.data
@@ -216,5 +214,5 @@ def stepping_zone(model: HumanoidModel, q, swing: str, duration: float, fall_dir
                         st, x_range, y_range, model.foot_width + gap, model.foot_length + gap)
 
 
-__all__ = ["LEG_JOINTS", "SteppingZone", "foot_to_foot_jacobian", "leg_joint_indices", "leg_reach", "sole_pose_2d",
+__all__ = ["SteppingZone", "foot_to_foot_jacobian", "leg_joint_indices", "leg_reach", "sole_pose_2d",
            "stepping_zone"]

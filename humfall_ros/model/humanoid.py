@@ -20,6 +20,8 @@ from humfall_ros import paths
 from humfall_ros.dynamics.pendulum import GRAVITY
 
 SIDES = ("l", "r")
+# One leg's joints from the hip to the ankle, without the side prefix ("l_" / "r_"): the URDF's names
+LEG_JOINTS = ("hip_yaw", "hip_roll", "hip_pitch", "knee", "ankle_pitch", "ankle_roll")
 # The nominal standing posture (joints not named are 0): bent knees put the CoM over the
 # ankles and keep the knees away from the singular straight leg.
 STANDING_POSTURE = {
@@ -118,6 +120,10 @@ class HumanoidModel:
 
     def joint_index(self, name: str) -> int:
         return self.joint_names.index(name)
+
+    def leg_joint_indices(self, side: str) -> list[int]:
+        """Model-order indices of one leg's joints (``side`` "l" or "r"), hip to ankle (``LEG_JOINTS``)."""
+        return [self.joint_index(f"{side}_{j}") for j in LEG_JOINTS]
 
     def joint_vector(self, mapping: dict[str, float], default: float = 0.0) -> np.ndarray:
         """Joint-space vector in model order from a name->value mapping."""

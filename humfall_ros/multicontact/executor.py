@@ -16,7 +16,7 @@ switch at their planned times. After the last segment the final posture is held.
 
 **Task-space swing** (ours, ``ExecutorConfig.swing_control`` "task", the default since session 26): a plan's
 protective step (a foot released, then landed again) is not tracked joint by joint: from the release to the landing
-both legs follow paper 1's step controller (``fall.step_control``: the stance sole held where it is measured, the
+both legs follow paper 1's step controller (``control.step_control``: the stance sole held where it is measured, the
 swing sole on a world trajectory to the plan's landing relative to the stance sole, at the plan's touchdown time),
 with the base held upright at the plan's pitch; tracked joint by joint the swing foot never left the ground (a
 planar plan has no lateral weight transfer). The arms track the plan.
@@ -45,7 +45,7 @@ from scipy.spatial.transform import Rotation
 
 from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
-from humfall_ros.fall.step_control import LEG_JOINTS, StepControlConfig, StepController, configuration_from_sensors
+from humfall_ros.control.step_control import StepControlConfig, StepController, configuration_from_sensors
 from humfall_ros.model.ik import OrientationTask
 from humfall_ros.model.humanoid import base_rotation_from_imu, imu_quaternion
 from humfall_ros.multicontact.collocation import Segment, hermite_eval
@@ -82,7 +82,7 @@ class ExecutorConfig:
         swing_control: how a protective step's swing leg is driven. ``"joints"``: it tracks the plan's joints
             like every other joint (sessions 5-25). ``"task"`` (ours, default since session 26): from the
             release of a foot that the plan lands again, both legs follow the shared IK of paper 1's step controller
-            (``fall.step_control.StepController``: stance sole held where it is measured, swing sole on a world
+            (``control.step_control.StepController``: stance sole held where it is measured, swing sole on a world
             trajectory to the plan's landing placement relative to the stance sole, flat, at the plan's
             touchdown time; the stance leg's posture reference is the plan's joints of the tick); the planar plan
             has no lateral coordinate, and tracked joint by joint its swing foot never left the ground on the 3-D
@@ -197,7 +197,7 @@ class MulticontactExecutor:
             own.data = model.model.createData()
             self.stepper = StepController(own, StepControlConfig(clearance=self.cfg.swing_clearance,
                                                                  posture_gain=self.cfg.swing_posture_gain))
-            self._legs = np.array([model.joint_index(f"{s}_{j}") for s in ("l", "r") for j in LEG_JOINTS])
+            self._legs = np.array(model.leg_joint_indices("l") + model.leg_joint_indices("r"))
         self.reset()
 
     def _arm_copy(self) -> tuple[np.ndarray, np.ndarray] | None:

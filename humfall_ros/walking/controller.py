@@ -129,9 +129,7 @@ class LocomotionController:
                                             c.cop_damping_time_constant_ds, c.foot_force_gain, c.foot_cop_gain,
                                             c.foot_cop_min_force)
         self.sole_stiffness, self.sole_damping = sole_contact(model)
-        self._leg_columns = {s: [model.joint_index(f"{s}_{j}") for j in
-                                 ("hip_yaw", "hip_roll", "hip_pitch", "knee", "ankle_pitch", "ankle_roll")]
-                             for s in SIDES}
+        self._leg_columns = {s: model.leg_joint_indices(s) for s in SIDES}
         self.weight = model.total_mass * GRAVITY
         self.messages: list[str] = []
         self.reset()

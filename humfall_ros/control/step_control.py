@@ -1,5 +1,8 @@
 """Step controller for a toppling robot, paper 1 §III-D (eq. 9-10).
 
+Shared by the safe fall (``fall.controller``) and the multi-contact executor's task-space swing
+(``multicontact.executor``).
+
 The stance foot is not flat: the robot rotates about the CoP on its sole's edge or corner, a
 passive joint we cannot actuate. So
 
@@ -27,8 +30,6 @@ import pinocchio as pin
 
 from humfall_ros.model.humanoid import HumanoidModel, base_rotation_from_imu
 from humfall_ros.model.ik import FrameTask, PostureTask, WholeBodyIK
-
-LEG_JOINTS = ("hip_yaw", "hip_roll", "hip_pitch", "knee", "ankle_pitch", "ankle_roll")
 
 
 def configuration_from_sensors(model: HumanoidModel, joints, imu_quat_xyzw, com_world) -> np.ndarray:
@@ -130,7 +131,7 @@ class StepController:
         self.posture = np.asarray(q, float)[7:].copy()
         stance = "r" if swing == "l" else "l"
         w = np.full(self.m.njoints, self.config.posture_weight)
-        w[[self.m.joint_index(f"{stance}_{j}") for j in LEG_JOINTS]] = self.config.stance_leg_weight
+        w[self.m.leg_joint_indices(stance)] = self.config.stance_leg_weight
         self.posture_weights = w
 
     def reachable(self, q, swing: str, stance_landed: pin.SE3, landing: pin.SE3,
