@@ -157,3 +157,36 @@ def test_parse_overrides_reads_yaml_values_and_semicolon_lists():
                    "a": True}
     with pytest.raises(ValueError):
         params.parse_overrides("no_value")
+
+
+def test_string_choices_are_declared_as_the_code_accepts_them():
+    """Every string parameter with a fixed set of values declares it (``one_of<>``: checked for launch and scenario
+    overrides, listed in the ROS descriptor), and the declaration is the set the code accepts."""
+    from humfall_ros.estop.config import BETA_POLICIES, BLEND_PROFILES, FALLBACKS
+    from humfall_ros.fall.controller import RECRUIT
+    from humfall_ros.fall.ftb import TriggerMode
+    from humfall_ros.fall.inertia_shaping import SHAPING_DIRECTIONS
+    from humfall_ros.fall.step_search import FALL_RANKINGS
+    from humfall_ros.multicontact.collocation import TRANSITION_OBJECTIVES
+    from humfall_ros.multicontact.executor import HOLD_MODES, SWING_CONTROLS
+    from humfall_ros.multicontact.tree import FRONTIER_ORDERS, LANDING_POLICIES
+    from humfall_ros.walking.config import RESUME_STANCES
+
+    code = {("multicontact_executor", "hold"): HOLD_MODES, ("multicontact_executor", "swing_control"): SWING_CONTROLS,
+            ("multicontact_planner", "transition_objective"): TRANSITION_OBJECTIVES,
+            ("multicontact_planner", "frontier_order"): FRONTIER_ORDERS,
+            ("multicontact_planner", "landing_policy"): LANDING_POLICIES,
+            ("estop_planner", "beta_policy"): BETA_POLICIES, ("estop_planner", "fallback"): FALLBACKS,
+            ("estop_planner", "blend_profile"): BLEND_PROFILES,
+            ("ftb_monitor", "mode"): tuple(m.value for m in TriggerMode),
+            ("locomotion", "resume_stance"): RESUME_STANCES,
+            ("safe_fall_controller", "shaping_recruit"): tuple(RECRUIT),
+            ("safe_fall_controller", "shaping_direction"): SHAPING_DIRECTIONS,
+            ("safe_fall_controller", "fall_ranking"): FALL_RANKINGS}
+    for (node, name), accepted in code.items():
+        d = params.declarations(node)[name]
+        assert d.choices is not None and set(d.choices) == set(accepted), (node, name, d.choices, accepted)
+        assert d.default in d.choices, (node, name)
+    assert params.declarations("recorder")["clock"].choices == ("sim", "wall")    # the node checks against it
+    with pytest.raises(params.ParamError, match="swing_control"):
+        params.check_overrides("multicontact_executor", {"swing_control": "joint"})

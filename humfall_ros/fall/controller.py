@@ -46,7 +46,7 @@ from humfall_ros.fall import step_search as ss
 from humfall_ros.fall.ftb import FtbState, features_of
 from humfall_ros.fall.geometry import polygon_margin_xy
 from humfall_ros.fall.push_residual import PushResidual
-from humfall_ros.fall.inertia_shaping import ClearBox, ShapingConfig, shaping_velocities
+from humfall_ros.fall.inertia_shaping import SHAPING_DIRECTIONS, ClearBox, ShapingConfig, shaping_velocities
 from humfall_ros.control.step_control import (
     StepControlConfig,
     StepController,
@@ -282,8 +282,9 @@ class SafeFallController:
         self.config = config or SafeFallConfig()
         self.stepper = StepController(self.m, self.config.step)
         self._sole_local = self.m.sole_corners_local["l"][:, :2].copy()
-        if self.config.shaping_direction not in ("away", "turn"):
-            raise ValueError(f"shaping_direction must be 'away' or 'turn', got {self.config.shaping_direction!r}")
+        if self.config.shaping_direction not in SHAPING_DIRECTIONS:
+            raise ValueError(f"shaping_direction must be one of {', '.join(SHAPING_DIRECTIONS)}, "
+                             f"got {self.config.shaping_direction!r}")
         if self.config.shaping_recruit not in RECRUIT:
             raise ValueError(f"shaping_recruit must be one of {sorted(RECRUIT)}, got {self.config.shaping_recruit!r}")
         names = RECRUIT[self.config.shaping_recruit]

@@ -40,6 +40,7 @@ import pinocchio as pin
 
 from humfall_ros.model.humanoid import HumanoidModel
 
+SHAPING_DIRECTIONS = ("away", "turn")   # eq. 12's V_d: -PT (the paper) or the turn about the fall (ours)
 _IDX = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 _GEN = np.array([[[0, 0, 0], [0, 0, -1], [0, 1, 0]], [[0, 0, 1], [0, 0, 0], [-1, 0, 0]],
                  [[0, -1, 0], [1, 0, 0], [0, 0, 0]]], float)   # [e_a]x
@@ -121,8 +122,8 @@ def desired_angular_velocity(cop, target, com=None, mode: str = "away") -> np.nd
             perp = vd - u * float(vd @ u)
             if float(np.linalg.norm(perp)) > 0.1 * npt:
                 vd = perp
-    elif mode not in ("away", "turn"):
-        raise ValueError(f"shaping direction must be 'away' or 'turn', got {mode!r}")
+    elif mode not in SHAPING_DIRECTIONS:
+        raise ValueError(f"shaping direction must be one of {', '.join(SHAPING_DIRECTIONS)}, got {mode!r}")
     axis = np.cross([0.0, 0.0, 1.0], vd)
     n = float(np.linalg.norm(axis))
     return axis / n if n > 1e-9 else np.zeros(3)
@@ -268,5 +269,5 @@ def shaping_velocities(model: HumanoidModel, q, cop, target, dt: float, recruit:
     return qd, info
 
 
-__all__ = ["ClearBox", "ShapingConfig", "box_distance", "crb_inertia_and_jacobian", "crb_inertia_vector",
-           "desired_angular_velocity", "desired_inertia", "shaping_velocities"]
+__all__ = ["SHAPING_DIRECTIONS", "ClearBox", "ShapingConfig", "box_distance", "crb_inertia_and_jacobian",
+           "crb_inertia_vector", "desired_angular_velocity", "desired_inertia", "shaping_velocities"]

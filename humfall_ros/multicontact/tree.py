@@ -141,6 +141,7 @@ def _mirror_mode(mode: Mode) -> Mode:
 
 
 FRONTIER_ORDERS = ("pre_impact", "post_impact", "mechanical", "landing_first", "capture")
+LANDING_POLICIES = ("rank_last", "refuse", "ignore")   # a landing beyond the limits: last, dropped, or as any other
 
 
 def capture_excess(model, q, v, mode: Mode, env: Environment) -> float:
@@ -232,8 +233,8 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
     reproducible (the search itself is deterministic for given NLP results)."""
     if frontier_order not in FRONTIER_ORDERS:
         raise ValueError(f"frontier_order {frontier_order!r}: one of {', '.join(FRONTIER_ORDERS)}")
-    if landing_policy not in ("rank_last", "refuse", "ignore"):
-        raise ValueError(f"landing_policy {landing_policy!r}: 'rank_last', 'refuse' or 'ignore'")
+    if landing_policy not in LANDING_POLICIES:
+        raise ValueError(f"landing_policy {landing_policy!r}: one of {', '.join(LANDING_POLICIES)}")
     limits = opt.cfg.landing_limits
     model = opt.model
     eps_ke = opt.cfg.eps_ke if eps_ke is None else eps_ke

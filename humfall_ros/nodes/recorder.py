@@ -113,8 +113,9 @@ class Recorder(Node):
         self.drain_max = p.declare("drain_max")
         self.batch_period = p.declare("batch_period")
         exclude = p.declare("exclude_regex")
-        if self.clock_mode not in ("sim", "wall"):
-            raise ValueError(f"recorder: clock must be 'sim' or 'wall', not {self.clock_mode!r}")
+        clocks = p.declarations["clock"].choices     # config/recorder.yaml's one_of
+        if self.clock_mode not in clocks:
+            raise ValueError(f"recorder: clock must be one of {', '.join(clocks)}, not {self.clock_mode!r}")
         self._exclude = re.compile(exclude) if exclude else None
         # use_sim_time follows `clock`, so the node clock is the log-time clock.
         self.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, self.clock_mode == "sim")])

@@ -10,6 +10,7 @@ from humfall_ros import params
 
 # declared parameters of the node that are not controller settings (``scenario``: the file the node reads)
 NODE_ONLY = ("scenario",)
+RESUME_STANCES = ("feet", "standard")   # after regaining control: stand where the feet are, or the standard stance
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,8 +84,8 @@ class LocomotionConfig:
         if d:
             values.update(params.check_overrides("locomotion", d))
         cfg = params.config_from(cls, values, "locomotion", ignore=tuple(NODE_ONLY))
-        if cfg.resume_stance not in ("feet", "standard"):
-            raise params.ParamError(f"locomotion: resume_stance must be 'feet' or 'standard', "
+        if cfg.resume_stance not in RESUME_STANCES:
+            raise params.ParamError(f"locomotion: resume_stance must be one of {', '.join(RESUME_STANCES)}, "
                                     f"got {cfg.resume_stance!r}")
         if cfg.double_support >= cfg.step_period:
             raise params.ParamError("locomotion: double_support must be shorter than step_period")
