@@ -50,6 +50,8 @@ def test_the_task_space_swing_lifts_the_foot_and_lands_it_where_and_when_planned
     assert ev["swing_clearance_m"] > 0.05, ev                     # lifted (the swing's apex is 0.1 m)
     assert abs(ev["executed_time"] - ev["planned_time"]) < 0.06, ev
     assert abs(ev["executed_x"] - ev["planned_x"]) < 0.1, ev       # a 0.6 m step
+    assert ev["sole_x_error_m"] == pytest.approx(ev["executed_sole_x"] - ev["planned_x"])
+    assert abs(ev["sole_x_error_m"]) < 0.08, ev                   # the sole's centre, as the plan's position
     assert r["switches"][-1]["why"] == "touchdown"
     s = r["series"]                                                # per tick, for the plots: the same swing
     assert len(s["base_pitch"]) == len(s["t"]) == len(s["foot_height"]["RF"])

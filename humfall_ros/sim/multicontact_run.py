@@ -143,6 +143,7 @@ class _Probe:
         self.com_x: list[float] = []          # CoM x per tick (ground truth) [m]
         self.capture_x: list[float] = []      # capture point x = x + vx sqrt(z / g) per tick [m]
         self.toe_x: dict[str, list[float]] = {"LF": [], "RF": []}   # each sole's foremost corner x per tick [m]
+        self.sole_x: dict[str, list[float]] = {"LF": [], "RF": []}  # each sole's centre x (its corners' mean) [m]
 
     def kinetic_energy(self) -> float:
         q, v = self.world.pinocchio_state()
@@ -204,6 +205,7 @@ class _Probe:
             corners = [self.data.oMf[hm.frame_ids[f]].translation for f in hm.corner_frames[side]]
             self.foot_height[e].append(float(min(c[2] for c in corners)))
             self.toe_x[e].append(float(max(c[0] for c in corners)))
+            self.sole_x[e].append(float(np.mean([c[0] for c in corners])))
         for e in LIMBS:
             self.limb_force[e].append(float(np.linalg.norm(force[e])))
             self.limb_point[e].append(moment[e] / normal[e] if normal[e] > 1e-9 else None)
@@ -410,6 +412,11 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
         if k is not None and want and probe.limb_point[ev.extremity][k] is not None:
             p = probe.limb_point[ev.extremity][k]
             row["executed_x"], row["executed_y"], row["executed_z"] = (float(p[0]), float(p[1]), float(p[2]))
+        if k is not None and want and ev.extremity in probe.sole_x:
+            # the planned position of a foot is its sole's centre (toe / heel midpoint); ``executed_x`` is where the
+            # first touch pressed (a heel or a toe), so the comparable figure is the executed sole's centre
+            row["executed_sole_x"] = probe.sole_x[ev.extremity][k]
+            row["sole_x_error_m"] = float(row["executed_sole_x"] - ev.position[0])
         events.append(row)
     out["contact_events"] = events
     # every limb's first change of contact after the take-over, planned or not
