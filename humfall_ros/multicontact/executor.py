@@ -98,9 +98,9 @@ class ExecutorConfig:
         swing_attitude_gain, swing_posture_gain: per-tick gains of the task-space swing's attitude and posture
             tasks (the IK asks for gain x error / tick; 1 corrects the whole error in one tick) [-]. Session 26
             had both at 1: at the take-over the plan's posture is 0.01-0.04 rad off the measured joints (the
-            projection to the two-foot mode), and the IK drove every leg joint at its speed limit in the first
-            tick, which threw the robot off the ground for ~0.1 s at the lift-off (docs/multicontact.md
-            "Session 27").
+            projection to the two-foot mode) and the base 0.03 rad ahead of the plan's pitch, and the IK drove the
+            stance leg's joints at their speed limits in the first tick, which threw the robot off the ground for
+            ~0.1 s at the lift-off (docs/multicontact.md "Session 27").
     """
 
     landing_wait: float = 0.2
