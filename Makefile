@@ -45,6 +45,9 @@ $(VENV)/.interfaces-stamp: $(VENV)/.deps-stamp $(INTERFACE_SRC)
 interfaces: $(VENV)/.interfaces-stamp
 
 install: $(VENV)/.interfaces-stamp
+	# setuptools copies the sources into build/lib and never deletes there: a module moved or removed in the
+	# source stayed in every later wheel (fall/step_control.py after its move to control/, session 27)
+	rm -rf build/lib build/bdist.*
 	$(PY) -m pip install -q --no-deps --force-reinstall .
 
 setup: install
