@@ -190,3 +190,31 @@ def test_string_choices_are_declared_as_the_code_accepts_them():
     assert params.declarations("recorder")["clock"].choices == ("sim", "wall")    # the node checks against it
     with pytest.raises(params.ParamError, match="swing_control"):
         params.check_overrides("multicontact_executor", {"swing_control": "joint"})
+
+
+def test_a_node_refuses_a_string_outside_its_declared_choices(rclpy_ctx):
+    """rclpy enforces the descriptor's number ranges, not a string's choices: ``Params`` does, at start-up (an
+    override such as ``-p swing_control:=joint``) and on a later set (``ros2 param set``), with the choices in the
+    reason."""
+    from rclpy.exceptions import InvalidParameterValueException
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from humfall_ros.nodes.common import Params
+
+    bad = Node("choices_test_bad", parameter_overrides=[Parameter("swing_control", value="joint")])
+    try:
+        with pytest.raises(InvalidParameterValueException, match="joints, task"):
+            Params(bad, "multicontact_executor").declare("swing_control")
+    finally:
+        bad.destroy_node()
+    node = Node("choices_test")
+    try:
+        p = Params(node, "multicontact_executor")
+        assert p.declare("swing_control") == "task"
+        refused = node.set_parameters([Parameter("swing_control", value="joint")])[0]
+        assert not refused.successful and "joints, task" in refused.reason
+        assert node.get_parameter("swing_control").value == "task"
+        assert node.set_parameters([Parameter("swing_control", value="joints")])[0].successful
+    finally:
+        node.destroy_node()

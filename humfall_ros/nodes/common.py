@@ -26,7 +26,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from builtin_interfaces.msg import Time
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 
 # Lockstep data: every message matters, keep a few in case of a burst.
 QOS_RELIABLE = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE,
@@ -70,6 +70,17 @@ class Params:
         overrides = getattr(node, "_parameter_overrides", None)  # rclpy keeps -p / params-file values here
         self._explicit = set(overrides) if isinstance(overrides, dict) else set()
         self.overridden: set[str] = set()
+        # rclpy enforces a descriptor's number ranges but not a string's choices (additional_constraints is text):
+        # a set that names a value outside the declared one_of is refused here, with the choices in the reason
+        node.add_on_set_parameters_callback(self._check_choices)
+
+    def _check_choices(self, parameters) -> SetParametersResult:
+        for p in parameters:
+            d = self.declarations.get(p.name)
+            if d is not None and d.choices is not None and p.value not in d.choices:
+                return SetParametersResult(successful=False,
+                                           reason=f"{p.name}={p.value!r} is not one of {', '.join(d.choices)}")
+        return SetParametersResult(successful=True)
 
     def declare(self, name: str) -> Any:
         d = self.declarations.get(name)
