@@ -168,11 +168,12 @@ def test_string_choices_are_declared_as_the_code_accepts_them():
     from humfall_ros.fall.inertia_shaping import SHAPING_DIRECTIONS
     from humfall_ros.fall.step_search import FALL_RANKINGS
     from humfall_ros.multicontact.collocation import TRANSITION_OBJECTIVES
-    from humfall_ros.multicontact.executor import HOLD_MODES, SWING_CONTROLS
     from humfall_ros.multicontact.tree import FRONTIER_ORDERS, LANDING_POLICIES
     from humfall_ros.walking.config import RESUME_STANCES
 
-    code = {("multicontact_executor", "hold"): HOLD_MODES, ("multicontact_executor", "swing_control"): SWING_CONTROLS,
+    # the executor checks its config against the declaration itself; these are the values its code branches on
+    code = {("multicontact_executor", "hold"): ("planar", "measured"),
+            ("multicontact_executor", "swing_control"): ("joints", "task"),
             ("multicontact_planner", "transition_objective"): TRANSITION_OBJECTIVES,
             ("multicontact_planner", "frontier_order"): FRONTIER_ORDERS,
             ("multicontact_planner", "landing_policy"): LANDING_POLICIES,

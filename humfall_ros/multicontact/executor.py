@@ -52,8 +52,6 @@ from humfall_ros.multicontact.collocation import Segment, hermite_eval
 from humfall_ros.multicontact.model import FEET
 
 
-HOLD_MODES = ("planar", "measured")
-SWING_CONTROLS = ("joints", "task")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,24 +119,9 @@ class ExecutorConfig:
     swing_posture_gain: float = 0.05
 
     def __post_init__(self):
-        if self.hold not in HOLD_MODES:
-            raise ValueError(f"hold must be one of {HOLD_MODES}, got {self.hold!r}")
-        if self.swing_control not in SWING_CONTROLS:
-            raise ValueError(f"swing_control must be one of {SWING_CONTROLS}, got {self.swing_control!r}")
-        if not (math.isfinite(self.swing_attitude_weight) and 0.0 <= self.swing_attitude_weight <= 1e4):
-            raise ValueError(f"swing_attitude_weight must be in [0, 1e4], got {self.swing_attitude_weight!r}")
-        for name in ("swing_clearance", "landing_blend_time"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and 0.0 <= v <= 1.0):
-                raise ValueError(f"{name} must be in [0, 1], got {v!r}")
-        for name in ("swing_attitude_gain", "swing_posture_gain"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and 0.0 < v <= 1.0):
-                raise ValueError(f"{name} must be in (0, 1], got {v!r}")
-        if not (math.isfinite(self.base_pitch_gain) and 0.0 <= self.base_pitch_gain <= 10.0):
-            raise ValueError(f"base_pitch_gain must be in [0, 10], got {self.base_pitch_gain!r}")
-        if not (math.isfinite(self.base_pitch_correction_max) and 0.0 < self.base_pitch_correction_max <= 3.0):
-            raise ValueError(f"base_pitch_correction_max must be in (0, 3] rad, got {self.base_pitch_correction_max!r}")
+        # every field is a declared parameter of config/multicontact_executor.yaml: its type, range and choices are
+        # the declaration's (one place; in-process users such as multicontact_run build this dataclass directly)
+        params.check_overrides("multicontact_executor", dataclasses.asdict(self), "ExecutorConfig.")
 
     @staticmethod
     def from_params(d: dict) -> ExecutorConfig:
@@ -339,10 +322,11 @@ class MulticontactExecutor:
         yaw = math.atan2(sw.rotation[1, 0], sw.rotation[0, 0])
         return self.stepper.landing_placement(float(st[0]) + dx, float(sw.translation[1]), yaw, 0.0)
 
-    def _task_swing(self, observation: Observation, tp: float,
-                    posture: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    def _task_swing(self, observation: Observation, tp: float, posture: np.ndarray,
+                    plan_pitch: float) -> tuple[np.ndarray, np.ndarray] | None:
         """Both legs' joint position and velocity targets (``_legs`` order) of a task-space swing at this tick, or
-        None (no swing now, or no usable IMU before it started: the plan's joints are tracked)."""
+        None (no swing now, or no usable IMU before it started: the plan's joints are tracked). ``posture``: this
+        tick's joint targets; ``plan_pitch``: the plan's root pitch at this tick [rad]."""
         active = [(f, a, b) for f, a, b in self._swings if a <= self._seg <= b]
         if not active:
             return None
@@ -367,8 +351,6 @@ class MulticontactExecutor:
         # the IK's posture reference is this tick's plan (the stance leg, its pitch feedback included, follows it;
         # the swing sole's task overrides its own leg)
         self.stepper.posture = np.asarray(posture, float).copy()
-        qp, _ = self.planar(self.segments[self._seg], tp - self._seg_start)
-        plan_pitch = float(qp[2])
         # the base's rotation as the IMU and the joints give it (the root link is the base: the same frame
         # ``base_pitch_from_imu`` reads)
         R = Rotation.from_quat(q[3:7]).as_matrix()
@@ -460,7 +442,7 @@ class MulticontactExecutor:
         if self.cfg.velocity_feedforward:
             vel[self.index] = dq
         if self.stepper is not None:
-            legs = self._task_swing(observation, tp, pos)
+            legs = self._task_swing(observation, tp, pos, float(plan_q[2]))
             if legs is not None:
                 pos[self._legs], vel[self._legs] = legs
                 self._legs_last, self._blend = legs[0], None
