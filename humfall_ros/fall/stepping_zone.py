@@ -110,13 +110,9 @@ def _wrap(a):
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
-def leg_joint_indices(model: HumanoidModel, side: str) -> list[int]:
-    """Model-order indices of one leg's six joints."""
-    return list(_leg_joint_indices(model, side))
-
-
 @functools.lru_cache(maxsize=16)
 def _leg_joint_indices(model: HumanoidModel, side: str) -> tuple[int, ...]:
+    """``HumanoidModel.leg_joint_indices`` cached as a tuple (the zone is computed every decision)."""
     return tuple(model.leg_joint_indices(side))
 
 
@@ -214,5 +210,5 @@ def stepping_zone(model: HumanoidModel, q, swing: str, duration: float, fall_dir
                         st, x_range, y_range, model.foot_width + gap, model.foot_length + gap)
 
 
-__all__ = ["SteppingZone", "foot_to_foot_jacobian", "leg_joint_indices", "leg_reach", "sole_pose_2d",
+__all__ = ["SteppingZone", "foot_to_foot_jacobian", "leg_reach", "sole_pose_2d",
            "stepping_zone"]
