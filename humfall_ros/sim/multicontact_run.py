@@ -145,8 +145,10 @@ class _Probe:
         self.toe_x: dict[str, list[float]] = {"LF": [], "RF": []}   # each sole's foremost corner x per tick [m]
         self.sole_x: dict[str, list[float]] = {"LF": [], "RF": []}  # each sole's centre x (its corners' mean) [m]
 
-    def kinetic_energy(self) -> float:
-        q, v = self.world.pinocchio_state()
+    def kinetic_energy(self, q=None, v=None) -> float:
+        """½ vᵀ M(q) v of the world's state (or of the given ``q``, ``v``: the tick's, read once)."""
+        if q is None:
+            q, v = self.world.pinocchio_state()
         M = pin.crba(self.hm.model, self.data, q)
         return float(0.5 * v @ M @ v)
 
@@ -163,7 +165,8 @@ class _Probe:
         w = self.world
         k = len(self.t)
         self.t.append(w.time)
-        self.ke.append(self.kinetic_energy())
+        q, v = w.pinocchio_state()          # the tick's ground-truth state, read once for every figure below
+        self.ke.append(self.kinetic_energy(q, v))
         self.tilt.append(w.trunk_tilt())
         force = {e: np.zeros(3) for e in LIMBS}
         moment = {e: np.zeros(3) for e in LIMBS}
@@ -181,7 +184,6 @@ class _Probe:
         for cp in w.ground_contacts():
             if cp[3] not in self.limb_of_link:
                 total = total + cp[9] * np.asarray(cp[7]) + cp[10] * np.asarray(cp[11]) + cp[12] * np.asarray(cp[13])
-        q, v = self.world.pinocchio_state()
         pin.centerOfMass(self.hm.model, self.data, q, v)
         c, vc = self.data.com[0], self.data.vcom[0]
         self.com_x.append(float(c[0]))
@@ -198,7 +200,6 @@ class _Probe:
         self.joint_speed_ratio.append(float(ratio.max()))
         self.fastest_joint.append(int(ratio.argmax()))
         hm = self.hm
-        q = self.world.pinocchio_configuration()
         self.base_pitch.append(pitch_of(Rotation.from_quat(q[3:7]).as_matrix()))
         pin.framesForwardKinematics(hm.model, self.data, q)
         for e, side in (("LF", "l"), ("RF", "r")):
