@@ -3,7 +3,7 @@ the wall case (Fig. 4). Prints one JSON object.
 
     python benchmarks/bench_multicontact.py [--kes 10,20,...,80] [--wall 0.8 --wall-ke 40]
                                             [--budget 120] [--jobs 2] [--plots DIR] [--no-resim]
-                                            [--set name=value,...] [--compare]
+                                            [--set name=value,...] [--compare] [--initial-mode RF]
 
 The planner is built from its declaration (config/multicontact_planner.yaml,
 ``FallPlanner.from_params``); ``--set`` overrides parameters by their yaml
@@ -16,6 +16,10 @@ NLP structures are built on first use and then reused (as in the node); the
 build time is reported separately ("build_s", and per NLP "nlp_build_s") and is
 included in the sweep time and in "median_nlp_s"; "median_nlp_solve_s"
 excludes it (what a warmed-up node pays per NLP).
+
+``--initial-mode RF`` starts every sweep case on one foot, the other free on the ground beside it, as the
+paper's own trees do (Figs. 1 and 3: RF); the wall case stays on two feet (the paper's Fig. 4). The default
+LF/RF is the issue's two-foot start (docs/multicontact.md "Session 28").
 
 ``--jobs 2`` (default) runs the sweep cases in two worker processes, one case
 at a time each, largest energies first (the machine has 2 cores and one IPOPT
@@ -50,7 +54,9 @@ def strategy(seq: list[str]) -> str:
     if len(seq) == 1:
         return "inertial shaping"
     hands = any("LH" in m or "RH" in m for m in seq[1:])
-    steps = any(("LF" not in m or "RF" not in m) for m in seq[1:])
+    # a foot off the ground after the start, or a foot landing (from one foot, RF -> LF/RF is the step)
+    added_foot = any(f in b.split("/") and f not in a.split("/") for a, b in zip(seq, seq[1:]) for f in ("LF", "RF"))
+    steps = added_foot or any(("LF" not in m or "RF" not in m) for m in seq[1:])
     if hands and steps:
         return "protective step + hand contact"
     if hands:
@@ -60,11 +66,13 @@ def strategy(seq: list[str]) -> str:
     return "other"
 
 
-def run_case(planner: FallPlanner, ke: float, wall: float, budget: float, resim: bool) -> dict:
-    r = planner.plan({"kinetic_energy": ke, "direction": 1.0, "wall_distance": wall, "time_budget": budget})
+def run_case(planner: FallPlanner, ke: float, wall: float, budget: float, resim: bool,
+             initial_mode: str = "LF/RF") -> dict:
+    r = planner.plan({"kinetic_energy": ke, "direction": 1.0, "wall_distance": wall, "time_budget": budget,
+                      "initial_mode": initial_mode})
     times = r["nlp_times_s"]
     case = {
-        "ke": ke, "wall_distance": wall, "success": r["success"], "reason": r["reason"],
+        "ke": ke, "initial_mode": initial_mode, "wall_distance": wall, "success": r["success"], "reason": r["reason"],
         "contact_sequence": r["contact_sequence"], "strategy": strategy(r["contact_sequence"]),
         "paper_strategy": PAPER.get(int(ke)) if not wall else "hand contact on the wall",
         "node_ke": [round(x, 3) for x in r["node_ke"]],
@@ -136,8 +144,8 @@ def _worker_init(overrides: dict) -> None:
 
 
 def _worker_case(args) -> dict:
-    ke, wall, budget, resim = args
-    case = run_case(_PLANNER, ke, wall, budget, resim)
+    ke, wall, budget, resim, mode = args
+    case = run_case(_PLANNER, ke, wall, budget, resim, mode)
     case["build_s_worker_total"] = round(sum(_PLANNER.opt.build_times.values()), 2)
     case["worker_pid"] = os.getpid()
     return case
@@ -147,8 +155,9 @@ def run_sweep(args, overrides: dict) -> dict:
     """One sweep (+ wall case) with the planner built from the declaration plus ``overrides``."""
     kes = [float(x) for x in args.kes.split(",") if x]
     resim = not args.no_resim
-    jobs = [(ke, 0.0, args.budget, resim) for ke in kes]
-    wall_job = (args.wall_ke, args.wall, args.budget, resim) if args.wall > 0 else None
+    jobs = [(ke, 0.0, args.budget, resim, args.initial_mode) for ke in kes]
+    # the paper's wall case starts on two feet (Fig. 4)
+    wall_job = (args.wall_ke, args.wall, args.budget, resim, "LF/RF") if args.wall > 0 else None
     t0 = time.perf_counter()
     if args.jobs > 1:
         import multiprocessing as mp
@@ -276,6 +285,9 @@ def main(argv=None) -> int:
     ap.add_argument("--kes", default="10,20,30,40,50,60,70,80")
     ap.add_argument("--wall", type=float, default=0.8, help="wall distance for the wall case (<= 0: skip)")
     ap.add_argument("--wall-ke", type=float, default=40.0)
+    ap.add_argument("--initial-mode", default="LF/RF",
+                    help="contact mode of every sweep case's start (LF/RF: the issue's two feet; RF: one foot, "
+                         "as the paper's Figs. 1 and 3)")
     ap.add_argument("--budget", type=float, default=120.0, help="time budget per case (s; the node default)")
     ap.add_argument("--plots", default="", help="directory for the figures (Fig. 1, 5-7 style)")
     ap.add_argument("--no-resim", action="store_true", help="skip the independent re-simulation of the plans")
@@ -292,6 +304,8 @@ def main(argv=None) -> int:
                     help="with --library: more library entries (J), each planned by the tree search, e.g. 15,25,35")
     args = ap.parse_args(argv)
     overrides = parse_overrides(args.set)
+    if args.library and args.initial_mode != "LF/RF":
+        ap.error("--library: the library's entries and queries are two-foot pushes (--initial-mode LF/RF)")
     out = {"machine_cpus": os.cpu_count(), "jobs": args.jobs,
            "goals": {"final_ke_J": 0.1, "sweep_time_s": 120.0, "hand_touchdown_normal_speed_mps": 1.5,
                      "pre_impact_ke_over_push": 1.0}}

@@ -406,3 +406,22 @@ def test_20J_paper_objective_lands_a_hand_gently_and_stops():
         assert x.within_limits and x.normal_speed <= lim.speed_max(x.limb)
         assert x.absorbed_energy < 0.5 * x.pre_impact_ke     # not a slam: the energy went out through the joints
     assert r["landings_within_limits"]
+
+
+def test_from_one_foot_40J_is_stopped_by_one_protective_step(planner):
+    """From single support (the start of the paper's own trees, Figs. 1 and 3: RF), the 40 J push is stopped
+    by one protective step, RF -> LF/RF: a foot landing within the limits that arrives with about the push's
+    energy (session 28: 42.6 J; from two feet the same push needs a release first and finds no plan in most
+    runs). The left foot starts on the ground but free (not in the mode), so the step is a single transition."""
+    r = planner.plan({"kinetic_energy": 40.0, "direction": 1.0, "initial_mode": "RF", "time_budget": 120.0})
+    assert r["success"], r["reason"]
+    assert r["contact_sequence"] == ["RF", "LF/RF"]
+    assert r["final_ke"] < planner.opt.cfg.eps_ke
+    (landing,) = r["landings"]
+    assert landing.limb == "LF" and landing.within_limits
+    assert landing.pre_impact_ke < 1.25 * 40.0
+    # the stepping foot lands ahead of the stance foot: a forward step, not a foot put down where it was
+    last = r["segments"][-1]
+    lf_toe_x = planner.model.point("LF_toe", last.q[0])[0]
+    rf_toe_x = planner.model.point("RF_toe", last.q[0])[0]
+    assert lf_toe_x > rf_toe_x + 0.1
