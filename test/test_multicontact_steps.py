@@ -280,6 +280,27 @@ def test_polish_bound_replaces_acc_max_in_the_nlp_bounds(model):
         assert np.all(ubx[o + 2 * n:o + 3 * n] == want) and np.all(lbx[o + 2 * n:o + 3 * n] == -want)
 
 
+def test_release_t_max_bounds_only_a_release_and_its_seeds(model):
+    """``release_t_max`` is the duration bound of a transition that removes a contact (NLP variable T and the
+    seed grid); landings and self-motions keep [t_min, t_max]; 0 leaves every transition at t_max (the paper)."""
+    env = Environment()
+    q0, v0 = _pushed(model, 30.0)
+    bounded = OptConfig(release_t_max=0.15)
+    opt = TrajectoryOptimizer(model, bounded)
+    release, _ = opt.structures(("LF", "RF"), "remove", "LF", env)
+    lbx, ubx, *_ = release.bounds(q0, v0, env)
+    assert (lbx[0], ubx[0]) == (pytest.approx(bounded.release_t_min), pytest.approx(0.15))
+    assert all(bounded.release_t_min - 1e-12 <= d <= 0.15 + 1e-12 for d in bounded.seed_durations("remove"))
+    for mode, change, ext in ((("RF",), "add", "LF"), (("LF", "RF"), "", "")):
+        nlp, _ = opt.structures(mode, change, ext, env)
+        lbx, ubx, *_ = nlp.bounds(q0, v0, env)
+        assert (lbx[0], ubx[0]) == (pytest.approx(bounded.t_min), pytest.approx(bounded.t_max))
+    assert max(bounded.seed_durations("add")) > 0.15
+    # a bound below the release's T_min is raised to it (an empty interval would make every release infeasible)
+    assert OptConfig(release_t_max=0.01).t_max_of("remove") == pytest.approx(OptConfig().release_t_min)
+    assert OptConfig().t_max_of("remove") == OptConfig().t_max
+
+
 def test_the_step_options_and_the_polish_are_the_declared_defaults():
     """Session 11: the step options of session 7 and the polish of a rejected stop are the
     planner's defaults (departures from the paper, listed in docs/multicontact.md); the

@@ -138,6 +138,10 @@ class OptConfig:
     # T_min of a transition that removes a contact (s; <= 0: t_min). A release is
     # a lift-off: it has no reason to last as long as the shortest landing.
     release_t_min: float = 0.1     # session 7, default since session 11 (Table I: t_min for all)
+    # T_max of a release (s; <= 0: t_max, the paper). Ours (session 28): the release's objective (its end
+    # energy) prefers braking on both feet as long as T allows, so the step comes late; from one foot, where a
+    # step is a single landing, the same planner steps at 30-60 J in 2-10 s
+    release_t_max: float = 0.0
     # seed durations of a release (s; values <= 0 dropped; empty: the general list). Tried in order.
     release_seed_durations: tuple = ()
     # foot landing seeds: the seed goal puts the landing foot's toe this far past
@@ -188,6 +192,12 @@ class OptConfig:
         """T_min of a segment of this kind (s)."""
         return self.release_t_min if change == "remove" and self.release_t_min > 0 else self.t_min
 
+    def t_max_of(self, change: str) -> float:
+        """T_max of a segment of this kind (s)."""
+        if change == "remove" and self.release_t_max > 0:
+            return max(self.release_t_max, self.t_min_of(change))
+        return self.t_max
+
     def seed_durations(self, change: str = "", skip: int = 0) -> list[float]:
         """Seed durations in the order they are tried (Sec. III-D).
 
@@ -199,7 +209,7 @@ class OptConfig:
         given, on a grid that starts at its own T_min. ``skip``: start after that
         many seeds of the list (another local optimum of the same NLP).
         """
-        grid = np.linspace(self.t_min_of(change), self.t_max, max(2, self.n_seed_durations))
+        grid = np.linspace(self.t_min_of(change), self.t_max_of(change), max(2, self.n_seed_durations))
         wanted = (self.release_seed_durations if change == "remove" and self.release_seed_durations
                   else (self.seed_first_duration, *self.seed_retry_durations))
         out: list[float] = []
@@ -569,7 +579,7 @@ class SegmentNLP:
         n, m, N = model.n, model.m, key.n_knots
         lbx = np.full(self.nw, -np.inf)
         ubx = np.full(self.nw, np.inf)
-        lbx[0], ubx[0] = cfg.t_min_of(key.change), cfg.t_max
+        lbx[0], ubx[0] = cfg.t_min_of(key.change), cfg.t_max_of(key.change)
         for k, (a, b) in enumerate(self.knot_slices):
             o = a
             # q
