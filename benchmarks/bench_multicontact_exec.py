@@ -4,6 +4,7 @@
                                                  [--budget 120] [--save-plans DIR] [--plots DIR]
                                                  [--calibrate 300,400,500] [--set name=value,...]
                                                  [--replay DIR] [--pitch-gain 1.0] [--run name=value,...]
+                                                 [--walking-push 450,550]
 
 Per case: the push of ``config/scenarios/multicontact_push.yaml`` with the force that gives the
 requested sagittal kinetic energy at the push's end (found by a few secant steps on KE ~ F^2, each a
@@ -21,6 +22,11 @@ the step options of session 11 are the defaults (docs/multicontact.md). ``--obje
 it is. ``--save-plans DIR`` writes each executed plan as ``multicontact_push_<KE>J.json``
 (``StoredPlan``; the executor node's ``plan_file``). ``--calibrate F,...`` only prints the push -> KE
 table for those forces.
+
+``--walking-push F,...`` (session 28) executes instead from single support: ``walking_push`` (1.0 km/h, the push at
+the start of a right swing) with F N forward and its obstacle removed; the executor takes over at the push's end in
+the stance mode LF and plans from it (``execute(initial_mode="LF")``); ``--hold`` defaults to ``measured`` there (the
+gait's lateral weight shift stays; ``planar`` would put every hip and ankle roll back to 0 under a robot on one foot).
 """
 from __future__ import annotations
 
@@ -41,6 +47,7 @@ from humfall_ros.multicontact.planner import DEPARTURE, FallPlanner  # noqa: E40
 from humfall_ros.sim import multicontact_run as mr  # noqa: E402
 
 SCENARIO = "multicontact_push"
+WALKING_SCENARIO = "walking_push"
 
 
 def ke_of_force(sc: dict, force: float) -> dict:
@@ -121,10 +128,35 @@ def plots(case: dict, path: pathlib.Path) -> None:
     b.set_xlabel("time from take-over (s)")
     b.set_ylabel("contact force (N)")
     b.legend(fontsize=7, ncol=3)
-    a.set_xlim(min(-0.1, s["t"][0]), s["t"][-1])
+    a.set_xlim(min(-0.1, max(s["t"][0], -1.0)), s["t"][-1])   # a walking run starts seconds before its take-over
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
+
+
+def walking_case(planner, run_cfg, force: float, a) -> dict:
+    """One ``walking_push`` of ``force`` N executed from single support (the left foot: the push comes at the start
+    of a right swing)."""
+    t0 = time.perf_counter()
+    sc = scenario_mod.load(WALKING_SCENARIO)
+    sc = scenario_mod.apply_override(sc, f"push.0.force=[{force}, 0.0, 0.0]")
+    sc = scenario_mod.apply_override(sc, "obstacles=[]")
+    sc["controllers"] = []
+    r = mr.execute(sc, planner=planner, cfg=run_cfg, initial_mode="LF")
+    r.pop("_segments", None)
+    if a.plots and "series" in r:
+        r["target_ke"] = r.get("state_at_plan", {}).get("ke_planar_projected", 0.0)
+        pathlib.Path(a.plots).mkdir(parents=True, exist_ok=True)
+        plots(r, pathlib.Path(a.plots) / f"multicontact_exec_walking_{force:g}N.png")
+    if not a.series:
+        r.pop("series", None)
+    r["push_force_n"] = force
+    r["wall_s"] = time.perf_counter() - t0
+    print(f"# walking_push {force:g} N: plan {r['plan'].get('success')} {r['plan'].get('contact_sequence')} "
+          f"(KE {r['plan'].get('initial_ke')}), final mode {r.get('final_mode')} (plan {r.get('planned_final_mode')}), "
+          f"others {sorted(r.get('other_links_touching') or {})}, success {r.get('success')}, {r['wall_s']:.0f} s",
+          file=sys.stderr)
+    return r
 
 
 def main() -> int:
@@ -135,7 +167,8 @@ def main() -> int:
     ap.add_argument("--save-plans", default="")
     ap.add_argument("--plots", default="")
     ap.add_argument("--calibrate", default="")
-    ap.add_argument("--hold", choices=("planar", "measured"), default="planar")
+    ap.add_argument("--hold", choices=("planar", "measured"), default=None,
+                    help="joints the plan lacks (default: planar; measured with --walking-push)")
     ap.add_argument("--replay", default="", help="execute the stored plans of DIR (multicontact_push_<KE>J.json) "
                     "with their pushes instead of planning")
     ap.add_argument("--no-velocity-feedforward", action="store_true", help="ExecutorConfig.velocity_feedforward off")
@@ -149,7 +182,12 @@ def main() -> int:
     ap.add_argument("--set", default="", help="planner parameters name=value,... (yaml names)")
     ap.add_argument("--run", default="", help="RunConfig fields name=value,... (e.g. swing_control=task)")
     ap.add_argument("--series", action="store_true", help="keep the per-tick series in the JSON")
+    ap.add_argument("--walking-push", default="", help="forces [N] of walking_push, executed from one foot (LF)")
     a = ap.parse_args()
+    if a.hold is None:
+        a.hold = "measured" if a.walking_push else "planar"
+    if a.walking_push and (a.replay or a.calibrate or a.save_plans):
+        ap.error("--walking-push plans live: not with --replay, --calibrate or --save-plans")
     sc = scenario_mod.load(SCENARIO)
     sc["controllers"] = []          # in process the executor is built here
     out: dict = {"scenario": SCENARIO, "load_average_start": os.getloadavg()}
@@ -172,6 +210,12 @@ def main() -> int:
                            speed_limit=a.speed_limit, blend_time=a.blend,
                            base_pitch_gain=a.pitch_gain, **params.parse_overrides(a.run))
     out["run_config"] = run_cfg.__dict__
+    if a.walking_push:
+        out["scenario"] = WALKING_SCENARIO
+        out["cases"] = [walking_case(planner, run_cfg, float(f), a) for f in a.walking_push.split(",")]
+        out["load_average_end"] = os.getloadavg()
+        print(json.dumps(out, indent=1, default=float))
+        return 0
     cases = []
     for ke in [float(x) for x in a.kes.split(",")]:
         t0 = time.perf_counter()

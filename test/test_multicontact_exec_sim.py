@@ -44,3 +44,45 @@ def test_the_robot_ends_at_rest_in_the_planned_mode_with_nothing_else_on_the_gro
         assert abs(ev["executed_x"] - ev["planned_x"]) < 0.3, ev
     assert r["momentum_error_ns_max"] < 3.0      # no solver velocity clamp: momentum (nearly) conserved
     assert r["base_pitch_feedback_ticks"] > 0    # the feedback ran (on the IMU)
+
+
+class _RecordingPlanner:
+    """Records the request the run sends and answers "no plan" (the run then releases and only measures)."""
+
+    def __init__(self):
+        from humfall_ros.multicontact.model import load_model
+        self.model = load_model()
+        self.requests = []
+
+    def plan(self, req):
+        self.requests.append(req)
+        return {"success": False, "reason": "recording only", "contact_sequence": [], "node_ke": [], "final_ke": None,
+                "initial_ke": None, "nlp_count": 0, "landings": [], "segments": []}
+
+
+def test_a_walking_push_is_planned_from_the_stance_foot_alone():
+    """``execute(initial_mode="LF")`` (session 28): a push at the start of a right swing is planned from single
+    support: the request names LF, and the state it carries has the left sole flat on the ground and the right foot
+    free (above it); the standing default stays LF/RF."""
+    import numpy as np
+
+    from humfall_ros.multicontact import contacts as C
+    from humfall_ros.multicontact.modes import Environment, parse_mode
+    from humfall_ros.sim.multicontact_run import INITIAL_MODE
+
+    assert INITIAL_MODE == "LF/RF"
+    sc = scenario.load("walking_push", ["obstacles=[]", "push.0.force=[450.0, 0.0, 0.0]"])
+    sc["controllers"] = []
+    planner = _RecordingPlanner()
+    r = execute(sc, planner=planner, initial_mode="LF", duration=7.3)
+    (req,) = planner.requests
+    assert req["initial_mode"] == "LF"
+    assert r["plan"]["success"] is False and r["plan"]["reason"] == "recording only"
+    q = np.asarray(req["q"])
+    pm = planner.model
+    for row in C.contact_rows(parse_mode("LF"), Environment()):
+        if row.axis == "n":
+            assert abs(pm.point(row.point, q)[1]) < 1e-6, row.point
+    assert min(pm.point("RF_toe", q)[1], pm.point("RF_heel", q)[1]) > 0.005
+    with pytest.raises(ValueError, match="unknown extremity"):
+        execute(sc, planner=planner, initial_mode="LF/XX")

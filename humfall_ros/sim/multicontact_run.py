@@ -221,7 +221,7 @@ def _first(mask: np.ndarray, start: int) -> int | None:
 
 
 def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start_time: float | None = None,
-            cfg: RunConfig | None = None, duration: float | None = None) -> dict:
+            cfg: RunConfig | None = None, duration: float | None = None, initial_mode: str = INITIAL_MODE) -> dict:
     """Push, plan at the push's end (or take ``segments``), execute, measure; a JSON-able report.
 
     Args:
@@ -231,6 +231,9 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
             state of this scenario at ``start_time`` (the report gives the mismatch).
         start_time: take-over time [s] (default: the push's end).
         duration: simulated time [s] (default: take-over + plan duration + ``cfg.settle``).
+        initial_mode: the contact mode the measured state is made consistent with and planned from: the feet on
+            the ground at the take-over ("LF/RF" standing; "LF" for a push in a walking robot's right swing,
+            session 28, where ``cfg.hold`` "measured" keeps the gait's lateral weight shift).
     """
     cfg = cfg or RunConfig()
     if (planner is None) == (segments is None):
@@ -239,7 +242,7 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
 
     pm = planner.model if planner is not None else load_planar()
     t_start = push_end_time(sc) if start_time is None else float(start_time)
-    mode0 = parse_mode(INITIAL_MODE)
+    mode0 = parse_mode(initial_mode)
     info: dict[str, Any] = {}
     loop: ClosedLoop | None = None
 
@@ -258,7 +261,7 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
     def plan_source(obs):
         proj = info.pop("_early", None) or measured_state()
         t0 = time.perf_counter()
-        r = planner.plan({"q": proj.q.tolist(), "v": proj.v.tolist(), "initial_mode": INITIAL_MODE,
+        r = planner.plan({"q": proj.q.tolist(), "v": proj.v.tolist(), "initial_mode": mode_label(mode0),
                           "time_budget": cfg.time_budget})
         info["plan"] = {"success": bool(r["success"]), "reason": r["reason"], "compute_s": time.perf_counter() - t0,
                         "contact_sequence": r["contact_sequence"], "node_ke": r["node_ke"],
