@@ -39,31 +39,12 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from humfall_ros.multicontact.modes import Environment  # noqa: E402
+from humfall_ros.multicontact.modes import Environment, strategy_of  # noqa: E402
 from humfall_ros.multicontact.planner import DEPARTURE, FallPlanner  # noqa: E402  (DEPARTURE: the planner before issue 14)
 from humfall_ros.params import parse_overrides  # noqa: E402
 
 PAPER = {10: "inertial shaping", 20: "inertial shaping", 30: "protective step", 40: "protective step",
          50: "protective step", 60: "hand contact", 70: "hand contact", 80: "hand contact"}
-
-
-def strategy(seq: list[str]) -> str:
-    """Name the strategy of a contact sequence like the paper does."""
-    if not seq:
-        return "none"
-    if len(seq) == 1:
-        return "inertial shaping"
-    hands = any("LH" in m or "RH" in m for m in seq[1:])
-    # a foot off the ground after the start, or a foot landing (from one foot, RF -> LF/RF is the step)
-    added_foot = any(f in b.split("/") and f not in a.split("/") for a, b in zip(seq, seq[1:]) for f in ("LF", "RF"))
-    steps = added_foot or any(("LF" not in m or "RF" not in m) for m in seq[1:])
-    if hands and steps:
-        return "protective step + hand contact"
-    if hands:
-        return "hand contact"
-    if steps:
-        return "protective step"
-    return "other"
 
 
 def run_case(planner: FallPlanner, ke: float, wall: float, budget: float, resim: bool,
@@ -73,8 +54,9 @@ def run_case(planner: FallPlanner, ke: float, wall: float, budget: float, resim:
     times = r["nlp_times_s"]
     case = {
         "ke": ke, "initial_mode": initial_mode, "wall_distance": wall, "success": r["success"], "reason": r["reason"],
-        "contact_sequence": r["contact_sequence"], "strategy": strategy(r["contact_sequence"]),
+        "contact_sequence": r["contact_sequence"], "strategy": strategy_of(r["contact_sequence"]),
         "paper_strategy": PAPER.get(int(ke)) if not wall else "hand contact on the wall",
+        "matches_paper": (strategy_of(r["contact_sequence"]) == PAPER.get(int(ke))) if not wall else None,
         "node_ke": [round(x, 3) for x in r["node_ke"]],
         "final_ke": r["final_ke"], "nlp_count": r["nlp_count"],
         "nlp_times_s": [round(t, 3) for t in times],
@@ -197,6 +179,7 @@ def run_sweep(args, overrides: dict) -> dict:
         "sweep_and_wall_time_s": round(total_time, 2),
         "sweep_time_s": round(sweep_time, 2),
         "sweep_all_final_ke_below_eps": all(c["success"] and c["final_ke"] < 0.1 for c in cases),
+        "cases_matching_the_paper": f"{sum(bool(c['matches_paper']) for c in cases)}/{len(cases)}",
         "wall_ends_with_hand_on_wall": None if wall_case is None else bool(wall_case["success"] and any(
             h in wall_case["contact_sequence"][-1].split("/") for h in ("LH", "RH"))),
         "nlp_count": len(all_times),

@@ -12,7 +12,7 @@ from humfall_ros.multicontact import contacts as C
 from humfall_ros.multicontact.collocation import OptConfig, StructureKey, TrajectoryOptimizer, hermite_mid
 from humfall_ros.multicontact.initial_state import nominal_configuration, velocity_for_energy
 from humfall_ros.multicontact.model import load_model
-from humfall_ros.multicontact.modes import Environment, adjacent_modes, parse_mode
+from humfall_ros.multicontact.modes import Environment, adjacent_modes, parse_mode, strategy_of
 from humfall_ros.multicontact.planner import InvalidRequest, PlannerConfig, validate
 
 
@@ -73,6 +73,22 @@ def test_modes_adjacency_and_parsing():
     adj = adjacent_modes(("LF", "RF"))
     assert {m for m, _, _ in adj} == {("LF", "RF", "LH"), ("LF", "RF", "RH"), ("LF",), ("RF",)}
     assert all(m for m, _, _ in adjacent_modes(("LF",)))  # never the empty mode
+
+
+@pytest.mark.parametrize("sequence, name", [
+    (["LF/RF"], "inertial shaping"),
+    (["RF"], "inertial shaping"),
+    (["LF/RF", "RF", "LF/RF"], "protective step"),            # from two feet: a release, then the landing
+    (["RF", "LF/RF"], "protective step"),                     # from one foot (the paper's Figs. 1 and 3)
+    (["LF/RF", "RF", "LF/RF", "LF"], "protective step"),      # a step, then the rear foot lifted
+    (["LF/RF", "LF/RF/RH"], "hand contact"),
+    (["LF/RF", "LF/RF/LH", "LF/RF/LH/RH"], "hand contact"),
+    (["RF", "LF/RF", "LF/RF/LH"], "protective step + hand contact"),   # the paper's Fig. 1
+    (["LF/RF", "RF"], "foot lifted"),                         # no new contact: not a step
+    ([], "none"),
+])
+def test_strategy_names_a_contact_sequence_as_the_paper_does(sequence, name):
+    assert strategy_of(sequence) == name
 
 
 def test_impact_map_zeroes_contact_velocity_and_conserves_momentum(model):

@@ -151,3 +151,14 @@ def test_planner_node_refuses_an_unreadable_library(ros_env, tmp_path):
     out = subprocess.run(cmd, env=ros_env, capture_output=True, text=True, timeout=60)
     assert out.returncode == 2, out.stdout + out.stderr
     assert "format 99, this code reads 1" in out.stdout + out.stderr
+
+
+def test_the_client_summary_names_the_strategy():
+    """``humfall plan-fall`` (human output) names the plan's strategy as the paper does, from the sequence alone."""
+    from humfall_ros.nodes.plan_fall_client import summary
+
+    d = {"success": True, "reason": "stabilised", "contact_sequence": ["RF", "LF/RF"], "node_ke": [40.0, 38.0],
+         "final_ke": 1e-9, "segments": [], "landings": [], "nlp_times_s": [], "transition_objective": "pre_impact"}
+    text = summary(d)
+    assert "RF (40.0 J)  ->  LF/RF (38.0 J)  [protective step]" in text
+    assert "[inertial shaping]" in summary({**d, "contact_sequence": ["LF/RF"], "node_ke": [10.0]})

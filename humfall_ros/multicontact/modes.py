@@ -75,3 +75,26 @@ class Environment:
     def from_distance(wall_distance: float) -> Environment:
         """Request convention: wall_distance <= 0 means no wall."""
         return Environment(float(wall_distance) if wall_distance and wall_distance > 0 else None)
+
+
+def strategy_of(sequence) -> str:
+    """The paper's name (Sec. IV-B) for a plan's contact sequence (labels like ``"LF/RF"``, first the start).
+
+    "inertial shaping": no contact change; "protective step": a foot lands that was not in the mode before it
+    (from two feet that is a release and a landing; from one foot, as the paper's trees start, one landing);
+    "hand contact": a hand lands; both: "protective step + hand contact". A sequence that only lifts a foot and
+    stops on the other adds no contact: "foot lifted" (the issue's "no new contact", not one of the paper's names).
+    """
+    modes = [set(str(m).split("/")) for m in sequence]
+    if not modes:
+        return "none"
+    added = set().union(*(b - a for a, b in zip(modes, modes[1:]))) if len(modes) > 1 else set()
+    steps = bool(added & set(FEET))
+    hands = bool(added - set(FEET))
+    if steps and hands:
+        return "protective step + hand contact"
+    if hands:
+        return "hand contact"
+    if steps:
+        return "protective step"
+    return "inertial shaping" if len(modes) == 1 else "foot lifted"

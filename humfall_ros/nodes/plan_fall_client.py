@@ -66,10 +66,12 @@ def response_to_dict(resp) -> dict:
 
 
 def summary(d: dict) -> str:
+    from humfall_ros.multicontact.modes import strategy_of   # here: the client stays light to start
+
     lines = [("PLAN FOUND: " if d["success"] else "NO PLAN: ") + d["reason"]]
     if d["contact_sequence"]:
         seq = "  ->  ".join(f"{m} ({ke:.1f} J)" for m, ke in zip(d["contact_sequence"], d["node_ke"]))
-        lines.append(f"contact sequence: {seq}")
+        lines.append(f"contact sequence: {seq}  [{strategy_of(d['contact_sequence'])}]")
         lines.append(f"final kinetic energy: {d['final_ke']:.3g} J")
     for s in d["segments"]:
         tgt = f" -> {s['target_mode']}" if s["kind"] == "transition" else ""
