@@ -52,11 +52,12 @@ def run_case(planner: FallPlanner, ke: float, wall: float, budget: float, resim:
     r = planner.plan({"kinetic_energy": ke, "direction": 1.0, "wall_distance": wall, "time_budget": budget,
                       "initial_mode": initial_mode})
     times = r["nlp_times_s"]
+    name = strategy_of(r["contact_sequence"])
     case = {
         "ke": ke, "initial_mode": initial_mode, "wall_distance": wall, "success": r["success"], "reason": r["reason"],
-        "contact_sequence": r["contact_sequence"], "strategy": strategy_of(r["contact_sequence"]),
+        "contact_sequence": r["contact_sequence"], "strategy": name,
         "paper_strategy": PAPER.get(int(ke)) if not wall else "hand contact on the wall",
-        "matches_paper": (strategy_of(r["contact_sequence"]) == PAPER.get(int(ke))) if not wall else None,
+        "matches_paper": (name == PAPER.get(int(ke))) if not wall else None,
         "node_ke": [round(x, 3) for x in r["node_ke"]],
         "final_ke": r["final_ke"], "nlp_count": r["nlp_count"],
         "nlp_times_s": [round(t, 3) for t in times],

@@ -138,9 +138,7 @@ def walking_case(planner, run_cfg, force: float, a) -> dict:
     """One ``walking_push`` of ``force`` N executed from single support (the left foot: the push comes at the start
     of a right swing)."""
     t0 = time.perf_counter()
-    sc = scenario_mod.load(WALKING_SCENARIO)
-    sc = scenario_mod.apply_override(sc, f"push.0.force=[{force}, 0.0, 0.0]")
-    sc = scenario_mod.apply_override(sc, "obstacles=[]")
+    sc = scenario_mod.load(WALKING_SCENARIO, [f"push.0.force=[{force}, 0.0, 0.0]", "obstacles=[]"])
     sc["controllers"] = []
     r = mr.execute(sc, planner=planner, cfg=run_cfg, initial_mode="LF")
     r.pop("_segments", None)

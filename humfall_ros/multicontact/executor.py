@@ -52,8 +52,6 @@ from humfall_ros.multicontact.collocation import Segment, hermite_eval
 from humfall_ros.multicontact.model import FEET
 
 
-
-
 @dataclasses.dataclass(frozen=True)
 class ExecutorConfig:
     """Attributes:
