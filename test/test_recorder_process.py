@@ -338,3 +338,44 @@ def test_unknown_types_are_skipped_not_fatal(in_ros_domain, tmp_path, monkeypatc
     stats = json.loads((out / "recording_stats.json").read_text())
     assert set(stats["skipped_topics"]) == {"/bogus", "/bogus2", "/no_schema"}
     assert stats["finalized"] and reader.bag_info(out)["finalized"]
+
+
+def _record_through_a_stall(graph, ros_env, out: pathlib.Path, writer_qos, n: int) -> tuple[list[str], list[str], list]:
+    """Publish ``n`` joint states while the recorder is stopped (SIGSTOP), then let it go; what was recorded."""
+    from humfall_ros.nodes.common import wait_acknowledged
+
+    rec = start_recorder(ros_env, out)
+    try:
+        pub = graph.pub(JointState, "joint_states", writer_qos)
+        graph.wait_matched(pub)
+        time.sleep(0.5)  # the recorder's reader is matched both ways before it stops
+        rec.send_signal(signal.SIGSTOP)
+        try:
+            for i in range(n):
+                pub.publish(joint_state(i))
+                time.sleep(0.0005)
+            while_stopped = wait_acknowledged(graph.node, 0.5)
+        finally:
+            rec.send_signal(signal.SIGCONT)
+        after = wait_acknowledged(graph.node, 20.0)
+        graph.node.destroy_publisher(pub)  # the writer goes away, as the bridge's does at the end of a run
+        time.sleep(0.5)
+        assert stop(rec, signal.SIGINT) == 0, log_tail(out)
+    finally:
+        if rec.poll() is None:
+            rec.kill()
+    efforts = [m.effort[0] for _raw, m in reader.read_messages(out, ["/joint_states"])]
+    return while_stopped, after, efforts
+
+
+def test_a_stalled_recorder_still_gets_every_tick(graph, ros_env, tmp_path):
+    """The recorder starved of CPU (here: stopped) while the bridge runs on: the per-tick writers' history
+    (QOS_TICK_WRITER) keeps what it has not acknowledged, and ``wait_acknowledged`` tells the writer when it has
+    all of it (the bridge waits so before it exits). With the old depth-20 writers the bag lost ticks (session 28)."""
+    from humfall_ros.nodes.common import QOS_TICK_WRITER
+
+    n = 900
+    while_stopped, after, efforts = _record_through_a_stall(graph, ros_env, tmp_path / "run", QOS_TICK_WRITER, n)
+    assert while_stopped == ["/joint_states"]      # a stopped reader cannot acknowledge
+    assert after == []                               # ... and once it runs again it has everything
+    assert efforts == [float(i) for i in range(n)], (len(efforts), log_tail(tmp_path / "run"))

@@ -27,7 +27,7 @@ from humfall_ros.model.humanoid import HumanoidModel, load_model
 from humfall_ros.nodes.common import (
     NO_PUB_EVENTS,
     QOS_LATCHED,
-    QOS_RELIABLE,
+    QOS_TICK_WRITER,
     HotLoop,
     Params,
     publish_encoded,
@@ -124,7 +124,7 @@ class ControllerNode(Node):
         self.controller = make_controller(self.params, self.model)
         self.source = self.controller.source
         self.extra = list(inputs or [])
-        self.pub = self.create_publisher(JointState, f"joint_command/{self.source}", QOS_RELIABLE,
+        self.pub = self.create_publisher(JointState, f"joint_command/{self.source}", QOS_TICK_WRITER,
                                          event_callbacks=NO_PUB_EVENTS)
         per_tick = [i for i in self.extra if i.per_tick]
         self.gate = TickGate({"centroidal_state", "joint_states", "mux", *(i.name for i in per_tick)},

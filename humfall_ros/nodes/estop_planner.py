@@ -36,7 +36,7 @@ from std_msgs.msg import Empty
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.estop.config import EstopConfig
 from humfall_ros.estop.controller import EstopController, EstopStatus, TopicEvent
-from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_LATCHED, QOS_RELIABLE, run_node
+from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_LATCHED, QOS_TICK_WRITER, run_node
 from humfall_ros.nodes.controller_node import FALL_EVENT, IMU, ControllerNode, Input
 
 try:  # the walking engineer's message; until it exists the node stops a standing robot
@@ -151,7 +151,7 @@ class EstopPlannerNode(ControllerNode):
             return make_controller(p, model)
 
         super().__init__("estop_planner", make, inputs)
-        self.status_pub = self.create_publisher(EstopStatusMsg, "estop/status", QOS_RELIABLE,
+        self.status_pub = self.create_publisher(EstopStatusMsg, "estop/status", QOS_TICK_WRITER,
                                                 event_callbacks=NO_PUB_EVENTS)
         self._logged = 0
         per_tick = any(i.name == "walking/state" for i in self.extra)

@@ -28,7 +28,7 @@ from std_srvs.srv import Trigger
 from humfall_ros.control.contract import Observation
 from humfall_ros.control.tick_gate import Action, TickGate
 from humfall_ros.fall import ftb as core
-from humfall_ros.nodes.common import (NO_PUB_EVENTS, QOS_LATCHED, QOS_RELIABLE, HotLoop, Params, publish_encoded,
+from humfall_ros.nodes.common import (NO_PUB_EVENTS, QOS_LATCHED, QOS_TICK_WRITER, HotLoop, Params, publish_encoded,
                                      ros_stamp, run_node, stamp_key)
 from humfall_ros.nodes.controller_node import centroidal_from_msg
 from rclpy.node import Node
@@ -146,7 +146,7 @@ class FtbMonitorNode(Node):
         self.params = Params(self).declare_all()
         self.config = core.FtbConfig.from_params(self.params)
         self.monitor = core.FtbMonitor(self.config)
-        self.pub_status = self.create_publisher(FtbStatus, "ftb/status", QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
+        self.pub_status = self.create_publisher(FtbStatus, "ftb/status", QOS_TICK_WRITER, event_callbacks=NO_PUB_EVENTS)
         self.pub_event = self.create_publisher(FallEvent, "fall_event", QOS_LATCHED)
         kinds = ({"centroidal_state"} | ({"walking/state"} if self.config.use_walking_state else set())
                  | ({"estop/status"} if self.config.use_estop_status else set()))

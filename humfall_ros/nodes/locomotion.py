@@ -34,7 +34,7 @@ from humfall_interfaces.msg import WalkingState as WalkingStateMsg
 
 from humfall_ros import params as params_mod
 from humfall_ros.control.contract import JointTargets, Observation
-from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, run_node, xyz
+from humfall_ros.nodes.common import NO_PUB_EVENTS, QOS_RELIABLE, QOS_TICK_WRITER, run_node, xyz
 from humfall_ros.nodes.controller_node import FALL_EVENT, IMU, ControllerNode, Input
 from humfall_ros.walking.controller import LocomotionController, WalkingState, from_scenario
 from humfall_ros.walking.footsteps import WalkCommand
@@ -102,7 +102,7 @@ def node_inputs() -> list[Input]:
 class Locomotion(ControllerNode):
     def __init__(self):
         super().__init__("locomotion", make_controller, node_inputs())
-        self.state_pub = self.create_publisher(WalkingStateMsg, "walking/state", QOS_RELIABLE,
+        self.state_pub = self.create_publisher(WalkingStateMsg, "walking/state", QOS_TICK_WRITER,
                                                event_callbacks=NO_PUB_EVENTS)
         self._logged = 0
         self._idle_msgs: dict[bool, WalkingStateMsg] = {}

@@ -46,12 +46,13 @@ from humfall_ros.nodes.common import (
     NO_PUB_EVENTS,
     QOS_CLOCK,
     QOS_LATCHED,
-    QOS_RELIABLE,
+    QOS_RELIABLE, QOS_TICK_WRITER,
     KeptWaitSet,
     Params,
     profiled,
     publish_encoded,
     shutting_down,
+    wait_acknowledged,
     stamp_key,
 )
 from humfall_ros.sim.ground_truth import GroundTruth
@@ -92,6 +93,7 @@ class SimBridge(Node):
         self.end_time = P.declare("end_time")
         self.wait_for_nodes = _names(P.declare("wait_for_nodes"))
         self.wait_timeout = P.declare("wait_timeout")
+        self.ack_timeout = P.declare("ack_timeout")
         self.metrics_file = P.declare("metrics_file")
         self.scenario_name = P.declare("scenario")
         # SimWorld's own settings (friction, contact threshold), from the parameters or the scenario's sim section
@@ -140,21 +142,21 @@ class SimBridge(Node):
         self._apply_scenario()
 
         self.pub_clock = self.create_publisher(Clock, "/clock", QOS_CLOCK, event_callbacks=NO_PUB_EVENTS)
-        self.pub_js = self.create_publisher(JointState, "joint_states", QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
-        self.pub_imu = self.create_publisher(Imu, "imu", QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
-        self.pub_wrench = {s: self.create_publisher(WrenchStamped, t, QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
+        self.pub_js = self.create_publisher(JointState, "joint_states", QOS_TICK_WRITER, event_callbacks=NO_PUB_EVENTS)
+        self.pub_imu = self.create_publisher(Imu, "imu", QOS_TICK_WRITER, event_callbacks=NO_PUB_EVENTS)
+        self.pub_wrench = {s: self.create_publisher(WrenchStamped, t, QOS_TICK_WRITER, event_callbacks=NO_PUB_EVENTS)
                            for s, t in SIDE_TOPIC.items()}
-        self.pub_odom = self.create_publisher(Odometry, "ground_truth/odom", QOS_RELIABLE,
+        self.pub_odom = self.create_publisher(Odometry, "ground_truth/odom", QOS_TICK_WRITER,
                                               event_callbacks=NO_PUB_EVENTS)
         self.pub_active = self.create_publisher(String, "active_controller", QOS_LATCHED)
-        self.pub_mux = self.create_publisher(MuxState, "mux/state", QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
-        self.pub_rtf = self.create_publisher(Float64, "sim/real_time_factor", QOS_RELIABLE)
+        self.pub_mux = self.create_publisher(MuxState, "mux/state", QOS_TICK_WRITER, event_callbacks=NO_PUB_EVENTS)
+        self.pub_rtf = self.create_publisher(Float64, "sim/real_time_factor", QOS_TICK_WRITER)
         self.pub_obstacles = self.create_publisher(ObstacleArray, "obstacles", QOS_LATCHED)
         self.pub_result = self.create_publisher(String, "sim/result", QOS_LATCHED)
         # the robot for RViz / Foxglove: URDF text, fixed joints once, moving joints at tf_rate
         self.pub_description = self.create_publisher(String, "/robot_description", QOS_LATCHED)
         self.pub_tf_static = self.create_publisher(TFMessage, "/tf_static", QOS_LATCHED)
-        self.pub_tf = self.create_publisher(TFMessage, "/tf", QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
+        self.pub_tf = self.create_publisher(TFMessage, "/tf", QOS_TICK_WRITER, event_callbacks=NO_PUB_EVENTS)
         self.tf_every = max(1, int(round(self.control_rate / tf_rate))) if tf_rate > 0 else 0
         self.odom_every = max(1, int(round(self.control_rate / gt_rate)))
         self._tick_msgs()
@@ -628,6 +630,12 @@ def main(args=None) -> int:
         command_executor.add_node(node.command_node)
         with profiled(node):
             node.run(executor, command_executor)
+        # the recorder may still be behind (starved of CPU): our writers keep what it has not acknowledged, but only
+        # while they exist
+        late = wait_acknowledged(node, node.ack_timeout) if rclpy.ok() else []
+        if late:
+            node.get_logger().warning(f"readers had not acknowledged everything on {late} after "
+                                      f"{node.ack_timeout:.1f} s; a bag may miss the run's last messages")
         # linger briefly so latched results reach late subscribers
         end = time.monotonic() + 0.3
         while rclpy.ok() and time.monotonic() < end:

@@ -23,7 +23,7 @@ from humfall_ros.model.estimation import CentroidalEstimator
 from humfall_ros.model.humanoid import SIDES, load_model
 from humfall_ros.nodes.common import (
     NO_PUB_EVENTS,
-    QOS_RELIABLE,
+    QOS_TICK_WRITER,
     HotLoop,
     Params,
     publish_encoded,
@@ -72,7 +72,7 @@ class StateEstimator(Node):
         # one tick = every sensor message of one stamp; a repeated joint_states stamp = a retransmitted tick
         self.gate = TickGate({"js", "imu", "l", "r"} | ({"odom"} if self.use_ground_truth else set()), trigger="js")
         def publisher(msg_type, topic):
-            return self.create_publisher(msg_type, topic, QOS_RELIABLE, event_callbacks=NO_PUB_EVENTS)
+            return self.create_publisher(msg_type, topic, QOS_TICK_WRITER, event_callbacks=NO_PUB_EVENTS)
 
         self.pub = publisher(CentroidalState, "centroidal_state")
         self.pub_com = publisher(PointStamped, "centroidal_state/com")
