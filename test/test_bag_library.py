@@ -198,3 +198,65 @@ def test_plots_read_both_capture_points(tmp_path):
     for i, (cp, cpf) in enumerate(zip(cs["cp"], cs["cpf"])):
         assert cp[0] == pytest.approx(centroidal(i, 50).capture_point.x)
         assert cpf[0] == pytest.approx(cp[0] - 0.01)
+
+
+def test_bag_info_counts_the_holes_of_periodic_stamped_topics(tmp_path):
+    """A tick the recorder never got shows as a hole between stamps (``missing_stamps``); topics without a
+    stamp, or whose stamps are not periodic (events), have none to count."""
+    from builtin_interfaces.msg import Time
+    from geometry_msgs.msg import PointStamped
+    from humfall_interfaces.msg import FallEvent
+    from rosgraph_msgs.msg import Clock
+    from std_msgs.msg import String
+
+    w = BagWriter(tmp_path / "bag.mcap", metadata={"log_time_clock": "sim"})
+    com = w.add_topic("/com", "geometry_msgs/msg/PointStamped")
+    clock = w.add_topic("/clock", "rosgraph_msgs/msg/Clock")
+    events = w.add_topic("/fall_event", "humfall_interfaces/msg/FallEvent")
+    text = w.add_topic("/chatter", "std_msgs/msg/String")
+    lost = {10, 11, 12, 40}          # a hole of three ticks and one of one
+    for i in range(200):
+        ns = 5 * 10**9 + i * 2_000_000
+        stamp = Time(sec=ns // 10**9, nanosec=ns % 10**9)
+        w.write(clock, serialize_message(Clock(clock=stamp)), ns)
+        if i not in lost:
+            msg = PointStamped()
+            msg.header.stamp = stamp
+            w.write(com, serialize_message(msg), ns)
+        if i in (3, 50, 51, 140, 141, 142, 190, 199, 120, 7, 60, 61):   # events: irregular stamps
+            ev = FallEvent()
+            ev.header.stamp = stamp
+            w.write(events, serialize_message(ev), ns)
+        w.write(text, serialize_message(String(data=f"{i}")), ns)
+    w.write(com, serialize_message(PointStamped()), 9 * 10**9)   # a stamp of 0: not a hole either
+    w.close()
+
+    topics = {t["topic"]: t for t in bag_info(tmp_path)["topics"]}
+    assert topics["/com"]["missing_stamps"] == 4
+    assert topics["/com"]["stamp_period_s"] == pytest.approx(0.002)
+    assert topics["/clock"]["missing_stamps"] == 0
+    assert topics["/fall_event"]["missing_stamps"] is None
+    assert topics["/chatter"]["missing_stamps"] is None
+    out = io.StringIO()
+    assert info_main(tmp_path / "bag.mcap", out=out) == 0
+    assert "holes:     4 stamps missing on 1 of 2 periodic stamped topics" in out.getvalue()
+
+
+def test_stamp_helpers():
+    from humfall_ros.recording.reader import leads_with_stamp, missing_stamps, stamp_ns
+
+    log = "uint8 DEBUG=10 # debug\nuint8 INFO = 20\n\nbuiltin_interfaces/Time stamp\nuint8 level\n"
+    assert leads_with_stamp(log)                                    # constants and comments skipped
+    assert leads_with_stamp("# a comment\nstd_msgs/Header header\nfloat64 x\n")
+    assert not leads_with_stamp("float64 data\n")
+    assert not leads_with_stamp("Marker[] markers\n" + SEP + "\nMSG: visualization_msgs/Marker\nstd_msgs/Header h\n")
+    assert not leads_with_stamp("uint8 A=1\n" + SEP + "\nMSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\n")
+    little = bytes([0, 1, 0, 0]) + (7).to_bytes(4, "little") + (5).to_bytes(4, "little")
+    big = bytes([0, 0, 0, 0]) + (7).to_bytes(4, "big") + (5).to_bytes(4, "big")
+    assert stamp_ns(little) == stamp_ns(big) == 7_000_000_005
+    assert stamp_ns(b"\x00\x01\x00\x00\x07") is None                # too short
+    holed = [t for t in range(10, 310, 10) if t not in (30, 40, 120)]
+    assert missing_stamps(holed) == (3, pytest.approx(1e-8))
+    assert missing_stamps([0, 0] + holed) == (3, pytest.approx(1e-8))   # unset stamps are not times
+    assert missing_stamps(range(0, 90, 10)) == (None, None)          # fewer than 10 stamps
+    assert missing_stamps([0, 10, 20, 30, 31, 32, 45, 80, 81, 200, 900]) == (None, None)   # not periodic

@@ -82,6 +82,12 @@ def test_up_standing_push_falls_onto_the_target_and_records_everything(run_up):
     cli = [sys.executable, "-m", "humfall_ros.cli", "bag"]
     info = subprocess.run(cli + ["info", r["bag"]], capture_output=True, text=True, timeout=120)
     assert info.returncode == 0 and "/centroidal_state" in info.stdout and "CentroidalState" in info.stdout
+    # no holes in the per-tick topics (stamps every 2 ms from the first tick to the last)
+    from humfall_ros.recording import bag_info
+    holes = {t["topic"]: (t["missing_stamps"], t["stamp_period_s"]) for t in bag_info(r["bag"])["topics"]}
+    for topic in ("/clock", "/joint_states", "/imu", "/mux/state", "/centroidal_state", "/joint_command/locomotion"):
+        assert holes[topic][0] == 0 and holes[topic][1] == pytest.approx(0.002), (topic, holes[topic])
+    assert "holes:     none on" in info.stdout
     out = pathlib.Path(r["bag"]).parent / "replot"
     plot = subprocess.run(cli + ["plot", r["bag"], "--out", str(out)], capture_output=True, text=True, timeout=120)
     assert plot.returncode == 0 and sorted(p.name for p in out.glob("*.png"))

@@ -15,9 +15,11 @@ from __future__ import annotations
 
 import os
 import pathlib
+import struct
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Iterator
 
+import numpy as np
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
@@ -149,10 +151,59 @@ def _undecodable(_data: bytes) -> Any:
     raise ValueError("no ros2msg/cdr decoder for this channel")
 
 
+STAMP_FIELD_TYPES = ("std_msgs/Header", "builtin_interfaces/Time")
+
+
+def leads_with_stamp(schema_text: str) -> bool:
+    """Does a ros2msg schema's first field begin with a time stamp (a ``std_msgs/Header`` or a
+    ``builtin_interfaces/Time``, as ``rosgraph_msgs/Clock``)? Constants and comments are skipped."""
+    for line in schema_text.splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line.startswith("="):
+            return False   # the dependencies' definitions begin: the main type has no field
+        if not line:
+            continue
+        field_type, rest = (line.split(None, 1) + [""])[:2]
+        if "=" in rest:
+            continue       # a constant
+        return field_type in STAMP_FIELD_TYPES
+    return False
+
+
+def stamp_ns(data: bytes) -> int | None:
+    """The stamp (sec, nanosec) a CDR message begins with, in ns; None if too short or not CDR."""
+    if len(data) < 12 or data[0] != 0 or data[1] not in (0, 1):
+        return None
+    sec, nsec = struct.unpack("<iI" if data[1] == 1 else ">iI", data[4:12])
+    return sec * 1_000_000_000 + nsec
+
+
+def missing_stamps(stamps: Iterable[int], min_stamps: int = 10,
+                   regular_fraction: float = 0.9) -> tuple[int | None, float | None]:
+    """Holes in a periodic stamped topic: (stamps missing, period in s) from the distinct stamps.
+
+    The period is the median step between consecutive distinct stamps; a topic counts as periodic when at least
+    ``regular_fraction`` of its steps are that period (within 1 %), else (events, or fewer than ``min_stamps``
+    stamps) (None, None). Stamps of 0 (unset headers) are left out. A step of k periods is k - 1 missing stamps
+    (a message the recorder never got, or a tick its publisher skipped)."""
+    t = np.unique(np.fromiter(stamps, dtype=np.int64))
+    t = t[t > 0]   # a stamp of 0 is a header nobody filled in, not a time
+    if len(t) < min_stamps:
+        return None, None
+    d = np.diff(t)
+    period = float(np.median(d))
+    if period <= 0 or np.mean(np.abs(d - period) <= 0.01 * period) < regular_fraction:
+        return None, None
+    k = np.rint(d / period)
+    return int(np.sum(k[k > 1] - 1)), period * 1e-9
+
+
 def bag_info(path: str | os.PathLike) -> dict[str, Any]:
     """Per-topic counts, types, times and rates; works on finalized and cut-off bags.
 
-    Times are the bag's log times (see the recorder: sim time when ``/clock`` runs).
+    Times are the bag's log times (see the recorder: sim time when ``/clock`` runs). For topics whose messages
+    begin with a stamp and come at a regular period (the per-tick topics), ``missing_stamps`` counts the holes
+    between the first and the last stamp (``missing_stamps``), with ``stamp_period_s``; None elsewhere.
     """
     bag = resolve_bag(path)
     scan = ScanResult()
@@ -160,17 +211,24 @@ def bag_info(path: str | os.PathLike) -> dict[str, Any]:
     for raw in iter_raw(bag, scan=scan):
         t = per.get(raw.channel_id)
         if t is None:
-            t = per[raw.channel_id] = {"count": 0, "first_ns": raw.log_time, "last_ns": raw.log_time}
+            t = per[raw.channel_id] = {"count": 0, "first_ns": raw.log_time, "last_ns": raw.log_time,
+                                       "stamps": []}
         t["count"] += 1
         t["first_ns"] = min(t["first_ns"], raw.log_time)
         t["last_ns"] = max(t["last_ns"], raw.log_time)
+        st = stamp_ns(raw.data)
+        if st is not None:
+            t["stamps"].append(st)
     topics: dict[str, dict[str, Any]] = {}
+    stamps: dict[str, list[int]] = {}
     for cid, ch in scan.channels.items():
         sch = scan.schemas.get(ch.schema_id)
-        t = per.get(cid, {"count": 0, "first_ns": None, "last_ns": None})
+        t = per.get(cid, {"count": 0, "first_ns": None, "last_ns": None, "stamps": []})
         entry = topics.setdefault(ch.topic, {"topic": ch.topic, "type": sch.name if sch else "",
                                              "count": 0, "first_ns": None, "last_ns": None})
         entry["count"] += t["count"]
+        if sch is not None and sch.encoding == "ros2msg" and leads_with_stamp(sch.data.decode(errors="replace")):
+            stamps.setdefault(ch.topic, []).extend(t["stamps"])
         for k, fn in (("first_ns", min), ("last_ns", max)):
             if t[k] is not None:
                 entry[k] = t[k] if entry[k] is None else fn(entry[k], t[k])
@@ -178,6 +236,7 @@ def bag_info(path: str | os.PathLike) -> dict[str, Any]:
         span = (e["last_ns"] - e["first_ns"]) * 1e-9 if e["count"] else 0.0
         e["duration_s"] = span
         e["rate_hz"] = (e["count"] - 1) / span if e["count"] > 1 and span > 0 else None
+        e["missing_stamps"], e["stamp_period_s"] = missing_stamps(stamps.get(e["topic"], []))
     starts = [e["first_ns"] for e in topics.values() if e["first_ns"] is not None]
     ends = [e["last_ns"] for e in topics.values() if e["last_ns"] is not None]
     start, end = (min(starts), max(ends)) if starts else (None, None)

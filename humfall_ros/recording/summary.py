@@ -1,4 +1,4 @@
-"""``humfall bag info``: a readable summary of a bag (topics, types, counts, rates, duration)."""
+"""``humfall bag info``: a readable summary of a bag (topics, types, counts, rates, duration, holes)."""
 from __future__ import annotations
 
 import os
@@ -20,6 +20,17 @@ def _secs(ns: int | None) -> str:
     return "-" if ns is None else f"{ns * 1e-9:.3f}"
 
 
+def _holes(info: dict[str, Any]) -> str:
+    periodic = [t for t in info["topics"] if t.get("missing_stamps") is not None]
+    holed = [t for t in periodic if t["missing_stamps"] > 0]
+    if not periodic:
+        return "holes:     - (no periodic stamped topic)"
+    if not holed:
+        return f"holes:     none on {len(periodic)} periodic stamped topics"
+    return (f"holes:     {sum(t['missing_stamps'] for t in holed)} stamps missing on {len(holed)} of "
+            f"{len(periodic)} periodic stamped topics (column 'missing')")
+
+
 def format_info(info: dict[str, Any]) -> str:
     """The text ``info_main`` prints, from ``bag_info``'s dict."""
     meta = info.get("metadata", {}).get("humfall_recorder", {})
@@ -35,13 +46,15 @@ def format_info(info: dict[str, Any]) -> str:
         f"duration:  {info['duration_s']:.3f} s   (start {_secs(info['start_ns'])} s, "
         f"end {_secs(info['end_ns'])} s)",
         f"messages:  {info['message_count']} on {len(info['topics'])} topics",
+        _holes(info),
         "",
     ]
-    rows = [("topic", "type", "count", "rate Hz", "first s", "last s")]
+    rows = [("topic", "type", "count", "rate Hz", "first s", "last s", "missing")]
     for t in info["topics"]:
+        missing = t.get("missing_stamps")
         rows.append((t["topic"], t["type"], str(t["count"]),
                      "-" if t["rate_hz"] is None else f"{t['rate_hz']:.1f}",
-                     _secs(t["first_ns"]), _secs(t["last_ns"])))
+                     _secs(t["first_ns"]), _secs(t["last_ns"]), "-" if missing is None else str(missing)))
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     for k, r in enumerate(rows):
         cells = [r[0].ljust(widths[0]), r[1].ljust(widths[1])] + [c.rjust(w) for c, w in zip(r[2:], widths[2:])]
