@@ -46,14 +46,15 @@ from humfall_ros.nodes.common import (
     NO_PUB_EVENTS,
     QOS_CLOCK,
     QOS_LATCHED,
-    QOS_RELIABLE, QOS_TICK_WRITER,
+    QOS_RELIABLE,
+    QOS_TICK_WRITER,
     KeptWaitSet,
     Params,
     profiled,
     publish_encoded,
     shutting_down,
-    wait_acknowledged,
     stamp_key,
+    wait_acknowledged,
 )
 from humfall_ros.sim.ground_truth import GroundTruth
 from humfall_ros.sim.sensors import SensorNoise, Sensors

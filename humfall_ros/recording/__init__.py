@@ -3,7 +3,8 @@
 Public API (what the recorder node, the ``humfall`` CLI and the launcher use):
 
 - ``BagWriter``            raw CDR messages into MCAP with ``ros2msg`` schemas (writer.py)
-- ``bag_info(path)``       per-topic counts/types/times/rates and holes (missing stamps); finalized or ``kill -9``-cut bags
+- ``bag_info(path)``       per-topic counts/types/times/rates and holes (missing stamps); finalized or
+                           ``kill -9``-cut bags
 - ``read_messages(path)``  decoded messages, streaming (works without footer)
 - ``recover(path)``        finalized copy of a cut-off bag
 - ``info_main(path)``      ``humfall bag info``
