@@ -362,6 +362,15 @@ def collect_result(sc: dict, run_dir: pathlib.Path, wall: float, record: bool, p
     stats = run_dir / "recording_stats.json"
     if stats.is_file():
         result["recording"] = json.loads(stats.read_text())
+    if bag is not None:
+        try:  # holes in the per-tick topics (messages the recorder never got): say so with the result
+            from humfall_ros.recording import bag_info
+
+            holes = {t["topic"]: t["missing_stamps"] for t in bag_info(bag)["topics"] if t["missing_stamps"]}
+            result["bag_missing_stamps"] = sum(holes.values())
+            result["bag_holes"] = holes
+        except Exception as e:  # noqa: BLE001 - an unreadable bag must not lose the result
+            result["bag_holes_error"] = str(e)
     if bag is not None and "estop" not in result and sc["estop"] and scenario_mod.runs_estop(sc):
         try:  # the e-stop section (paper 3 figures) from the bag's estop/status and centroidal_state
             from humfall_ros.estop.metrics import estop_result_from_bag
@@ -395,6 +404,9 @@ def summary(r: dict) -> str:
         late = m.get("uncontrolled_ticks")
         lines.insert(-1, f"  real-time factor {rtf:.2f}" + (f"; {late} of {m.get('ticks')} ticks without a live "
                                                              "controller command" if late else ""))
+    if r.get("bag_missing_stamps"):
+        lines.append(f"  the bag misses {r['bag_missing_stamps']} stamps of periodic topics: {r['bag_holes']} "
+                     "(`humfall bag info`)")
     if r.get("plots"):
         lines.append(f"  plots: {', '.join(pathlib.Path(p).name for p in r['plots'])}")
     return "\n".join(lines)

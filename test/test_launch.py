@@ -111,3 +111,15 @@ def test_sim_reset_mid_run_restarts_the_whole_lockstep_suite(in_ros_domain, tmp_
     assert r["sim_duration_s"] == 2.0 and r["fell"] is False
     ticks = r["metrics"]["published"]["/joint_states"]
     assert ticks >= 1000 + 500  # ~1 s before the reset and the whole 2 s after it
+
+
+def test_the_run_summary_names_a_bag_with_holes():
+    """`humfall up` prints when its bag misses stamps of a periodic topic, and stays quiet when it does not."""
+    from humfall_ros.launch import summary
+
+    r = {"scenario": "standing_quiet", "controller": "none", "fell": False, "fall_direction_deg": None,
+         "avoidance_angle_deg": None, "min_target_distance_m": None, "sim_duration_s": 2.0, "wall_time_s": 3.0,
+         "bag": "runs/x/bag.mcap", "metrics": {}, "plots": [], "bag_missing_stamps": 0, "bag_holes": {}}
+    assert "misses" not in summary(r)
+    r.update(bag_missing_stamps=29, bag_holes={"/joint_states": 29})
+    assert "the bag misses 29 stamps of periodic topics: {'/joint_states': 29}" in summary(r)

@@ -88,6 +88,7 @@ def test_up_standing_push_falls_onto_the_target_and_records_everything(run_up):
     for topic in ("/clock", "/joint_states", "/imu", "/mux/state", "/centroidal_state", "/joint_command/locomotion"):
         assert holes[topic][0] == 0 and holes[topic][1] == pytest.approx(0.002), (topic, holes[topic])
     assert "holes:     none on" in info.stdout
+    assert r["bag_missing_stamps"] == 0 and r["bag_holes"] == {}   # the run's result says the same
     out = pathlib.Path(r["bag"]).parent / "replot"
     plot = subprocess.run(cli + ["plot", r["bag"], "--out", str(out)], capture_output=True, text=True, timeout=120)
     assert plot.returncode == 0 and sorted(p.name for p in out.glob("*.png"))
