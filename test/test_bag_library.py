@@ -243,7 +243,8 @@ def test_bag_info_counts_the_holes_of_periodic_stamped_topics(tmp_path):
 
 
 def test_stamp_helpers():
-    from humfall_ros.recording.reader import leads_with_stamp, missing_stamps, stamp_ns
+    from humfall_ros.recording.cdr import leading_stamp_ns as stamp_ns
+    from humfall_ros.recording.reader import leads_with_stamp, missing_stamps
 
     log = "uint8 DEBUG=10 # debug\nuint8 INFO = 20\n\nbuiltin_interfaces/Time stamp\nuint8 level\n"
     assert leads_with_stamp(log)                                    # constants and comments skipped

@@ -41,9 +41,8 @@ QOS_TICK_WRITER = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
 # Events (fall_event, decisions, plans): late joiners get the last one.
 QOS_LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
-# /clock's writer: as QOS_TICK_WRITER (rclpy's time source subscribes with its own QoS).
-QOS_CLOCK = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+# /clock's writer is a per-tick writer too (rclpy's time source subscribes with its own QoS).
+QOS_CLOCK = QOS_TICK_WRITER
 
 
 def load_node_defaults(node_name: str) -> dict[str, Any]:

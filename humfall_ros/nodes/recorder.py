@@ -50,7 +50,6 @@ import datetime
 import importlib
 import pathlib
 import re
-import struct
 import time
 from typing import Any
 
@@ -60,6 +59,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from humfall_ros.nodes.common import HotLoop, Params, run_node
+from humfall_ros.recording.cdr import leading_stamp_ns
 from humfall_ros.recording.schema import SchemaError, split_type_name
 from humfall_ros.recording.writer import BAG_FILE, STATS_FILE, BagWriter
 
@@ -207,10 +207,10 @@ class Recorder(Node):
             return
         try:
             if self.clock_mode == "sim":
-                if cid == self._clock_cid and len(data) >= 12:
-                    # rosgraph_msgs/Clock in CDR: 4-byte encapsulation, int32 sec, uint32 nanosec
-                    sec, nanosec = struct.unpack_from("<iI" if data[1] == 1 else ">iI", data, 4)
-                    self._sim_now_ns = sec * 1_000_000_000 + nanosec
+                if cid == self._clock_cid:
+                    now = leading_stamp_ns(data)   # rosgraph_msgs/Clock
+                    if now is not None:
+                        self._sim_now_ns = now
                 # the last /clock this recorder took, not the node clock: that one is only
                 # updated between drains and could run ahead of or behind the messages
                 log_time = self._sim_now_ns if self._sim_now_ns is not None else self.get_clock().now().nanoseconds

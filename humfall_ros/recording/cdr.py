@@ -45,6 +45,15 @@ class UnsupportedType(TypeError):
     """A field type this decoder does not handle (e.g. wstring); use rclpy's deserialisation."""
 
 
+def leading_stamp_ns(data: bytes) -> int | None:
+    """The ``builtin_interfaces/Time`` a CDR message begins with (a header's stamp, ``rosgraph_msgs/Clock``), in ns:
+    after the 4-byte encapsulation an int32 sec and a uint32 nanosec. None if too short or not plain CDR."""
+    if len(data) < 12 or data[0] != 0 or data[1] not in (0, 1):
+        return None
+    sec, nanosec = struct.unpack_from("<iI" if data[1] == 1 else ">iI", data, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
 def decoder(msg_class: type) -> Callable[[Any], Any]:
     """``decode(data) -> SimpleNamespace`` for serialized messages of ``msg_class`` (bytes or a buffer).
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import os
 import pathlib
-import struct
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Iterator
 
@@ -24,6 +23,7 @@ from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
+from humfall_ros.recording.cdr import leading_stamp_ns
 from humfall_ros.recording.writer import BAG_FILE
 
 
@@ -170,14 +170,6 @@ def leads_with_stamp(schema_text: str) -> bool:
     return False
 
 
-def stamp_ns(data: bytes) -> int | None:
-    """The stamp (sec, nanosec) a CDR message begins with, in ns; None if too short or not CDR."""
-    if len(data) < 12 or data[0] != 0 or data[1] not in (0, 1):
-        return None
-    sec, nsec = struct.unpack("<iI" if data[1] == 1 else ">iI", data[4:12])
-    return sec * 1_000_000_000 + nsec
-
-
 def missing_stamps(stamps: Iterable[int], min_stamps: int = 10,
                    regular_fraction: float = 0.9) -> tuple[int | None, float | None]:
     """Holes in a periodic stamped topic: (stamps missing, period in s) from the distinct stamps.
@@ -203,7 +195,7 @@ def bag_info(path: str | os.PathLike) -> dict[str, Any]:
 
     Times are the bag's log times (see the recorder: sim time when ``/clock`` runs). For topics whose messages
     begin with a stamp and come at a regular period (the per-tick topics), ``missing_stamps`` counts the holes
-    between the first and the last stamp (``missing_stamps``), with ``stamp_period_s``; None elsewhere.
+    between the first and the last stamp, with ``stamp_period_s``; None elsewhere.
     """
     bag = resolve_bag(path)
     scan = ScanResult()
@@ -211,23 +203,29 @@ def bag_info(path: str | os.PathLike) -> dict[str, Any]:
     for raw in iter_raw(bag, scan=scan):
         t = per.get(raw.channel_id)
         if t is None:
+            # the channel and its schema precede its first message: read stamps only where the type leads with one
+            ch = scan.channels.get(raw.channel_id)
+            sch = scan.schemas.get(ch.schema_id) if ch is not None else None
+            stamped = (sch is not None and sch.encoding == "ros2msg"
+                       and leads_with_stamp(sch.data.decode(errors="replace")))
             t = per[raw.channel_id] = {"count": 0, "first_ns": raw.log_time, "last_ns": raw.log_time,
-                                       "stamps": []}
+                                       "stamps": [] if stamped else None}
         t["count"] += 1
         t["first_ns"] = min(t["first_ns"], raw.log_time)
         t["last_ns"] = max(t["last_ns"], raw.log_time)
-        st = stamp_ns(raw.data)
-        if st is not None:
-            t["stamps"].append(st)
+        if t["stamps"] is not None:
+            st = leading_stamp_ns(raw.data)
+            if st is not None:
+                t["stamps"].append(st)
     topics: dict[str, dict[str, Any]] = {}
     stamps: dict[str, list[int]] = {}
     for cid, ch in scan.channels.items():
         sch = scan.schemas.get(ch.schema_id)
-        t = per.get(cid, {"count": 0, "first_ns": None, "last_ns": None, "stamps": []})
+        t = per.get(cid, {"count": 0, "first_ns": None, "last_ns": None, "stamps": None})
         entry = topics.setdefault(ch.topic, {"topic": ch.topic, "type": sch.name if sch else "",
                                              "count": 0, "first_ns": None, "last_ns": None})
         entry["count"] += t["count"]
-        if sch is not None and sch.encoding == "ros2msg" and leads_with_stamp(sch.data.decode(errors="replace")):
+        if t["stamps"] is not None:
             stamps.setdefault(ch.topic, []).extend(t["stamps"])
         for k, fn in (("first_ns", min), ("last_ns", max)):
             if t[k] is not None:
