@@ -242,9 +242,40 @@ def test_bag_info_counts_the_holes_of_periodic_stamped_topics(tmp_path):
     assert "holes:     4 stamps missing on 1 of 2 periodic stamped topics" in out.getvalue()
 
 
+def test_bag_info_rates_by_the_stamps_where_messages_carry_them(tmp_path):
+    """A recorder that fell behind logs a burst at its own (late) clock: the log-time rate reads high, the rate by
+    the messages' stamps stays the publisher's; ``humfall bag info`` prints the latter where there is one."""
+    from builtin_interfaces.msg import Time
+    from geometry_msgs.msg import PointStamped
+    from std_msgs.msg import String
+
+    w = BagWriter(tmp_path / "bag.mcap", metadata={"log_time_clock": "sim"})
+    com = w.add_topic("/com", "geometry_msgs/msg/PointStamped")
+    text = w.add_topic("/chatter", "std_msgs/msg/String")
+    for i in range(500):                               # 500 Hz for 1 s by the stamps
+        ns = 10**9 + i * 2_000_000
+        log_ns = ns if i < 250 else 10**9 + 500_000_000 + (i - 250) * 400_000   # the second half drained in 0.1 s
+        msg = PointStamped()
+        msg.header.stamp = Time(sec=ns // 10**9, nanosec=ns % 10**9)
+        w.write(com, serialize_message(msg), log_ns)
+        w.write(text, serialize_message(String(data=f"{i}")), ns)
+    w.close()
+
+    topics = {t["topic"]: t for t in bag_info(tmp_path)["topics"]}
+    assert topics["/com"]["rate_hz"] > 800                             # by log time: 499 in 0.6 s
+    assert topics["/com"]["stamp_rate_hz"] == pytest.approx(500.0)
+    assert topics["/com"]["missing_stamps"] == 0
+    assert topics["/chatter"]["stamp_rate_hz"] is None                 # no stamp: the log-time rate
+    out = io.StringIO()
+    assert info_main(tmp_path / "bag.mcap", out=out) == 0
+    rows = {line.split()[0]: line.split() for line in out.getvalue().splitlines() if line.startswith("/")}
+    assert rows["/com"][3] == "500.0"
+    assert rows["/chatter"][3] == "500.0"
+
+
 def test_stamp_helpers():
     from humfall_ros.recording.cdr import leading_stamp_ns as stamp_ns
-    from humfall_ros.recording.reader import leads_with_stamp, missing_stamps
+    from humfall_ros.recording.reader import leads_with_stamp, missing_stamps, stamp_rate_hz
 
     log = "uint8 DEBUG=10 # debug\nuint8 INFO = 20\n\nbuiltin_interfaces/Time stamp\nuint8 level\n"
     assert leads_with_stamp(log)                                    # constants and comments skipped
@@ -261,3 +292,5 @@ def test_stamp_helpers():
     assert missing_stamps([0, 0] + holed) == (3, pytest.approx(1e-8))   # unset stamps are not times
     assert missing_stamps(range(0, 90, 10)) == (None, None)          # fewer than 10 stamps
     assert missing_stamps([0, 10, 20, 30, 31, 32, 45, 80, 81, 200, 900]) == (None, None)   # not periodic
+    assert stamp_rate_hz([0, 10**9, 2 * 10**9, 3 * 10**9]) == pytest.approx(1.0)   # the unset stamp left out
+    assert stamp_rate_hz([0, 5]) is None and stamp_rate_hz([7, 7]) is None

@@ -190,12 +190,25 @@ def missing_stamps(stamps: Iterable[int], min_stamps: int = 10,
     return int(np.sum(k[k > 1] - 1)), period * 1e-9
 
 
+def stamp_rate_hz(stamps: Iterable[int]) -> float | None:
+    """Messages per second of the messages' own stamps (unset stamps of 0 left out): (count - 1) / stamp span.
+    A log-time rate reads high for a recorder that fell behind and drained later (its log times are the /clock it
+    had then); the stamps say when the messages were made."""
+    t = np.fromiter(stamps, dtype=np.int64)
+    t = t[t > 0]
+    if len(t) < 2:
+        return None
+    span = float(t.max() - t.min()) * 1e-9
+    return (len(t) - 1) / span if span > 0 else None
+
+
 def bag_info(path: str | os.PathLike) -> dict[str, Any]:
     """Per-topic counts, types, times and rates; works on finalized and cut-off bags.
 
     Times are the bag's log times (see the recorder: sim time when ``/clock`` runs). For topics whose messages
     begin with a stamp and come at a regular period (the per-tick topics), ``missing_stamps`` counts the holes
-    between the first and the last stamp, with ``stamp_period_s``; None elsewhere.
+    between the first and the last stamp, with ``stamp_period_s``; None elsewhere. ``stamp_rate_hz`` is the rate by
+    the messages' stamps for every topic whose type leads with one (``rate_hz``: by log time).
     """
     bag = resolve_bag(path)
     scan = ScanResult()
@@ -234,6 +247,7 @@ def bag_info(path: str | os.PathLike) -> dict[str, Any]:
         span = (e["last_ns"] - e["first_ns"]) * 1e-9 if e["count"] else 0.0
         e["duration_s"] = span
         e["rate_hz"] = (e["count"] - 1) / span if e["count"] > 1 and span > 0 else None
+        e["stamp_rate_hz"] = stamp_rate_hz(stamps.get(e["topic"], []))
         e["missing_stamps"], e["stamp_period_s"] = missing_stamps(stamps.get(e["topic"], []))
     starts = [e["first_ns"] for e in topics.values() if e["first_ns"] is not None]
     ends = [e["last_ns"] for e in topics.values() if e["last_ns"] is not None]

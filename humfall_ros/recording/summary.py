@@ -49,11 +49,14 @@ def format_info(info: dict[str, Any]) -> str:
         _holes(info),
         "",
     ]
+    # the rate by the messages' own stamps where they carry one (a recorder that fell behind logs late), else by
+    # log time
     rows = [("topic", "type", "count", "rate Hz", "first s", "last s", "missing")]
     for t in info["topics"]:
         missing = t.get("missing_stamps")
+        rate = t.get("stamp_rate_hz") or t["rate_hz"]
         rows.append((t["topic"], t["type"], str(t["count"]),
-                     "-" if t["rate_hz"] is None else f"{t['rate_hz']:.1f}",
+                     "-" if rate is None else f"{rate:.1f}",
                      _secs(t["first_ns"]), _secs(t["last_ns"]), "-" if missing is None else str(missing)))
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     for k, r in enumerate(rows):
