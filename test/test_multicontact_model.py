@@ -292,3 +292,22 @@ def test_post_impact_speed_fraction_scales_the_eq6_bounds_of_the_impact_state_on
     np.testing.assert_allclose(lp[oi + 3:oi + n], -0.5 * np.asarray(model.v_max))
     a, b = full.knot_slices[2]
     np.testing.assert_array_equal(up[a:b], uf[a:b])             # a knot's bounds unchanged
+
+
+@pytest.mark.parametrize("limbs, scaled", [("all", {"LH", "LF"}), ("feet", {"LF"}), ("hands", {"LH"})])
+def test_post_impact_speed_fraction_limbs_picks_the_landings_it_bounds(model, limbs, scaled):
+    """post_impact_speed_fraction_limbs (session 30): the fraction bounds the post-impact velocities of the landings
+    of the named limbs only; the others keep eq. 6's URDF limits."""
+    q0 = nominal_configuration(model)
+    env = Environment()
+    cfg = OptConfig(post_impact_speed_fraction=0.5, post_impact_speed_fraction_limbs=limbs)
+    n = model.n
+    for mode, limb in ((("LF", "RF"), "LH"), (("RF",), "LF")):
+        v0 = velocity_for_energy(model, q0, mode, 20.0, 1.0, env)
+        nlp = TrajectoryOptimizer(model, cfg).nlp(StructureKey("add", mode, limb, False, cfg.n_knots))
+        oi = 1 + cfg.n_knots * nlp.nk
+        ub = nlp.bounds(q0, v0, env)[1]
+        expected = 0.5 if limb in scaled else 1.0
+        np.testing.assert_allclose(ub[oi + 3:oi + n], expected * np.asarray(model.v_max), err_msg=f"{limbs} {limb}")
+    with pytest.raises(ValueError, match="post_impact_speed_fraction_limbs"):
+        OptConfig(post_impact_speed_fraction_limbs="arms")

@@ -56,6 +56,7 @@ from humfall_ros.multicontact.modes import (
 )
 
 TRANSITION_OBJECTIVES = ("pre_impact", "post_impact")
+POST_IMPACT_SPEED_LIMBS = ("all", "feet", "hands")
 
 
 def set_blas_threads(n: int) -> bool:
@@ -120,6 +121,9 @@ class OptConfig:
     # ... at this fraction of the limits (departure when < 1): a child that starts at a joint's speed limit next to
     # its position limit cannot brake it (the 60 / 80 J hand nodes, session 25)
     post_impact_speed_fraction: float = 1.0
+    # ... for the landings of these limbs only ('all', 'feet' or 'hands'): from one foot, 0.8 on the feet only plans
+    # 70 J (a step, then the rear foot lifted) and keeps the wall's hand (0.8 on every limb loses it: session 30)
+    post_impact_speed_fraction_limbs: str = "all"
     # rad, upper elbow bound -elbow_margin (URDF: 0, the straight arm); 0.1 measured worse
     elbow_margin: float = 0.0
     contact_pos_tol: float = 0.002   # m, eq. 3 at the knots (drift bound)
@@ -179,8 +183,20 @@ class OptConfig:
         if self.transition_objective not in TRANSITION_OBJECTIVES:
             raise ValueError(f"transition_objective {self.transition_objective!r} is not one of "
                              f"{', '.join(TRANSITION_OBJECTIVES)}")
+        if self.post_impact_speed_fraction_limbs not in POST_IMPACT_SPEED_LIMBS:
+            raise ValueError(f"post_impact_speed_fraction_limbs {self.post_impact_speed_fraction_limbs!r} is not "
+                             f"one of {', '.join(POST_IMPACT_SPEED_LIMBS)}")
         self.seed_retry_durations = tuple(float(x) for x in self.seed_retry_durations)
         self.release_seed_durations = tuple(float(x) for x in self.release_seed_durations if float(x) > 0)
+
+    def post_impact_speed_limit_factor(self, extremity: str) -> float:
+        """Fraction of the URDF's joint speed limits that bounds the post-impact velocities of a landing of
+        ``extremity`` (eq. 6 on the state eq. 10 gives): ``post_impact_speed_fraction`` for the limbs
+        ``post_impact_speed_fraction_limbs`` names, 1 (eq. 6 as it is) for the others."""
+        limbs = self.post_impact_speed_fraction_limbs
+        if limbs == "all" or (extremity in FEET) == (limbs == "feet"):
+            return self.post_impact_speed_fraction
+        return 1.0
 
     @staticmethod
     def from_params(d: dict) -> OptConfig:
@@ -622,7 +638,7 @@ class SegmentNLP:
             # left the child up to 2.6 v_max, and the child's NLPs could not
             # converge from a start outside their own bounds)
             if cfg.post_impact_velocity_limits:
-                vmax = cfg.post_impact_speed_fraction * np.asarray(model.v_max, float)
+                vmax = cfg.post_impact_speed_limit_factor(key.extremity) * np.asarray(model.v_max, float)
                 lbx[oi + 3:oi + n], ubx[oi + 3:oi + n] = -vmax, vmax
         if key.change == "remove":
             # the released contact carries no force at the end (mode sigma_j dynamics)
