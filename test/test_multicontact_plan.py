@@ -18,6 +18,9 @@ from humfall_ros.multicontact.resim import dense_check, forward_resim, plan_chec
 # DEPARTURE: the planner before issue 14, kept as an option (humfall_ros.multicontact.planner)
 # the defaults of sessions 6-10: the paper's objective with the 'mechanical' key, no step options
 SESSION6 = {"frontier_order": "mechanical", **NO_STEP_OPTIONS}
+# the seed durations tried until session 30 (0.8 s first); the defaults now increase from T_min (Sec. III-D)
+SEED_ORDER_UNTIL_SESSION_30 = {"seed_first_duration": 0.8, "seed_retry_durations": [0.5, 1.2, 0.25, 2.0],
+                               "release_seed_durations": [0.0]}
 
 
 @pytest.fixture(scope="module")
@@ -94,18 +97,24 @@ def test_invalid_request_answers_without_planning(planner):
 
 def test_seed_durations_first_then_retry_list_on_the_grid():
     from humfall_ros.multicontact.collocation import OptConfig
-    cfg = OptConfig(seed_first_duration=0.8, seed_retry_durations=(0.5, 1.2, 0.25, 2.0), max_seed_attempts=3)
+    order = {"seed_first_duration": 0.8, "seed_retry_durations": (0.5, 1.2, 0.25, 2.0)}   # the order until session 30
+    cfg = OptConfig(**order, max_seed_attempts=3)
     grid = np.linspace(cfg.t_min, cfg.t_max, cfg.n_seed_durations)
     d = cfg.seed_durations()
     assert len(d) == 3 and d[0] == pytest.approx(0.8333, abs=1e-3)
     assert all(np.min(np.abs(grid - x)) < 1e-12 for x in d)      # on the N_tot grid (Sec. III-D)
     assert len(set(d)) == len(d)
-    assert OptConfig(max_seed_attempts=1).seed_durations() == d[:1]
+    assert OptConfig(**order, max_seed_attempts=1).seed_durations() == d[:1]
     # a release has its own T_min and seeds
-    rel = OptConfig(release_t_min=0.05, release_seed_durations=(0.1, 0.25, 0.0))
+    rel = OptConfig(**order, release_t_min=0.05, release_seed_durations=(0.1, 0.25, 0.0))
     dr = rel.seed_durations("remove")
     assert len(dr) == 2 and dr[0] == pytest.approx(0.1, abs=0.05) and min(dr) >= 0.05
     assert rel.seed_durations("add") == d and rel.t_min_of("remove") == 0.05 and rel.t_min_of("add") == 0.25
+    # the defaults (session 30): increasing from T_min, as Sec. III-D; a release from its own T_min
+    dflt = OptConfig()
+    for change, t_min in (("add", dflt.t_min), ("", dflt.t_min), ("remove", dflt.release_t_min)):
+        seeds = dflt.seed_durations(change)
+        assert seeds[0] == pytest.approx(t_min) and seeds == sorted(seeds) and len(seeds) == dflt.max_seed_attempts
 
 
 def test_60J_hand_landing_keeps_post_impact_joint_speeds_within_limits(departure_planner):
@@ -237,7 +246,10 @@ def test_library_replan_reuses_a_stored_plan_warm(tmp_path):
     the 1.2 s seed ends at 1.26 J (measured), which is the library's answer to fall back on,
     not a fault of the re-plan."""
     from humfall_ros.multicontact.library import LibraryEntry, PlanLibrary
-    planner = FallPlanner.from_params(nlp_max_wall_time=120.0)   # the machine may be shared: no wall-time cut
+    # the machine may be shared: no wall-time cut; the stored plan from the 0.8 s seed (the seed order until
+    # session 30), whose warm re-plans these figures were measured on: from the T_min seed's 10 J plan the
+    # primal-only re-plan ends above eps_KE (the multipliers' one still at rest)
+    planner = FallPlanner.from_params(nlp_max_wall_time=120.0, **SEED_ORDER_UNTIL_SESSION_30)
     plan10 = planner.plan({"kinetic_energy": 10.0, "direction": 1.0, "time_budget": 600.0})
     assert plan10["success"], plan10["reason"]
     lib = PlanLibrary([LibraryEntry(10.0, 1.0, 0.0, plan10["contact_sequence"], plan10["segments"])])
@@ -358,8 +370,9 @@ def test_library_file_checks(tmp_path):
 def test_warm_solve_from_its_own_solution_with_multipliers_takes_few_iterations():
     """A solved segment re-solved from its own start: with its multipliers IPOPT starts at the optimum
     (warm_start_init_point) and stops within a few iterations; primal only it pushes the point into
-    the interior and walks back (session 25: the 20 J step's segments 23-58 iterations)."""
-    planner = FallPlanner.from_params(nlp_max_wall_time=120.0)
+    the interior and walks back (session 25: the 20 J step's segments 23-58 iterations). The segment is the 0.8 s
+    seed's (the seed order until session 30); the T_min seed's 10 J stop takes 9 iterations warm, 10 primal only."""
+    planner = FallPlanner.from_params(nlp_max_wall_time=120.0, **SEED_ORDER_UNTIL_SESSION_30)
     r = planner.plan({"kinetic_energy": 10.0, "direction": 1.0, "time_budget": 600.0})
     assert r["success"], r["reason"]
     seg = r["segments"][0]
@@ -425,3 +438,16 @@ def test_from_one_foot_40J_is_stopped_by_one_protective_step(planner):
     lf_toe_x = planner.model.point("LF_toe", last.q[0])[0]
     rf_toe_x = planner.model.point("RF_toe", last.q[0])[0]
     assert lf_toe_x > rf_toe_x + 0.1
+
+
+def test_wall_40J_lands_a_hand_on_the_wall_below_the_push_energy(planner):
+    """The wall case (paper 2, Fig. 4: two feet, a wall 0.8 m ahead) with the defaults: one hand on the wall, within
+    the landing limits and arriving with less than the push's 40 J (issue 14's goal; session 30's seeds of
+    increasing duration: 1.07 m/s, 38.1 J; with the 0.8 s first seed 1.50 m/s and 42.0 J), then at rest."""
+    r = planner.plan({"kinetic_energy": 40.0, "direction": 1.0, "wall_distance": 0.8, "time_budget": 120.0})
+    assert r["success"], r["reason"]
+    assert r["final_ke"] < planner.opt.cfg.eps_ke
+    (landing,) = r["landings"]
+    assert landing.limb in ("LH", "RH") and landing.surface == "wall" and landing.within_limits
+    assert landing.normal_speed <= planner.opt.cfg.landing_limits.hand_normal_speed_max + 1e-6
+    assert landing.pre_impact_ke <= 40.0

@@ -88,10 +88,13 @@ class OptConfig:
     t_max: float = 3.5            # T_max (s)
     n_seed_durations: int = 40    # N_tot: seed duration grid over [T_min, T_max]
     max_seed_attempts: int = 3    # seeds tried per NLP call (first one, then the retry list)
-    seed_first_duration: float = 0.8  # the first seed tried (T is a variable anyway)
+    # the first seed tried: T_min, as Sec. III-D (seeds of increasing duration; T is a variable anyway). Until
+    # session 30 0.8 s first, then 0.5, 1.2: from one foot 70 / 80 J found no plan, from two feet 40-80 J
+    seed_first_duration: float = 0.25
     # seeds tried, in this order, after the first when it fails or ends above
-    # the starting energy (snapped to the N_tot grid over [T_min, T_max])
-    seed_retry_durations: tuple = (0.5, 1.2, 0.25, 2.0)
+    # the starting energy (snapped to the N_tot grid over [T_min, T_max]); increasing as the paper's, spaced
+    # wider than its 40-point grid since at most max_seed_attempts are tried
+    seed_retry_durations: tuple = (0.5, 0.8, 1.2, 2.0)
     # a converged contact-adding transition whose objective ends above the
     # kinetic energy it started with is a poor local optimum (another seed of
     # the same NLP often lands softly): try the next seed too, keep the best
@@ -146,8 +149,9 @@ class OptConfig:
     # energy) prefers braking on both feet as long as T allows, so the step comes late; from one foot, where a
     # step is a single landing, the same planner steps at 30-60 J in 2-10 s
     release_t_max: float = 0.0
-    # seed durations of a release (s; values <= 0 dropped; empty: the general list). Tried in order.
-    release_seed_durations: tuple = ()
+    # seed durations of a release (s; values <= 0 dropped; empty: the general list). Tried in order: increasing
+    # from the release's T_min, as the general list from T_min (session 30)
+    release_seed_durations: tuple = (0.1, 0.25, 0.5)
     # foot landing seeds: the seed goal puts the landing foot's toe this far past
     # the capture point of the pushed state (m; nan: the paper's seed, the goal
     # projection alone decides)
