@@ -97,7 +97,7 @@ def test_invalid_request_answers_without_planning(planner):
 
 def test_seed_durations_first_then_retry_list_on_the_grid():
     from humfall_ros.multicontact.collocation import OptConfig
-    order = {"seed_first_duration": 0.8, "seed_retry_durations": (0.5, 1.2, 0.25, 2.0)}   # the order until session 30
+    order = SEED_ORDER_UNTIL_SESSION_30
     cfg = OptConfig(**order, max_seed_attempts=3)
     grid = np.linspace(cfg.t_min, cfg.t_max, cfg.n_seed_durations)
     d = cfg.seed_durations()
@@ -106,7 +106,7 @@ def test_seed_durations_first_then_retry_list_on_the_grid():
     assert len(set(d)) == len(d)
     assert OptConfig(**order, max_seed_attempts=1).seed_durations() == d[:1]
     # a release has its own T_min and seeds
-    rel = OptConfig(**order, release_t_min=0.05, release_seed_durations=(0.1, 0.25, 0.0))
+    rel = OptConfig(**{**order, "release_seed_durations": (0.1, 0.25, 0.0)}, release_t_min=0.05)
     dr = rel.seed_durations("remove")
     assert len(dr) == 2 and dr[0] == pytest.approx(0.1, abs=0.05) and min(dr) >= 0.05
     assert rel.seed_durations("add") == d and rel.t_min_of("remove") == 0.05 and rel.t_min_of("add") == 0.25

@@ -170,6 +170,12 @@ def leads_with_stamp(schema_text: str) -> bool:
     return False
 
 
+def _set_stamps(stamps: Iterable[int]) -> np.ndarray:
+    """The stamps as ns, without the 0 of a header nobody filled in (not a time)."""
+    t = np.fromiter(stamps, dtype=np.int64)
+    return t[t > 0]
+
+
 def missing_stamps(stamps: Iterable[int], min_stamps: int = 10,
                    regular_fraction: float = 0.9) -> tuple[int | None, float | None]:
     """Holes in a periodic stamped topic: (stamps missing, period in s) from the distinct stamps.
@@ -178,8 +184,7 @@ def missing_stamps(stamps: Iterable[int], min_stamps: int = 10,
     ``regular_fraction`` of its steps are that period (within 1 %), else (events, or fewer than ``min_stamps``
     stamps) (None, None). Stamps of 0 (unset headers) are left out. A step of k periods is k - 1 missing stamps
     (a message the recorder never got, or a tick its publisher skipped)."""
-    t = np.unique(np.fromiter(stamps, dtype=np.int64))
-    t = t[t > 0]   # a stamp of 0 is a header nobody filled in, not a time
+    t = np.unique(_set_stamps(stamps))
     if len(t) < min_stamps:
         return None, None
     d = np.diff(t)
@@ -194,8 +199,7 @@ def stamp_rate_hz(stamps: Iterable[int]) -> float | None:
     """Messages per second of the messages' own stamps (unset stamps of 0 left out): (count - 1) / stamp span.
     A log-time rate reads high for a recorder that fell behind and drained later (its log times are the /clock it
     had then); the stamps say when the messages were made."""
-    t = np.fromiter(stamps, dtype=np.int64)
-    t = t[t > 0]
+    t = _set_stamps(stamps)
     if len(t) < 2:
         return None
     span = float(t.max() - t.min()) * 1e-9
@@ -247,8 +251,9 @@ def bag_info(path: str | os.PathLike) -> dict[str, Any]:
         span = (e["last_ns"] - e["first_ns"]) * 1e-9 if e["count"] else 0.0
         e["duration_s"] = span
         e["rate_hz"] = (e["count"] - 1) / span if e["count"] > 1 and span > 0 else None
-        e["stamp_rate_hz"] = stamp_rate_hz(stamps.get(e["topic"], []))
-        e["missing_stamps"], e["stamp_period_s"] = missing_stamps(stamps.get(e["topic"], []))
+        st = stamps.get(e["topic"], [])
+        e["stamp_rate_hz"] = stamp_rate_hz(st)
+        e["missing_stamps"], e["stamp_period_s"] = missing_stamps(st)
     starts = [e["first_ns"] for e in topics.values() if e["first_ns"] is not None]
     ends = [e["last_ns"] for e in topics.values() if e["last_ns"] is not None]
     start, end = (min(starts), max(ends)) if starts else (None, None)
