@@ -124,20 +124,20 @@ def test_client_reports_missing_service(in_ros_domain):
 
 
 def test_plan_fall_from_the_shipped_library(ros_env, in_ros_domain, tmp_path):
-    """The node with ``library_file`` (the shipped forward library): a 22 J request is answered by a
+    """The node with ``library_file`` (the shipped library): a 21 J request is answered by a
     warm re-plan of the 20 J entry (no tree), a NaN request still gets its reason, the client prints
     the answer's figures (no tree figure), and the node keeps serving."""
     with planner_node(ros_env, "library_file:=multicontact_library/standing_pushes.json.gz") as proc:
         run = [sys.executable, "-c", "import sys; from humfall_ros.nodes.plan_fall_client import main; "
                "sys.exit(main(sys.argv[1:]))", "--wait", "60", "--json"]
-        out = subprocess.run(run + ["--ke", "22", "--plots", str(tmp_path)], env=in_ros_domain,
+        out = subprocess.run(run + ["--ke", "21", "--plots", str(tmp_path)], env=in_ros_domain,
                              capture_output=True, text=True, timeout=180)
         assert out.returncode == 0, out.stdout + out.stderr
         d = json.loads(out.stdout)
         assert d["success"] and "re-solved library plan for 20 J" in d["reason"], d["reason"]
         assert d["tree_nodes"] == 0 and d["final_ke"] < 0.1 and len(d["contact_sequence"]) >= 1
         assert d["nlp_count"] == len(d["nlp_times_s"]) == len(d["contact_sequence"])
-        assert sorted(pathlib.Path(f).name for f in d["plots"]) == ["plan_22J_ke.png", "plan_22J_sticks.png"]
+        assert sorted(pathlib.Path(f).name for f in d["plots"]) == ["plan_21J_ke.png", "plan_21J_sticks.png"]
         out = subprocess.run(run + ["--ke", "nan"], env=in_ros_domain, capture_output=True, text=True, timeout=60)
         assert out.returncode == 1 and "not a finite" in json.loads(out.stdout)["reason"]
         assert proc.poll() is None, "node died"

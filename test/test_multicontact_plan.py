@@ -303,21 +303,23 @@ SHIPPED_LIBRARY = "multicontact_library/standing_pushes.json.gz"
 def test_planner_answers_from_the_shipped_library_and_searches_beyond_it():
     """``library_file``: a request near an entry of its direction and wall is re-solved warm from it (no
     tree); one further than ``library_max_ke_gap`` from every such entry goes to the tree search, which
-    says so. The shipped library: forward 10-35 J, backward 15-35 J, a wall at 0.6 / 0.8 / 1.0 m."""
+    says so. The shipped library (session 31): forward 10-47.5 J every 2.5 J, backward 10-35 J every 5 J, a
+    wall at 0.6-1.0 m every 0.1 m."""
     planner = FallPlanner.from_params(library_file=SHIPPED_LIBRARY, nlp_max_wall_time=120.0)
     grid = {(e.direction, e.wall_distance): [] for e in planner.library.entries}
     for e in planner.library.entries:
         grid[(e.direction, e.wall_distance)].append(e.kinetic_energy)
-    assert grid[(1.0, 0.0)] == [10.0, 15.0, 20.0, 25.0, 30.0, 35.0]
-    assert grid[(-1.0, 0.0)] == [15.0, 20.0, 25.0, 30.0, 35.0]
+    assert grid[(1.0, 0.0)] == [10.0 + 2.5 * i for i in range(16)]
+    assert grid[(-1.0, 0.0)] == [10.0, 15.0, 20.0, 25.0, 30.0, 35.0]
+    assert sorted({w for (_, w) in grid if w > 0}) == [0.6, 0.7, 0.8, 0.9, 1.0]
     assert grid[(1.0, 0.8)] == [20.0, 30.0, 40.0, 50.0]
-    r = planner.plan({"kinetic_energy": 22.0, "direction": 1.0})
+    r = planner.plan({"kinetic_energy": 21.0, "direction": 1.0})
     assert r["success"] and r["source"] == "library", r["reason"]
-    assert "library plan for 20 J" in r["reason"] and r["tree"] is None
-    entry = planner.library.nearest(22.0, 1.0, 0.0)
+    assert r["reason"].startswith("re-solved library plan for 20 J") and r["tree"] is None
+    entry = planner.library.nearest(21.0, 1.0, 0.0)
     assert entry.kinetic_energy == 20.0 and r["contact_sequence"] == entry.contact_sequence
-    assert r["final_ke"] < planner.opt.cfg.eps_ke and r["initial_ke"] == pytest.approx(22.0, rel=1e-6)
-    assert r["node_ke"][0] == pytest.approx(22.0, rel=1e-6) and len(r["segments"]) == len(r["node_ke"])
+    assert r["final_ke"] < planner.opt.cfg.eps_ke and r["initial_ke"] == pytest.approx(21.0, rel=1e-6)
+    assert r["node_ke"][0] == pytest.approx(21.0, rel=1e-6) and len(r["segments"]) == len(r["node_ke"])
     assert len(r["landings"]) == sum(s.change == "add" for s in r["segments"])
     # backward and with a wall: their own entries
     back = planner.plan({"kinetic_energy": 22.0, "direction": -1.0})
@@ -330,9 +332,37 @@ def test_planner_answers_from_the_shipped_library_and_searches_beyond_it():
     # (a short budget: only where the request went is asserted, not the search)
     far = planner.plan({"kinetic_energy": 60.0, "direction": 1.0, "time_budget": 0.5})
     assert far["source"] == "tree_search" and "no library entry within 5 J of 60.0 J" in far["library_attempt"]
-    low = planner.plan({"kinetic_energy": 5.0, "direction": -1.0, "time_budget": 0.5})
-    assert low["source"] == "tree_search" and "(nearest 15 J)" in low["library_attempt"]
+    low = planner.plan({"kinetic_energy": 4.0, "direction": -1.0, "time_budget": 0.5})
+    assert low["source"] == "tree_search" and "(nearest 10 J)" in low["library_attempt"]
 
+
+
+def test_library_replan_tries_the_next_entry_when_the_nearest_is_not_accepted():
+    """``library_max_entries``: a request whose nearest entry is not accepted is re-solved from the
+    next nearest within the gap before the tree search, and the answer says which entry failed and
+    why; with one entry allowed the same request fails with that entry's reason. The nearest here is
+    a copy of the shipped 20 J forward entry stored at 21 J but starting in another mode (RF), which
+    fails at once, so the next one (the real 20 J entry) is what gets solved."""
+    from humfall_ros.multicontact.library import LibraryEntry, PlanLibrary
+    planner = FallPlanner.from_params(library_file=SHIPPED_LIBRARY, nlp_max_wall_time=120.0)
+    real = next(e for e in planner.library.entries
+                if e.direction == 1.0 and e.wall_distance == 0.0 and e.kinetic_energy == 20.0)
+    spoiled = LibraryEntry(21.0, 1.0, 0.0, ["RF"] + real.contact_sequence[1:], real.segments)
+    lib = PlanLibrary([spoiled, real], planner.library.built_with)
+    req = {"kinetic_energy": 21.5, "direction": 1.0}
+    assert lib.ranked(21.5, 1.0, 0.0)[:2] == [spoiled, real]
+    one = lib.replan(planner, req, max_ke_gap=5.0, max_entries=1)
+    assert not one.success and one.reason == "21 J entry: library entry starts in RF, request in LF/RF"
+    two = lib.replan(planner, req, max_ke_gap=5.0, max_entries=2)
+    assert two.success and two.entry is real and two.final_ke < planner.opt.cfg.eps_ke, two.reason
+    assert two.reason.startswith("re-solved library plan for 20 J")
+    assert "(after 21 J entry: library entry starts in RF" in two.reason
+    assert len(two.nlp_times_s) == len(two.segments) == len(real.segments)
+    # the gap still bounds the entries tried: only the spoiled one is within 1 J of 21.5 J
+    near = lib.replan(planner, req, max_ke_gap=1.0, max_entries=2)
+    assert not near.success and near.reason.startswith("21 J entry:")
+    # the planner's default tries two
+    assert planner.cfg.library_max_entries == 2
 
 def test_library_file_checks(tmp_path):
     """A library built for other NLPs is refused when the planner is built (not at the first request);

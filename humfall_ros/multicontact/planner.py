@@ -76,6 +76,7 @@ class PlannerConfig:
     # is not accepted; "" = no library (the paper's Algorithm 1 for every request)
     library_file: str = ""
     library_max_ke_gap: float = 5.0   # J
+    library_max_entries: int = 2      # entries re-solved, nearest first, before the tree search
     stance: dict = dataclasses.field(default_factory=dict)
 
     @staticmethod
@@ -167,7 +168,8 @@ class FallPlanner:
             return failure(f"invalid request: {e}", time.perf_counter() - t0)
         attempt = None
         if self.library is not None:
-            rp = self.library.replan_valid(self, vr, max_ke_gap=self.cfg.library_max_ke_gap)
+            rp = self.library.replan_valid(self, vr, max_ke_gap=self.cfg.library_max_ke_gap,
+                                           max_entries=self.cfg.library_max_entries)
             if rp.success:
                 out = replan_dict(self.model, rp, vr)
                 out["total_time_s"] = time.perf_counter() - t0
