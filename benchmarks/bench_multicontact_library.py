@@ -2,7 +2,7 @@
 Prints one JSON object.
 
     python benchmarks/bench_multicontact_library.py [--library multicontact_library/standing_pushes.json.gz]
-        [--queries 12,14,17,19,22,24,27,29,32,34] [--direction 1] [--wall 0] [--repeats 2] [--set name=value,...]
+        [--queries 11,12,14,16,...,48,49] [--direction 1] [--wall 0] [--repeats 2] [--set name=value,...]
 
 The planner is the node's (config/multicontact_planner.yaml) with ``library_file`` set: each query is a
 ``FallPlanner.plan`` request, answered by a warm re-plan of the nearest entry (or, when that is not
@@ -29,7 +29,8 @@ from humfall_ros.params import parse_overrides  # noqa: E402
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--library", default="multicontact_library/standing_pushes.json.gz")
-    ap.add_argument("--queries", default="12,14,17,19,22,24,27,29,32,34")
+    ap.add_argument("--queries", default="11,12,14,16,17,19,21,24,26,29,31,34,36,39,41,44,46,48,49",
+                    help="request energies (J); the default: between the shipped forward entries, 10-47.5 J")
     ap.add_argument("--direction", type=float, default=1.0, help="of every query: +1 forward, -1 backward")
     ap.add_argument("--wall", type=float, default=0.0, help="of every query: wall distance (m; 0 = none)")
     ap.add_argument("--repeats", type=int, default=2, help="each query this many times (the median is kept)")
