@@ -63,7 +63,9 @@ def main(argv=None) -> int:
     times = [x["time_s"] for x in lib_rows]
     out = {"library": a.library, "direction": a.direction, "wall": a.wall,
            "entries": [(e.kinetic_energy, e.direction, e.wall_distance) for e in planner.library.entries],
-           "warm_start_multipliers": planner.opt.cfg.warm_start_multipliers, "warm_up_s": round(warm_up, 2),
+           "warm_start_multipliers": planner.opt.cfg.warm_start_multipliers,
+           "library_check": planner.cfg.library_check, "library_max_entries": planner.cfg.library_max_entries,
+           "warm_up_s": round(warm_up, 2),
            "queries": rows, "answered_from_library": f"{len(lib_rows)}/{len(rows)}",
            "within_1s": f"{sum(t <= 1.0 for t in times)}/{len(rows)}",
            "median_s": round(statistics.median(times), 3) if times else None,

@@ -12,8 +12,9 @@ no seed sweep, no tree; IPOPT starts from the stored solution's multipliers as w
 segment that then fails, or a last one that does not stop, is solved once more from the primal
 guess alone). Between segments the impact map of eq. 10 gives the
 post-impact state of an added contact, as in the tree. The re-plan is accepted
-when every segment converges and the last one ends below eps_KE; otherwise the
-caller falls back to the tree search (``FallPlanner.plan``).
+when every segment converges, the last one ends below eps_KE and (the planner's
+``library_check``) the plan passes the re-simulation check the tree applies;
+otherwise the caller falls back to the tree search (``FallPlanner.plan``).
 """
 from __future__ import annotations
 
@@ -162,7 +163,8 @@ class PlanLibrary:
         return sorted(cands, key=lambda e: (abs(e.kinetic_energy - kinetic_energy),
                                             abs(e.wall_distance - wall_distance)))
 
-    def replan(self, planner, req: dict, max_ke_gap: float = math.inf, max_entries: int = 1) -> Replan:
+    def replan(self, planner, req: dict, max_ke_gap: float = math.inf, max_entries: int = 1,
+               check_plan=None) -> Replan:
         """Re-solve the nearest entry's sequence from the request's state (see module doc; up to
         ``max_entries`` entries, nearest first, until one is accepted)."""
         t0 = time.perf_counter()
@@ -170,16 +172,18 @@ class PlanLibrary:
             vr = validate(planner.model, req, planner.cfg)
         except InvalidRequest as e:
             return Replan(False, f"invalid request: {e}", None, [], [], math.nan, time.perf_counter() - t0, [])
-        return self.replan_valid(planner, vr, max_ke_gap, t0, max_entries)
+        return self.replan_valid(planner, vr, max_ke_gap, t0, max_entries, check_plan)
 
     def replan_valid(self, planner, vr: ValidRequest, max_ke_gap: float = math.inf,
-                     t0: float | None = None, max_entries: int = 1) -> Replan:
+                     t0: float | None = None, max_entries: int = 1, check_plan=None) -> Replan:
         """``replan`` for a validated request. The entries are chosen by the request state's kinetic
         energy and the sign of its centre of mass's forward velocity (a request may give a state
         rather than an energy and a direction); none further than ``max_ke_gap`` J. Up to
         ``max_entries`` of them are re-solved, nearest first, until one is accepted (a warm re-solve
         can end in another local optimum than its entry's; a neighbour is ~0.5 s, the tree search
-        minutes); the result names every entry tried."""
+        minutes); the result names every entry tried. ``check_plan(segments) -> reason | None``: the
+        acceptance test of a re-plan besides convergence (the planner's re-simulation check, as the tree
+        applies it before it declares a node terminal)."""
         t0 = time.perf_counter() if t0 is None else t0
         model = planner.model
         ke = model.kinetic_energy(vr.q, vr.v)
@@ -196,6 +200,12 @@ class PlanLibrary:
         failed: list[str] = []
         for entry in tried:
             rp = self._replan_entry(planner, vr, entry, t0)
+            if rp.success and check_plan is not None:
+                why = check_plan(rp.segments)
+                if why:
+                    rp.success = False
+                    rp.reason += f"; rejected by the re-simulation check: {why}"
+                rp.time_s = time.perf_counter() - t0
             if rp.success:
                 break
             failed.append(f"{entry.kinetic_energy:g} J entry: {rp.reason}")

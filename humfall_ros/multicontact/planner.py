@@ -77,6 +77,9 @@ class PlannerConfig:
     library_file: str = ""
     library_max_ke_gap: float = 5.0   # J
     library_max_entries: int = 2      # entries re-solved, nearest first, before the tree search
+    # a library re-plan is accepted only if it passes the re-simulation check the tree applies
+    # (check_q_error_max > 0); session 31: 49 J re-solved from the 47.5 J entry does not
+    library_check: bool = True
     stance: dict = dataclasses.field(default_factory=dict)
 
     @staticmethod
@@ -166,22 +169,23 @@ class FallPlanner:
             vr = validate(self.model, req, self.cfg)
         except InvalidRequest as e:
             return failure(f"invalid request: {e}", time.perf_counter() - t0)
-        attempt = None
-        if self.library is not None:
-            rp = self.library.replan_valid(self, vr, max_ke_gap=self.cfg.library_max_ke_gap,
-                                           max_entries=self.cfg.library_max_entries)
-            if rp.success:
-                out = replan_dict(self.model, rp, vr)
-                out["total_time_s"] = time.perf_counter() - t0
-                return out
-            attempt = rp.reason
-            vr = dataclasses.replace(vr, time_budget=max(vr.time_budget - (time.perf_counter() - t0), 0.0))
         check = None
         if self.cfg.check_q_error_max > 0:
             def check(segments, env=vr.env):
                 return plan_check(self.model, segments, env, self.cfg.check_q_error_max,
                                   self.cfg.check_force_error_max_mg, self.cfg.check_feedback_omega,
                                   self.cfg.check_feedback_max)
+        attempt = None
+        if self.library is not None:
+            rp = self.library.replan_valid(self, vr, max_ke_gap=self.cfg.library_max_ke_gap,
+                                           max_entries=self.cfg.library_max_entries,
+                                           check_plan=check if self.cfg.library_check else None)
+            if rp.success:
+                out = replan_dict(self.model, rp, vr)
+                out["total_time_s"] = time.perf_counter() - t0
+                return out
+            attempt = rp.reason
+            vr = dataclasses.replace(vr, time_budget=max(vr.time_budget - (time.perf_counter() - t0), 0.0))
         res = search(self.opt, vr.q, vr.v, vr.mode, vr.env, max_depth=self.cfg.max_depth,
                      time_budget=vr.time_budget, symmetry_cut=self.cfg.symmetry_cut, check_plan=check,
                      frontier_order=self.cfg.frontier_order, landing_policy=self.cfg.landing_policy,
