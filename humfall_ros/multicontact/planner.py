@@ -72,7 +72,7 @@ class PlannerConfig:
     check_polish_acc_max: float = 100.0
     # a library of precomputed plans (``library.py``; a path, relative ones under the package's config/):
     # a request whose kinetic energy is within ``library_max_ke_gap`` of an entry's (same direction and
-    # wall presence) is first re-solved warm from that entry (~0.3-1 s), the tree search only when that
+    # wall presence) is first re-solved warm from that entry (~0.3-2 s), the tree search only when that
     # is not accepted; "" = no library (the paper's Algorithm 1 for every request)
     library_file: str = ""
     library_max_ke_gap: float = 5.0   # J
