@@ -2,7 +2,8 @@
 Prints one JSON object.
 
     python benchmarks/bench_multicontact_library.py [--library multicontact_library/standing_pushes.json.gz]
-        [--queries 11,12,14,16,...,48,49] [--direction 1] [--wall 0] [--repeats 2] [--set name=value,...]
+        [--queries 11,12,14,16,...,48,49] [--direction 1] [--wall 0] [--repeats 2] [--budget 10]
+        [--set name=value,...]
 
 The planner is the node's (config/multicontact_planner.yaml) with ``library_file`` set: each query is a
 ``FallPlanner.plan`` request, answered by a warm re-plan of the nearest entry (or, when that is not
@@ -34,6 +35,9 @@ def main(argv=None) -> int:
     ap.add_argument("--direction", type=float, default=1.0, help="of every query: +1 forward, -1 backward")
     ap.add_argument("--wall", type=float, default=0.0, help="of every query: wall distance (m; 0 = none)")
     ap.add_argument("--repeats", type=int, default=2, help="each query this many times (the median is kept)")
+    ap.add_argument("--budget", type=float, default=10.0,
+                    help="each request's time budget (s): what the library does not answer goes to the tree search "
+                         "for what is left of it (the node's default is 120 s; 10 keeps `make bench` short)")
     ap.add_argument("--set", default="", help="planner parameter overrides, name=value,...")
     a = ap.parse_args(argv)
     planner = FallPlanner.from_params(**{"library_file": a.library, **parse_overrides(a.set)})
@@ -44,7 +48,7 @@ def main(argv=None) -> int:
     warm_up = time.perf_counter() - t0
     rows = []
     for ke in (float(x) for x in a.queries.split(",") if x.strip()):
-        req = {"kinetic_energy": ke, "direction": a.direction, "wall_distance": a.wall}
+        req = {"kinetic_energy": ke, "direction": a.direction, "wall_distance": a.wall, "time_budget": a.budget}
         runs = [planner.plan(req) for _ in range(max(1, a.repeats))]
         r = runs[-1]
         rows.append({"ke": ke, "success": r["success"], "source": r["source"],
@@ -65,7 +69,7 @@ def main(argv=None) -> int:
            "entries": [(e.kinetic_energy, e.direction, e.wall_distance) for e in planner.library.entries],
            "warm_start_multipliers": planner.opt.cfg.warm_start_multipliers,
            "library_check": planner.cfg.library_check, "library_max_entries": planner.cfg.library_max_entries,
-           "warm_up_s": round(warm_up, 2),
+           "warm_up_s": round(warm_up, 2), "time_budget_s": a.budget,
            "queries": rows, "answered_from_library": f"{len(lib_rows)}/{len(rows)}",
            "within_1s": f"{sum(t <= 1.0 for t in times)}/{len(rows)}",
            "median_s": round(statistics.median(times), 3) if times else None,
