@@ -17,7 +17,7 @@ export RMW_IMPLEMENTATION := rmw_fastrtps_cpp
 export AMENT_PREFIX_PATH := $(VENV_ABS)
 export MPLBACKEND := Agg
 
-.PHONY: setup demo test lint bench interfaces install clean lock
+.PHONY: setup demo test lint bench interfaces install clean lock library
 
 $(PY):
 	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' || { \
@@ -63,6 +63,25 @@ lint: $(VENV)/.deps-stamp
 
 bench: setup
 	$(PY) benchmarks/run_all.py
+
+# Rebuild the shipped plan library of the multi-contact planner (paper 2's tree search over a grid of pushes;
+# docs/multicontact.md "Session 31"): `make -j2 library` takes ~11 min on 2 cores. Pushes without a plan
+# (forward 50 J; walls 0.6 m 40 / 50 J, 0.7 m 50 J) are left out and listed.
+LIBRARY_OUT ?= config/multicontact_library/standing_pushes.json.gz
+LIBRARY_PARTS := build/library/forward.json.gz build/library/backward.json.gz build/library/walls.json.gz
+BUILD_LIBRARY := OMP_NUM_THREADS=1 $(PY) -m humfall_ros.multicontact.build_library
+
+build/library/forward.json.gz: | $(VENV)/.deps-stamp
+	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 10,12.5,15,17.5,20,22.5,25,27.5,30,32.5,35,37.5,40,42.5,45,47.5,50 --out $@
+
+build/library/backward.json.gz: | $(VENV)/.deps-stamp
+	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 10,15,20,25,30,35 --directions -1 --out $@
+
+build/library/walls.json.gz: | $(VENV)/.deps-stamp
+	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 20,30,40,50 --walls 0.6,0.7,0.8,0.9,1.0 --out $@
+
+library: $(LIBRARY_PARTS)
+	$(BUILD_LIBRARY) $(foreach f,$(LIBRARY_PARTS),--add $(f)) --out $(LIBRARY_OUT)
 
 # Re-resolve the newest versions in a scratch venv and write them to constraints.txt.
 lock:
