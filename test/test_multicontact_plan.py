@@ -396,6 +396,33 @@ def test_a_library_answer_passes_the_re_simulation_check():
         else:   # each entry tried is named with its reason (on this machine 48 J: the check, then 45 J's end KE)
             assert r["library_attempt"].count(" J entry: ") >= 1, r["library_attempt"]
 
+
+def test_library_landings_and_plot(tmp_path):
+    """``PlanLibrary.landings``: one report per contact-adding segment of each entry, as the tree reports
+    them (the shipped 20 J forward step lands the left foot; the 10 J shaping entry has no landing; a
+    wall entry lands a hand on the wall). ``build_library --plot`` draws them (a merge, no search)."""
+    import gzip
+
+    from humfall_ros.multicontact.build_library import main as build_main
+    from humfall_ros.multicontact.library import PlanLibrary
+    from humfall_ros.multicontact.model import load_model
+    from humfall_ros.paths import config_path
+    lib = PlanLibrary.load(config_path(SHIPPED_LIBRARY))
+    pick = {(e.kinetic_energy, e.direction, e.wall_distance): e for e in lib.entries}
+    small = PlanLibrary([pick[(10.0, 1.0, 0.0)], pick[(20.0, 1.0, 0.0)], pick[(40.0, 1.0, 0.8)]], lib.built_with)
+    got = small.landings(load_model())
+    assert [len(reps) for _, reps in got] == [0, 1, 1]
+    step, wall = got[1][1][0], got[2][1][0]
+    assert step.limb == "LF" and step.surface == "ground" and step.pre_impact_ke > step.post_impact_ke > 0
+    assert wall.limb == "LH" and wall.surface == "wall" and 0 < wall.normal_speed <= 1.5 + 1e-6
+    src = tmp_path / "small.json.gz"
+    small.save(src)
+    png = tmp_path / "lib.png"
+    assert build_main(["--add", str(src), "--out", str(tmp_path / "merged.json"), "--plot", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+    assert len(PlanLibrary.load(tmp_path / "merged.json").entries) == 3
+    assert gzip.decompress(src.read_bytes()).startswith(b"{")   # .gz names are written compressed
+
 def test_library_file_checks(tmp_path):
     """A library built for other NLPs is refused when the planner is built (not at the first request);
     the bare list that older sessions saved still loads; a missing file is an error."""

@@ -11,7 +11,7 @@ from humfall_ros.params import parse_overrides
 
 def main(argv=None) -> int:
     """Build a library file: ``python -m humfall_ros.multicontact.build_library --kes 10,15,20,25,30,35
-    --out FILE [--directions 1] [--walls 0] [--budget 120] [--set name=value,...] [--add LIB ...]``
+    --out FILE [--directions 1] [--walls 0] [--budget 120] [--set name=value,...] [--add LIB ...] [--plot PNG]``
     (the planner from config/multicontact_planner.yaml, ``--set`` overrides by parameter name; ``--add``
     takes the entries of existing library files too, which must fit the planner). Pushes without a plan
     are left out and listed."""
@@ -26,6 +26,7 @@ def main(argv=None) -> int:
     ap.add_argument("--budget", type=float, default=120.0, help="tree-search budget per push (s)")
     ap.add_argument("--set", default="", help="planner parameter overrides, name=value,... (YAML values)")
     ap.add_argument("--out", required=True)
+    ap.add_argument("--plot", default="", help="also draw what the library holds (its landings) to this PNG")
     a = ap.parse_args(argv)
     overrides = parse_overrides(a.set)
     floats = lambda text: [float(x) for x in text.split(",") if x.strip()]  # noqa: E731
@@ -49,6 +50,9 @@ def main(argv=None) -> int:
     for ke, d, w in missing:
         print(f"{ke:g} J, direction {d:+g}, wall {w:g} m: no plan (left out)", file=sys.stderr)
     print(f"{len(lib.entries)} plans in {time.perf_counter() - t0:.1f} s -> {a.out}")
+    if a.plot:
+        from humfall_ros.multicontact.plots import plot_library
+        print(plot_library(planner.model, lib, a.plot, planner.opt.cfg.landing_limits))
     return 0 if lib.entries else 1
 
 

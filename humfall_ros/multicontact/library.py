@@ -27,7 +27,7 @@ import time
 
 from humfall_ros.multicontact.collocation import OptConfig, Segment
 from humfall_ros.multicontact.landing import LandingReport, landing_report
-from humfall_ros.multicontact.modes import mode_label
+from humfall_ros.multicontact.modes import Environment, mode_label
 from humfall_ros.multicontact.request import InvalidRequest, ValidRequest, validate
 
 FORMAT = 1
@@ -146,6 +146,20 @@ class PlanLibrary:
         if d.get("format") != FORMAT:
             raise ValueError(f"plan library {path}: format {d.get('format')!r}, this code reads {FORMAT}")
         return PlanLibrary([LibraryEntry.from_dict(x) for x in d["entries"]], d.get("built_with"))
+
+    def landings(self, model, limits=None) -> list[tuple[LibraryEntry, list[LandingReport]]]:
+        """Each entry with the severity of its landings (eq. 10 at the end of each contact-adding
+        segment, as the tree reports them)."""
+        out = []
+        for e in self.entries:
+            env = Environment.from_distance(e.wall_distance)
+            t, reps = 0.0, []
+            for s in e.segments:
+                t += float(s.time[-1])
+                if s.change == "add":
+                    reps.append(landing_report(model, s.q[-1], s.v[-1], s.target_mode, s.extremity, env, limits, t)[0])
+            out.append((e, reps))
+        return out
 
     # -------------------------------------------------------------- online
     def nearest(self, kinetic_energy: float, direction: float, wall_distance: float) -> LibraryEntry | None:

@@ -127,6 +127,47 @@ def plot_ke_sweep(results: list[dict], path: str) -> str:
     return path
 
 
+def plot_library(model: PlanarModel, library, path: str, limits=None) -> str:
+    """What a plan library holds: per stored push, the pre-impact kinetic energy of each landing against
+    the push's (top; the dashed line is issue 14's "no more than the push"), and its touchdown speed
+    (bottom; ``limits``' hand bound dotted). Feet triangles, hands circles; a colour per group (forward,
+    backward, each wall distance); a push with no landing (inertial shaping only) sits at zero."""
+    fig, (ax_ke, ax_v) = plt.subplots(2, 1, figsize=(7.0, 6.2), sharex=True)
+    groups: dict[tuple, list] = {}
+    for entry, reps in library.landings(model, limits):
+        groups.setdefault((entry.direction, entry.wall_distance), []).append((entry, reps))
+    cmap = plt.get_cmap("tab10")
+    top = 0.0
+    for i, ((d, w), items) in enumerate(sorted(groups.items(), key=lambda kv: (kv[0][1], -kv[0][0]))):
+        color = cmap(i % 10)
+        label = f"wall {w:g} m" if w > 0 else ("forward" if d > 0 else "backward")
+        for j, (e, reps) in enumerate(items):
+            if not reps:
+                ax_ke.scatter([e.kinetic_energy], [0.0], marker="s", color=color, s=22,
+                              label=label if j == 0 else None)
+            for k, r in enumerate(reps):
+                hand = r.limb in ("LH", "RH")
+                kw = dict(marker="o" if hand else "^", color=color, s=26, alpha=0.85,
+                          label=label if j == 0 and k == 0 else None)
+                ax_ke.scatter([e.kinetic_energy], [r.pre_impact_ke], **kw)
+                ax_v.scatter([e.kinetic_energy], [r.normal_speed], **{**kw, "label": None})
+                top = max(top, r.pre_impact_ke, e.kinetic_energy)
+    ax_ke.plot([0, top], [0, top], "k--", lw=0.8)
+    hand_max = getattr(limits, "hand_normal_speed_max", float("inf"))
+    if np.isfinite(hand_max):
+        ax_v.axhline(hand_max, color="k", ls=":", lw=0.8)
+    ax_ke.set_ylabel("pre-impact KE (J)")
+    ax_v.set_ylabel("touchdown normal speed (m/s)")
+    ax_v.set_xlabel("push kinetic energy (J)")
+    for ax in (ax_ke, ax_v):
+        ax.grid(alpha=0.3)
+    ax_ke.legend(fontsize=7, ncol=2, title="triangles feet, circles hands, squares no landing", title_fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def write_all(model: PlanarModel, results: list[dict], wall_result: dict | None, outdir: str) -> list[str]:
     """All figures for a sweep (and the wall case) into ``outdir``: the sweep's
     kinetic energies, then ``write_plan`` for every case."""
