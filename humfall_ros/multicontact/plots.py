@@ -12,7 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from humfall_ros.multicontact.model import PlanarModel
+from humfall_ros.multicontact.model import HANDS, PlanarModel
 from humfall_ros.multicontact.modes import parse_mode
 
 _COLORS = {"root": "#e6c700", "terminal": "#1f5fd6", "connectable": "#2ca02c", "failed": "#d62728"}
@@ -146,7 +146,7 @@ def plot_library(model: PlanarModel, library, path: str, limits=None) -> str:
                 ax_ke.scatter([e.kinetic_energy], [0.0], marker="s", color=color, s=22,
                               label=label if j == 0 else None)
             for k, r in enumerate(reps):
-                hand = r.limb in ("LH", "RH")
+                hand = r.limb in HANDS
                 kw = dict(marker="o" if hand else "^", color=color, s=26, alpha=0.85,
                           label=label if j == 0 and k == 0 else None)
                 ax_ke.scatter([e.kinetic_energy], [r.pre_impact_ke], **kw)
