@@ -126,7 +126,8 @@ def test_client_reports_missing_service(in_ros_domain):
 def test_plan_fall_from_the_shipped_library(ros_env, in_ros_domain, tmp_path):
     """The node with ``library_file`` (the shipped library): a 21 J request is answered by a
     warm re-plan of the 20 J entry (no tree), a NaN request still gets its reason, the client prints
-    the answer's figures (no tree figure), and the node keeps serving."""
+    the answer's figures (no tree figure), the node keeps serving, and a request beyond the library goes
+    to the tree search with the library's reason in the node's log."""
     with planner_node(ros_env, "library_file:=multicontact_library/standing_pushes.json.gz") as proc:
         run = [sys.executable, "-c", "import sys; from humfall_ros.nodes.plan_fall_client import main; "
                "sys.exit(main(sys.argv[1:]))", "--wait", "60", "--json"]
@@ -140,7 +141,14 @@ def test_plan_fall_from_the_shipped_library(ros_env, in_ros_domain, tmp_path):
         assert sorted(pathlib.Path(f).name for f in d["plots"]) == ["plan_21J_ke.png", "plan_21J_sticks.png"]
         out = subprocess.run(run + ["--ke", "nan"], env=in_ros_domain, capture_output=True, text=True, timeout=60)
         assert out.returncode == 1 and "not a finite" in json.loads(out.stdout)["reason"]
+        # beyond the library: the tree search answers, and the node's log says why the library did not
+        out = subprocess.run(run + ["--ke", "60", "--budget", "0.5"], env=in_ros_domain, capture_output=True,
+                             text=True, timeout=90)
+        assert json.loads(out.stdout)["tree_nodes"] >= 1, out.stdout
         assert proc.poll() is None, "node died"
+        proc.terminate()
+        log = proc.communicate(timeout=20)[0]
+        assert "the library first: no library entry within 5 J of 60.0 J (nearest 47.5 J)" in log, log[-2000:]
 
 
 def test_planner_node_refuses_an_unreadable_library(ros_env, tmp_path):

@@ -113,6 +113,8 @@ class MulticontactPlanner(Node):
                                        f"source={result.get('source', '')} "
                                        f"sequence={list(response.contact_sequence)} "
                                        f"nlps={response.nlp_count} t={response.total_time_s:.1f}s: {response.reason}")
+                if result.get("library_attempt"):   # why the library's answer was not used (each entry tried)
+                    self.get_logger().info(f"plan_fall: the library first: {result['library_attempt']}")
         finally:
             with self._state:
                 self._pending -= 1
