@@ -80,6 +80,33 @@ def test_returned_plan_passes_independent_resimulation(plan10, planner):
           "M g =", round(mg, 1))
 
 
+def test_batched_resimulation_keeps_the_intervals_apart_and_holds_the_contacts(plan10, planner):
+    """The knot-to-knot check integrates every interval side by side (``_BatchDynamics``): each
+    interval integrated alone must end where it ends in the batch, and the acceleration must hold
+    the contacts (J a + Jdot v = -kd J v - kp (phi - anchor), the Baumgarte law)."""
+    from humfall_ros.multicontact.resim import _BatchDynamics
+    model, env, seg = planner.model, plan10["env"], plan10["segments"][0]
+    assert len(seg.rows) and len(seg.time) > 3
+    dyn = _BatchDynamics(model, seg, env, (400.0, 40.0), 0.35, 0.0, 1.0)
+    x0 = np.concatenate([seg.q[:-1], seg.v[:-1]], axis=1)
+    batch = dyn.integrate(x0, seg.time[:-1], seg.time[1:], 1e-3)
+    alone = np.stack([dyn.integrate(x0[k:k + 1], seg.time[k:k + 1], seg.time[k + 1:k + 2], 1e-3)[0]
+                      for k in range(len(x0))])
+    assert np.allclose(batch, alone, rtol=0, atol=1e-9)
+    assert np.abs(batch[:, :model.n] - seg.q[1:]).max() > 1e-6     # it did move off the knots' exact values
+    # the contact law at perturbed states (away from the plan, where the correction is not 0)
+    rng = np.random.default_rng(3)
+    x = x0 + rng.normal(0.0, 0.01, x0.shape)
+    xdot = dyn(seg.time[:-1], x)
+    n = model.n
+    val, J, dJv = dyn._rows(x[:, :n], x[:, n:])
+    contact_acc = np.einsum("brn,bn->br", J, xdot[:, n:]) + dJv
+    want = -40.0 * np.einsum("brn,bn->br", J, x[:, n:]) - 400.0 * (val - dyn.anchors)
+    # rows are redundant (toe and heel of one sole): the law holds where J M^-1 J^T has rank
+    assert np.abs(contact_acc - want).max() < 1e-6 * max(1.0, np.abs(want).max())
+    assert dyn.stats["lam_err"] > 0.0
+
+
 def test_infeasible_push_fails_clearly_within_budget():
     planner = FallPlanner.from_params(nlp_max_wall_time=3.0, max_iter=60)
     budget = 4.0
