@@ -31,7 +31,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--library", default="multicontact_library/standing_pushes.json.gz")
     ap.add_argument("--queries", default="11,12,14,16,17,19,21,24,26,29,31,34,36,39,41,44,46,48,49",
-                    help="request energies (J); the default: between the shipped forward entries, 10-47.5 J")
+                    help="request energies (J); the default: between the shipped forward entries, 10-50 J")
     ap.add_argument("--direction", type=float, default=1.0, help="of every query: +1 forward, -1 backward")
     ap.add_argument("--wall", type=float, default=0.0, help="of every query: wall distance (m; 0 = none)")
     ap.add_argument("--repeats", type=int, default=2, help="each query this many times (the median is kept)")

@@ -148,7 +148,7 @@ def test_plan_fall_from_the_shipped_library(ros_env, in_ros_domain, tmp_path):
         assert proc.poll() is None, "node died"
         proc.terminate()
         log = proc.communicate(timeout=20)[0]
-        assert "the library first: no library entry within 5 J of 60.0 J (nearest 47.5 J)" in log, log[-2000:]
+        assert "the library first: no library entry within 5 J of 60.0 J (nearest 50 J)" in log, log[-2000:]
 
 
 def test_planner_node_refuses_an_unreadable_library(ros_env, tmp_path):

@@ -107,6 +107,25 @@ def test_batched_resimulation_keeps_the_intervals_apart_and_holds_the_contacts(p
     assert dyn.stats["lam_err"] > 0.0
 
 
+def test_a_warm_re_solve_keeps_the_duration_bounds_its_guess_was_solved_within(plan10, planner):
+    """Every solved segment records the bounds on T it was solved within (``Segment.t_bounds``, saved
+    with it); ``warm_solve`` keeps the guess's (a library entry planned with a bounded release is
+    re-solved as planned), the planner's own when the guess has none (files before session 32)."""
+    seg, env, cfg = plan10["segments"][0], plan10["env"], planner.opt.cfg
+    assert seg.t_bounds == (cfg.t_min_of(""), cfg.t_max_of(""))
+    back = Segment.from_dict(seg.to_dict())
+    assert back.t_bounds == seg.t_bounds
+    old = seg.to_dict()
+    del old["t_bounds"]
+    assert Segment.from_dict(old).t_bounds is None
+    T = float(seg.time[-1])
+    fixed = dataclasses.replace(seg, t_bounds=(1.2 * T, 1.2 * T))
+    r = planner.opt.warm_solve(seg.q[0], seg.v[0], fixed, env)
+    assert r.time[-1] == pytest.approx(1.2 * T, rel=1e-9) and r.t_bounds == pytest.approx((1.2 * T, 1.2 * T))
+    free = planner.opt.warm_solve(seg.q[0], seg.v[0], dataclasses.replace(seg, t_bounds=None), env)
+    assert free.t_bounds == (cfg.t_min_of(""), cfg.t_max_of("")) and free.time[-1] != pytest.approx(1.2 * T)
+
+
 def test_infeasible_push_fails_clearly_within_budget():
     planner = FallPlanner.from_params(nlp_max_wall_time=3.0, max_iter=60)
     budget = 4.0
@@ -330,13 +349,26 @@ SHIPPED_LIBRARY = "multicontact_library/standing_pushes.json.gz"
 def test_planner_answers_from_the_shipped_library_and_searches_beyond_it():
     """``library_file``: a request near an entry of its direction and wall is re-solved warm from it (no
     tree); one further than ``library_max_ke_gap`` from every such entry goes to the tree search, which
-    says so. The shipped library (session 31): forward 10-47.5 J every 2.5 J, backward 10-35 J every 5 J, a
+    says so. The shipped library (session 32): forward 10-50 J every 2.5 J (47.5 and 50 J planned with the
+    release bounded, ``release_t_max`` 0.1, and re-solved within those bounds), backward 10-35 J every 5 J, a
     wall at 0.6-1.0 m every 0.1 m."""
     planner = FallPlanner.from_params(library_file=SHIPPED_LIBRARY, nlp_max_wall_time=120.0)
     grid = {(e.direction, e.wall_distance): [] for e in planner.library.entries}
     for e in planner.library.entries:
         grid[(e.direction, e.wall_distance)].append(e.kinetic_energy)
-    assert grid[(1.0, 0.0)] == [10.0 + 2.5 * i for i in range(16)]
+    assert grid[(1.0, 0.0)] == [10.0 + 2.5 * i for i in range(17)]
+    # each stored segment carries the duration bounds it was planned within: the release of the 47.5 / 50 J
+    # entries is held at 0.1 s, every other segment has the defaults' (a release from 0.1 s to T_max)
+    cfg = planner.opt.cfg
+    for e in planner.library.entries:
+        for s in e.segments:
+            bounded = e.kinetic_energy >= 47.5 and e.wall_distance == 0 and s.change == "remove"
+            assert s.t_bounds == ((0.1, 0.1) if bounded else (cfg.t_min_of(s.change), cfg.t_max_of(s.change)))
+    top = planner.plan({"kinetic_energy": 49.0, "direction": 1.0, "time_budget": 0.5})
+    assert top["success"] and top["source"] == "library", top.get("library_attempt", top["reason"])
+    assert top["reason"].startswith("re-solved library plan for 50 J")
+    releases = [s for s in top["segments"] if s.change == "remove"]
+    assert releases and all(float(s.time[-1]) == pytest.approx(0.1) for s in releases)
     assert grid[(-1.0, 0.0)] == [10.0, 15.0, 20.0, 25.0, 30.0, 35.0]
     assert sorted({w for (_, w) in grid if w > 0}) == [0.6, 0.7, 0.8, 0.9, 1.0]
     assert grid[(1.0, 0.8)] == [20.0, 30.0, 40.0, 50.0]
@@ -408,7 +440,7 @@ def test_library_replan_tries_the_next_entry_when_the_nearest_is_not_accepted():
 def test_a_library_answer_passes_the_re_simulation_check():
     """``library_check`` (default): whatever the planner returns from the library passes the same
     re-simulation check the tree applies before a node is terminal; a re-plan that converges and stops
-    but fails it is not returned (measured, session 31: 48 J re-solved from the 47.5 J entry, the hand
+    but fails it is not returned (measured, session 31: 48 J re-solved from the then 47.5 J entry, the hand
     landing 7.4 rad off knot to knot at the elbow). Asserted as the invariant, since which re-plans
     fail is the optimiser's business: a library answer passes the check, a rejection says so."""
     planner = FallPlanner.from_params(library_file=SHIPPED_LIBRARY, nlp_max_wall_time=120.0)

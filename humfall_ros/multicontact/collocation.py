@@ -271,6 +271,9 @@ class Segment:
     # IPOPT's multipliers at this solution (bounds of the variables, constraints), in the NLP's own
     # layout: a warm re-solve of the same structure starts from them (``warm_solve``)
     multipliers: tuple | None = None
+    # the bounds on the duration T this segment was solved within (s; None: not recorded, files before
+    # session 32): a warm re-solve of it keeps them (``warm_solve``)
+    t_bounds: tuple | None = None
 
     @property
     def final_ke(self) -> float:
@@ -290,6 +293,8 @@ class Segment:
             "seed_duration": self.seed_duration, "attempts": self.attempts,
             "max_violation": self.max_violation, "objective": self.objective, "attempt_log": self.attempt_log,
         }
+        if self.t_bounds is not None:
+            d["t_bounds"] = [float(x) for x in self.t_bounds]
         if multipliers and self.multipliers is not None:
             d["multipliers"] = {"x": np.asarray(self.multipliers[0]).tolist(),
                                 "g": np.asarray(self.multipliers[1]).tolist()}
@@ -310,7 +315,8 @@ class Segment:
                        objective=float(d.get("objective", float("nan"))),
                        attempt_log=list(d.get("attempt_log", [])),
                        multipliers=(np.asarray(d["multipliers"]["x"], float), np.asarray(d["multipliers"]["g"], float))
-                       if d.get("multipliers") else None, **arrays)
+                       if d.get("multipliers") else None,
+                       t_bounds=tuple(float(x) for x in d["t_bounds"]) if d.get("t_bounds") else None, **arrays)
 
 
 # ---------------------------------------------------------------- splines
@@ -1033,7 +1039,13 @@ class TrajectoryOptimizer:
         ``multipliers`` (None: ``OptConfig.warm_start_multipliers``): when ``guess`` carries IPOPT's
         multipliers of this structure, start IPOPT from them as well (``SegmentNLP.warm_solver``);
         measured on the library re-plans (session 25): 20 J entry re-solved at 22 / 25 J, 1.36 / 2.10 s
-        primal only, 0.99 / 1.08 s with them (iterations 130 / 191 -> 93 / 95)."""
+        primal only, 0.99 / 1.08 s with them (iterations 130 / 191 -> 93 / 95).
+
+        The duration T stays within ``guess.t_bounds`` when the guess records them (the bounds it was
+        solved within; else ``OptConfig``'s): a re-solve is the guess's NLP from a new state, and a
+        library entry planned with a bounded release (``release_t_max``) is re-solved as it was planned
+        (session 32: with the default T_max its release, whose multipliers hold T at the bound, ends
+        infeasible)."""
         q0 = np.asarray(q0, float)
         v0 = np.asarray(v0, float)
         t0, c0 = time.perf_counter(), time.thread_time()
@@ -1043,6 +1055,8 @@ class TrajectoryOptimizer:
         solver = nlp.warm_solver() if use_mult else nlp.solver   # built on first use: part of build_time
         build_time = time.perf_counter() - t0
         lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env, acc_max=acc_max)
+        if guess.t_bounds is not None:
+            lbx[0], ubx[0] = guess.t_bounds
         # the stored knots moved so that they start at the new state, the shift fading
         # out linearly to the last knot (which keeps the stored end)
         fade = np.linspace(1.0, 0.0, len(guess.time))[:, None]
@@ -1078,6 +1092,7 @@ class TrajectoryOptimizer:
         stats["iter_count"] = iters
         seg = self._segment(nlp, w, guess.mode, guess.target_mode, guess.change, guess.extremity, ok, stats,
                             float(guess.time[-1]), viol)
+        seg.t_bounds = (float(lbx[0]), float(ubx[0]))
         seg.objective = float(nlp.f_ke_end(w))
         seg.multipliers = (np.array(sol["lam_x"]).ravel(), np.array(sol["lam_g"]).ravel())
         seg.nlp_time, seg.build_time, seg.cpu_time = time.perf_counter() - t0, build_time, time.thread_time() - c0
@@ -1096,4 +1111,5 @@ class TrajectoryOptimizer:
                        change=change, extremity=ext, time=np.linspace(0, T, N), q=q, v=v, a=a, u=u, lam=lam,
                        rows=list(nlp.rows), ke=ke, success=bool(ok), status=str(stats["return_status"]),
                        iterations=int(stats.get("iter_count", -1)), nlp_time=0.0, seed_duration=T_seed,
-                       attempts=1, max_violation=viol)
+                       attempts=1, max_violation=viol,
+                       t_bounds=(self.cfg.t_min_of(change), self.cfg.t_max_of(change)))

@@ -7,7 +7,8 @@ over a grid of pushes (kinetic energy [J], direction ±1, wall distance [m];
 direction and wall presence (then the next nearest, up to ``max_entries``, while
 none is accepted), keeps its contact sequence, and re-solves each of
 its segments in order from the request's state with the stored segment as the
-initial point (``TrajectoryOptimizer.warm_solve``: one IPOPT run per segment,
+initial point, within the duration bounds the segment was planned with
+(``TrajectoryOptimizer.warm_solve``: one IPOPT run per segment,
 no seed sweep, no tree; IPOPT starts from the stored solution's multipliers as well, and a
 segment that then fails, or a last one that does not stop, is solved once more from the primal
 guess alone). Between segments the impact map of eq. 10 gives the
