@@ -65,7 +65,7 @@ bench: setup
 	$(PY) benchmarks/run_all.py
 
 # Rebuild the shipped plan library of the multi-contact planner (paper 2's tree search over a grid of pushes;
-# docs/multicontact.md "Session 31", "Session 32"): `make -j2 library` takes ~13 min on 2 cores. Forward 47.5 and
+# docs/multicontact.md "Session 31", "Session 32"): `make -j2 library` takes ~13 min on 2 cores (43 plans). Forward 47.5 and
 # 50 J are planned with the release bounded (release_t_max 0.1: the defaults find no 50 J plan from two feet, and
 # their 47.5 J plan re-solves into plans that fail the re-simulation check above 47.5 J); a re-plan keeps each
 # stored segment's duration bounds. Pushes without a plan (walls 0.6 m 40 / 50 J, 0.7 m 50 J) are left out and listed.
@@ -81,7 +81,7 @@ build/library/forward_bounded_release.json.gz: | $(VENV)/.deps-stamp
 	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 47.5,50 --set release_t_max=0.1 --out $@
 
 build/library/backward.json.gz: | $(VENV)/.deps-stamp
-	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 10,15,20,25,30,35 --directions -1 --out $@
+	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 10,15,20,25,30,35,40,45,50 --directions -1 --out $@
 
 build/library/walls.json.gz: | $(VENV)/.deps-stamp
 	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 20,30,40,50 --walls 0.6,0.7,0.8,0.9,1.0 --out $@
