@@ -316,7 +316,16 @@ class Segment:
                        attempt_log=list(d.get("attempt_log", [])),
                        multipliers=(np.asarray(d["multipliers"]["x"], float), np.asarray(d["multipliers"]["g"], float))
                        if d.get("multipliers") else None,
-                       t_bounds=tuple(float(x) for x in d["t_bounds"]) if d.get("t_bounds") else None, **arrays)
+                       t_bounds=_duration_bounds(d["t_bounds"]) if d.get("t_bounds") else None, **arrays)
+
+
+def _duration_bounds(b) -> tuple[float, float]:
+    """A stored segment's (T_min, T_max): two finite positive numbers, in order (a file's word is checked
+    when it is read, not when a re-solve would use it)."""
+    lo, hi = (float(x) for x in b) if len(b) == 2 else (math.nan, math.nan)
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
+        raise ValueError(f"segment t_bounds {b!r}: not (T_min, T_max) with 0 < T_min <= T_max")
+    return lo, hi
 
 
 # ---------------------------------------------------------------- splines
