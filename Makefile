@@ -69,6 +69,7 @@ bench: setup
 # 50 J are planned with the release bounded (release_t_max 0.1: the defaults find no 50 J plan from two feet, and
 # their 47.5 J plan re-solves into plans that fail the re-simulation check above 47.5 J); a re-plan keeps each
 # stored segment's duration bounds. Pushes without a plan (walls 0.6 m 40 / 50 J, 0.7 m 50 J) are left out and listed.
+# --probe re-plans every entry half way to its neighbours (the online ranking tries an entry that failed there last).
 LIBRARY_OUT ?= config/multicontact_library/standing_pushes.json.gz
 LIBRARY_PARTS := build/library/forward.json.gz build/library/forward_bounded_release.json.gz \
 	build/library/backward.json.gz build/library/walls.json.gz
@@ -87,7 +88,7 @@ build/library/walls.json.gz: | $(VENV)/.deps-stamp
 	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 20,30,40,50 --walls 0.6,0.7,0.8,0.9,1.0 --out $@
 
 library: $(LIBRARY_PARTS)
-	$(BUILD_LIBRARY) $(foreach f,$(LIBRARY_PARTS),--add $(f)) --out $(LIBRARY_OUT)
+	$(BUILD_LIBRARY) $(foreach f,$(LIBRARY_PARTS),--add $(f)) --probe --out $(LIBRARY_OUT)
 
 # Re-resolve the newest versions in a scratch venv and write them to constraints.txt.
 lock:

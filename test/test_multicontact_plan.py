@@ -367,6 +367,8 @@ def test_planner_answers_from_the_shipped_library_and_searches_beyond_it():
         for s in e.segments:
             bounded = e.kinetic_energy >= 47.5 and e.direction > 0 and e.wall_distance == 0 and s.change == "remove"
             assert s.t_bounds == ((0.1, 0.1) if bounded else (cfg.t_min_of(s.change), cfg.t_max_of(s.change)))
+    # probed offline (make library: build_library --probe): half way to each neighbour, both sides
+    assert all(len(e.probes) == 2 for e in planner.library.entries)
     top = planner.plan({"kinetic_energy": 49.0, "direction": 1.0, "time_budget": 0.5})
     assert top["success"] and top["source"] == "library", top.get("library_attempt", top["reason"])
     assert top["reason"].startswith("re-solved library plan for 50 J")
@@ -438,6 +440,63 @@ def test_library_replan_tries_the_next_entry_when_the_nearest_is_not_accepted():
     assert chk.success and chk.reason.startswith("re-solved library plan for 19 J"), chk.reason
     assert "(after 20 J entry: re-solved library plan for 20 J" in chk.reason
     assert "rejected by the re-simulation check: spoiled on purpose" in chk.reason and len(seen) == 2
+
+
+def test_library_probes_half_way_to_the_neighbours_and_ranking_tries_a_failed_side_last(tmp_path):
+    """``PlanLibrary.probe`` (offline): each entry is re-planned half way to each neighbour of its direction
+    and wall (an end entry as far out as its one neighbour is), the outcome stored and saved; online an entry
+    whose probe failed on the request's side, with the request at least half way to the probe, is ranked
+    after the others (still tried: ``library_max_entries``). The re-plans are faked here (which energies an
+    entry serves is the optimiser's business); the check the planner applies is passed along."""
+    from humfall_ros.multicontact.library import LibraryEntry, PlanLibrary, Replan
+    from humfall_ros.multicontact.request import validate
+    planner = FallPlanner.from_params()
+    seg = Segment.from_dict({**_tiny_segment_dict(), "t_bounds": [0.25, 3.5]})
+    fwd = [LibraryEntry(ke, 1.0, 0.0, ["LF/RF"], [seg]) for ke in (10.0, 15.0, 17.5)]
+    back = [LibraryEntry(20.0, -1.0, 0.0, ["LF/RF"], [seg])]
+    lib = PlanLibrary(fwd + back, {"n_knots": 8, "transition_objective": "pre_impact"})
+    tried = []
+
+    def fake(planner_, vr, entry, t0):
+        ke = planner_.model.kinetic_energy(vr.q, vr.v)
+        tried.append((entry.kinetic_energy, round(ke, 6)))
+        ok = not (entry.kinetic_energy == 15.0 and ke > 15.0)     # the 15 J entry does not serve above it
+        return Replan(ok, "fake", entry, [seg], [], 0.0, 0.0, [0.0])
+    lib._replan_entry = fake
+    checks = []
+    planner.check_fn = lambda env: (lambda segments: checks.append(env.has_wall))
+    lib.probe(planner)
+    assert sorted(tried) == [(10.0, 7.5), (10.0, 12.5), (15.0, 12.5), (15.0, 16.25), (17.5, 16.25), (17.5, 18.75)]
+    assert fwd[1].probes == {12.5: True, 16.25: False} and fwd[0].probes == {7.5: True, 12.5: True}
+    assert back[0].probes == {}          # alone in its group: no neighbour, nothing to probe
+    assert len(checks) == 5 and not any(checks)     # every accepted re-plan went through the check
+    lib.save(tmp_path / "lib.json")
+    again = PlanLibrary.load(tmp_path / "lib.json")
+    assert [e.probes for e in again.entries] == [e.probes for e in lib.entries]
+    # 16 J: the 15 J entry failed toward it, so it comes last (10 J is beyond library_max_ke_gap anyway);
+    # 15.5 J: too close to the entry to count
+    assert [e.kinetic_energy for e in again.ranked(16.0, 1.0, 0.0)] == [17.5, 10.0, 15.0]
+    assert [e.kinetic_energy for e in again.ranked(15.5, 1.0, 0.0)] == [15.0, 17.5, 10.0]
+    assert [e.kinetic_energy for e in again.ranked(14.0, 1.0, 0.0)] == [15.0, 17.5, 10.0]   # the other side
+    again._replan_entry = fake
+    r = again.replan_valid(planner, validate(planner.model, {"kinetic_energy": 16.0, "direction": 1.0}, planner.cfg),
+                           max_ke_gap=5.0, max_entries=2)
+    assert r.success and r.entry.kinetic_energy == 17.5 and tried[-1] == (17.5, 16.0)
+    # the gap is measured to the nearest entry, not to the first in the ranking: only the failed-toward 15 J
+    # entry within 1.2 J of 16 J, and it is still tried
+    r = again.replan_valid(planner, validate(planner.model, {"kinetic_energy": 16.0, "direction": 1.0}, planner.cfg),
+                           max_ke_gap=1.2, max_entries=2)
+    assert not r.success and tried[-1] == (15.0, 16.0) and r.reason.startswith("15 J entry: fake"), r.reason
+
+
+def _tiny_segment_dict() -> dict:
+    """A stored segment's dict with no contact rows (enough for the library's bookkeeping)."""
+    n, m, N = 13, 10, 8
+    z = [[0.0] * n for _ in range(N)]
+    return {"kind": "self_motion", "mode": "LF/RF", "target_mode": "LF/RF", "change": "", "extremity": "",
+            "time": [0.1 * k for k in range(N)], "q": z, "v": z, "a": z, "u": [[0.0] * m for _ in range(N)],
+            "lam": [[] for _ in range(N)], "rows": [], "ke": [0.0] * N, "success": True, "status": "Solve_Succeeded",
+            "iterations": 1, "nlp_time": 0.0, "seed_duration": 0.7, "attempts": 1, "max_violation": 0.0}
 
 
 def test_a_library_answer_passes_the_re_simulation_check():

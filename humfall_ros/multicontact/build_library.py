@@ -11,10 +11,12 @@ from humfall_ros.params import parse_overrides
 
 def main(argv=None) -> int:
     """Build a library file: ``python -m humfall_ros.multicontact.build_library --kes 10,15,20,25,30,35
-    --out FILE [--directions 1] [--walls 0] [--budget 120] [--set name=value,...] [--add LIB ...] [--plot PNG]``
+    --out FILE [--directions 1] [--walls 0] [--budget 120] [--set name=value,...] [--add LIB ...] [--probe]
+    [--plot PNG]``
     (the planner from config/multicontact_planner.yaml, ``--set`` overrides by parameter name; ``--add``
-    takes the entries of existing library files too, which must fit the planner). Pushes without a plan
-    are left out and listed."""
+    takes the entries of existing library files too, which must fit the planner; ``--probe`` re-plans
+    every entry half way to its neighbours and stores the outcome, for the online ranking:
+    ``PlanLibrary.probe``). Pushes without a plan are left out and listed."""
     import argparse
     import sys
 
@@ -26,6 +28,8 @@ def main(argv=None) -> int:
     ap.add_argument("--budget", type=float, default=120.0, help="tree-search budget per push (s)")
     ap.add_argument("--set", default="", help="planner parameter overrides, name=value,... (YAML values)")
     ap.add_argument("--out", required=True)
+    ap.add_argument("--probe", action="store_true",
+                    help="re-plan each entry half way to its neighbours and store whether it was accepted")
     ap.add_argument("--plot", default="", help="also draw what the library holds (its landings) to this PNG")
     a = ap.parse_args(argv)
     overrides = parse_overrides(a.set)
@@ -40,6 +44,12 @@ def main(argv=None) -> int:
         other.check_compatible(planner.opt.cfg)
         lib.entries += other.entries
     lib.entries.sort(key=lambda e: (e.wall_distance, -e.direction, e.kinetic_energy))
+    if a.probe:
+        t1 = time.perf_counter()
+        lib.probe(planner, log=print)
+        fails = sum(not ok for e in lib.entries for ok in e.probes.values())
+        print(f"probes: {sum(len(e.probes) for e in lib.entries)} re-plans, {fails} not accepted, "
+              f"{time.perf_counter() - t1:.1f} s")
     lib.save(a.out)
     have = {(e.kinetic_energy, e.direction, e.wall_distance) for e in lib.entries}
     missing = [k for k in ((ke, d, w) for w in floats(a.walls) for d in floats(a.directions)

@@ -44,6 +44,9 @@ class LibraryEntry:
         wall_distance: [m], <= 0 no wall.
         contact_sequence: modes from the root.
         segments: transitions then the terminal self-motion.
+        probes: push energy [J] -> whether this entry's re-plan there was accepted, tried offline
+            (``PlanLibrary.probe``); online an entry whose probe failed on the request's side is tried
+            after the others (``ranked``).
     """
 
     kinetic_energy: float
@@ -51,16 +54,28 @@ class LibraryEntry:
     wall_distance: float
     contact_sequence: list[str]
     segments: list[Segment]
+    probes: dict = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        return {"kinetic_energy": self.kinetic_energy, "direction": self.direction,
-                "wall_distance": self.wall_distance, "contact_sequence": self.contact_sequence,
-                "segments": [s.to_dict(multipliers=True) for s in self.segments]}
+        d = {"kinetic_energy": self.kinetic_energy, "direction": self.direction,
+             "wall_distance": self.wall_distance, "contact_sequence": self.contact_sequence,
+             "segments": [s.to_dict(multipliers=True) for s in self.segments]}
+        if self.probes:
+            d["probes"] = [[float(k), bool(v)] for k, v in sorted(self.probes.items())]
+        return d
 
     @staticmethod
     def from_dict(d: dict) -> "LibraryEntry":
         return LibraryEntry(float(d["kinetic_energy"]), float(d["direction"]), float(d["wall_distance"]),
-                            list(d["contact_sequence"]), [Segment.from_dict(s) for s in d["segments"]])
+                            list(d["contact_sequence"]), [Segment.from_dict(s) for s in d["segments"]],
+                            {float(k): bool(v) for k, v in d.get("probes", [])})
+
+    def fails_toward(self, kinetic_energy: float) -> bool:
+        """A probe on the request's side of this entry failed, and the request is at least half way to it
+        (a request next to the entry is nearly the stored plan itself)."""
+        dk = kinetic_energy - self.kinetic_energy
+        return any(not ok and (p - self.kinetic_energy) * dk > 0 and abs(dk) >= 0.5 * abs(p - self.kinetic_energy)
+                   for p, ok in self.probes.items())
 
 
 @dataclasses.dataclass
@@ -170,13 +185,46 @@ class PlanLibrary:
 
     def ranked(self, kinetic_energy: float, direction: float, wall_distance: float) -> list[LibraryEntry]:
         """The entries of the same direction and wall presence, nearest in energy first (then in wall
-        distance)."""
+        distance); those whose offline probe failed on the request's side (``LibraryEntry.fails_toward``)
+        after the rest."""
         has_wall = wall_distance > 0
         side = math.copysign(1.0, direction)
         cands = [e for e in self.entries
                  if math.copysign(1.0, e.direction) == side and (e.wall_distance > 0) == has_wall]
-        return sorted(cands, key=lambda e: (abs(e.kinetic_energy - kinetic_energy),
+        return sorted(cands, key=lambda e: (e.fails_toward(kinetic_energy), abs(e.kinetic_energy - kinetic_energy),
                                             abs(e.wall_distance - wall_distance)))
+
+    def probe(self, planner, log=None) -> None:
+        """Offline: re-plan each entry at the energies half way to its neighbours (same direction and wall
+        distance; an end entry as far out as its one neighbour is) and store whether that was accepted as
+        the planner accepts a library answer (converged, stopped, and with ``library_check`` the
+        re-simulation check; ``LibraryEntry.probes``). The online ranking then tries an entry that failed
+        toward a request after the others (session 32: forward 16 J from the 15 J entry does not stop, from
+        17.5 J it does; backward 11 / 12 J from the 10 J entry fail the check, from 15 J they pass)."""
+        groups: dict = {}
+        for e in self.entries:
+            groups.setdefault((e.direction, e.wall_distance), []).append(e)
+        for (direction, wall), group in groups.items():
+            check_plan = planner.check_fn(Environment.from_distance(wall)) if planner.cfg.library_check else None
+            group.sort(key=lambda e: e.kinetic_energy)
+            kes = [e.kinetic_energy for e in group]
+            for i, e in enumerate(group):
+                halves = [(kes[j] - kes[i]) / 2 for j in (i - 1, i + 1) if 0 <= j < len(kes)]
+                if len(halves) == 1:
+                    halves.append(-halves[0])
+                e.probes = {}
+                for h in halves:
+                    ke = kes[i] + h
+                    if ke <= 0:
+                        continue
+                    vr = validate(planner.model, {"kinetic_energy": ke, "direction": direction,
+                                                  "wall_distance": wall}, planner.cfg)
+                    rp = self._replan_entry(planner, vr, e, time.perf_counter())
+                    ok = rp.success and (check_plan is None or check_plan(rp.segments) is None)
+                    e.probes[round(ke, 6)] = bool(ok)
+                    if log is not None:
+                        log(f"probe {e.kinetic_energy:g} J entry (direction {direction:+g}, wall {wall:g} m) "
+                            f"at {ke:g} J: {'accepted' if ok else 'not accepted'}")
 
     def replan(self, planner, req: dict, max_ke_gap: float = math.inf, max_entries: int = 1,
                check_plan=None) -> Replan:
@@ -207,9 +255,10 @@ class PlanLibrary:
         if not ranked:
             return Replan(False, "no library entry for this direction and environment", None, [], [], math.nan,
                           time.perf_counter() - t0, [])
-        if abs(ranked[0].kinetic_energy - ke) > max_ke_gap:
+        nearest = min(ranked, key=lambda e: abs(e.kinetic_energy - ke))   # ranked[0] may be a probe's pick
+        if abs(nearest.kinetic_energy - ke) > max_ke_gap:
             return Replan(False, f"no library entry within {max_ke_gap:g} J of {ke:.1f} J (nearest "
-                                 f"{ranked[0].kinetic_energy:g} J)", None, [], [], math.nan,
+                                 f"{nearest.kinetic_energy:g} J)", None, [], [], math.nan,
                           time.perf_counter() - t0, [])
         tried = [e for e in ranked if abs(e.kinetic_energy - ke) <= max_ke_gap][:max(1, max_entries)]
         failed: list[str] = []

@@ -160,6 +160,18 @@ class FallPlanner:
         opt, cfg = configs_from_params(vals)
         return FallPlanner(opt, cfg)
 
+    def check_fn(self, env):
+        """The re-simulation acceptance test of a plan in ``env`` (``resim.plan_check`` with this planner's
+        ``check_*`` parameters: segments -> None or the reason), or None when ``check_q_error_max`` <= 0."""
+        if self.cfg.check_q_error_max <= 0:
+            return None
+
+        def check(segments):
+            return plan_check(self.model, segments, env, self.cfg.check_q_error_max,
+                              self.cfg.check_force_error_max_mg, self.cfg.check_feedback_omega,
+                              self.cfg.check_feedback_max)
+        return check
+
     def plan(self, req: dict) -> dict:
         """A plan for one request: from the library when one is loaded and its re-plan is accepted
         (``result["source"] == "library"``), else by the tree search (``"tree_search"``, with what the
@@ -169,12 +181,7 @@ class FallPlanner:
             vr = validate(self.model, req, self.cfg)
         except InvalidRequest as e:
             return failure(f"invalid request: {e}", time.perf_counter() - t0)
-        check = None
-        if self.cfg.check_q_error_max > 0:
-            def check(segments, env=vr.env):
-                return plan_check(self.model, segments, env, self.cfg.check_q_error_max,
-                                  self.cfg.check_force_error_max_mg, self.cfg.check_feedback_omega,
-                                  self.cfg.check_feedback_max)
+        check = self.check_fn(vr.env)
         attempt = None
         if self.library is not None:
             rp = self.library.replan_valid(self, vr, max_ke_gap=self.cfg.library_max_ke_gap,
