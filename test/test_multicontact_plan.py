@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import pathlib
 
 import numpy as np
@@ -487,6 +488,40 @@ def test_library_probes_half_way_to_the_neighbours_and_ranking_tries_a_failed_si
     r = again.replan_valid(planner, validate(planner.model, {"kinetic_energy": 16.0, "direction": 1.0}, planner.cfg),
                            max_ke_gap=1.2, max_entries=2)
     assert not r.success and tried[-1] == (15.0, 16.0) and r.reason.startswith("15 J entry: fake"), r.reason
+
+
+def test_library_re_plans_start_nothing_once_the_request_budget_is_spent():
+    """The request's time budget bounds the library's attempts too (session 32: a wall at 0.75 m, between
+    stored walls, spent 44 s on two entries with a 10 s budget): no next entry, no next segment and no
+    primal-only retry is started once it is spent (a running IPOPT run is capped by nlp_max_wall_time)."""
+    import time as _time
+
+    from humfall_ros.multicontact.library import LibraryEntry, PlanLibrary, Replan
+    from humfall_ros.multicontact.request import validate
+    planner = FallPlanner.from_params()
+    seg = Segment.from_dict({**_tiny_segment_dict(), "attempt_log": [{"multipliers": False}]})
+    entries = [LibraryEntry(ke, 1.0, 0.0, ["LF/RF"], [seg, seg]) for ke in (20.0, 22.0)]
+    lib = PlanLibrary(entries, {"n_knots": 8, "transition_objective": "pre_impact"})
+    vr = validate(planner.model, {"kinetic_energy": 20.8, "direction": 1.0, "time_budget": 0.2}, planner.cfg)
+    solves = []
+
+    def slow_solve(q0, v0, guess, env, acc_max=None, multipliers=None):
+        solves.append(multipliers)
+        _time.sleep(0.3)
+        return dataclasses.replace(guess, attempt_log=[{"multipliers": True}], ke=guess.ke + 1.0)  # does not stop
+    planner.opt.warm_solve = slow_solve
+    r = lib.replan_valid(planner, vr, max_ke_gap=5.0, max_entries=2)
+    assert not r.success
+    assert solves == [None], solves          # one segment of one entry, no primal retry, no second segment
+    assert "the time budget of 0.2 s is spent after 1 of 2 segments" in r.reason, r.reason
+    assert "22 J entry: not tried, the time budget of 0.2 s is spent" in r.reason, r.reason
+
+    def fail(planner_, vr_, entry, t0):
+        _time.sleep(0.3)
+        return Replan(False, "fake", entry, [], [], math.nan, 0.3, [])
+    lib._replan_entry = fail
+    r = lib.replan_valid(planner, vr, max_ke_gap=5.0, max_entries=2)
+    assert r.reason == "20 J entry: fake; 22 J entry: not tried, the time budget of 0.2 s is spent", r.reason
 
 
 def _tiny_segment_dict() -> dict:

@@ -263,6 +263,10 @@ class PlanLibrary:
         tried = [e for e in ranked if abs(e.kinetic_energy - ke) <= max_ke_gap][:max(1, max_entries)]
         failed: list[str] = []
         for entry in tried:
+            if failed and time.perf_counter() - t0 >= vr.time_budget:
+                failed.append(f"{entry.kinetic_energy:g} J entry: not tried, the time budget of "
+                              f"{vr.time_budget:g} s is spent")
+                break
             rp = self._replan_entry(planner, vr, entry, t0)
             if rp.success and check_plan is not None:
                 why = check_plan(rp.segments)
@@ -287,11 +291,18 @@ class PlanLibrary:
         t_plan = 0.0
         limits = planner.opt.cfg.landing_limits
         eps = planner.opt.cfg.eps_ke
+        def spent_budget() -> bool:   # an IPOPT run cannot be stopped from here: none is started after it
+            return time.perf_counter() - t0 >= vr.time_budget
         for i, stored in enumerate(entry.segments):
+            if i > 0 and spent_budget():
+                return Replan(False, f"the time budget of {vr.time_budget:g} s is spent after {i} of "
+                                     f"{len(entry.segments)} segments", entry, segs, lands, math.nan,
+                              time.perf_counter() - t0, times)
             seg = planner.opt.warm_solve(q, v, stored, vr.env)
             spent = seg.nlp_time
             last = i == len(entry.segments) - 1
-            if seg.attempt_log[0].get("multipliers") and (not seg.success or (last and seg.final_ke >= eps)):
+            if seg.attempt_log[0].get("multipliers") and (not seg.success or (last and seg.final_ke >= eps)) \
+                    and not spent_budget():
                 # the stored multipliers led IPOPT to another local optimum (session 25: the 10 J stop
                 # re-solved at 12 J ends at 0.80 J from them, at 0.0 J from the primal guess alone):
                 # the primal start as well, the better of the two kept
