@@ -119,7 +119,7 @@ def test_a_warm_re_solve_keeps_the_duration_bounds_its_guess_was_solved_within(p
     old = seg.to_dict()
     del old["t_bounds"]
     assert Segment.from_dict(old).t_bounds is None
-    for bad in ([0.5], [0.5, float("nan")], [1.0, 0.5], [0.0, 1.0]):      # a file's bad word is refused when read
+    for bad in ([0.5], [0.5, float("nan")], [1.0, 0.5], [0.0, 1.0]):      # malformed bounds are refused when read
         with pytest.raises(ValueError, match="t_bounds"):
             Segment.from_dict({**old, "t_bounds": bad})
     T = float(seg.time[-1])

@@ -320,7 +320,7 @@ class Segment:
 
 
 def _duration_bounds(b) -> tuple[float, float]:
-    """A stored segment's (T_min, T_max): two finite positive numbers, in order (a file's word is checked
+    """A stored segment's (T_min, T_max): two finite positive numbers, in order (a file's values are checked
     when it is read, not when a re-solve would use it)."""
     lo, hi = (float(x) for x in b) if len(b) == 2 else (math.nan, math.nan)
     if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
