@@ -17,7 +17,7 @@ import numpy as np
 import pinocchio as pin
 
 from humfall_ros.multicontact import contacts as C
-from humfall_ros.multicontact.collocation import Segment, hermite_eval
+from humfall_ros.multicontact.collocation import Segment
 from humfall_ros.multicontact.model import PlanarModel
 from humfall_ros.multicontact.modes import Environment
 
@@ -27,57 +27,22 @@ _PIN_FRAME = {"LF_toe": "l_sole_toe_left", "LF_heel": "l_sole_heel_left",
               "LH": "l_hand", "RH": "r_hand"}
 
 
-class PinContacts:
-    def __init__(self, model: PlanarModel):
-        self.pm = model.pin_model
-        self.pd = self.pm.createData()
-        self.fid = {k: self.pm.getFrameId(v) for k, v in _PIN_FRAME.items()}
-
-    def rows(self, rows, q, env: Environment):
-        """Values and Jacobian of contact rows (and Jdot v is not needed here)."""
-        pin.computeJointJacobians(self.pm, self.pd, q)
-        pin.updateFramePlacements(self.pm, self.pd)
-        val = np.zeros(len(rows))
-        J = np.zeros((len(rows), self.pm.nv))
-        for i, r in enumerate(rows):
-            f = self.fid[r.point]
-            p = self.pd.oMf[f].translation
-            Jf = pin.getFrameJacobian(self.pm, self.pd, f, pin.LOCAL_WORLD_ALIGNED)
-            d = C.row_direction(r)
-            val[i] = d[0] * p[0] + d[1] * p[2]
-            J[i] = d[0] * Jf[0] + d[1] * Jf[2]
-        return val, J
-
-
-def _interp(seg: Segment, t: float):
-    k = int(np.clip(np.searchsorted(seg.time, t, side="right") - 1, 0, len(seg.time) - 2))
-    t0, t1 = seg.time[k], seg.time[k + 1]
-    q, _ = hermite_eval(t0, t1, seg.q[k], seg.v[k], seg.q[k + 1], seg.v[k + 1], t)
-    v, a = hermite_eval(t0, t1, seg.v[k], seg.a[k], seg.v[k + 1], seg.a[k + 1], t)
-    s = (t - t0) / (t1 - t0)
-    u = (1 - s) * seg.u[k] + s * seg.u[k + 1]
-    lam = (1 - s) * seg.lam[k] + s * seg.lam[k + 1]
-    return q, v, a, u, lam
-
-
 def dense_check(model: PlanarModel, seg: Segment, env: Environment, samples_per_interval: int = 10) -> dict:
-    pc = PinContacts(model)
-    pm, pd = pc.pm, pc.pd
-    anchors, _ = pc.rows(seg.rows, seg.q[0], env)
-    normals = [i for i, r in enumerate(seg.rows) if r.axis == "n"]
-    for i in normals:
-        anchors[i] = -env.wall_x if seg.rows[i].surface == "wall" else 0.0
+    """Eq. 1 and the contacts (eq. 3-4) between the knots: the plan's splines sampled
+    ``samples_per_interval`` times per knot interval, the residual tau(q, v, a) - B u - J^T lambda
+    with pinocchio's rnea and the contact rows' position and velocity errors."""
+    dyn = _BatchDynamics(model, seg, env)
     ts = np.linspace(seg.time[0], seg.time[-1], (len(seg.time) - 1) * samples_per_interval + 1)
-    worst_dyn = worst_pos = worst_vel = 0.0
-    for t in ts:
-        q, v, a, u, lam = _interp(seg, t)
-        tau = pin.rnea(pm, pd, q, v, a)
-        val, J = pc.rows(seg.rows, q, env)
-        res = tau - model.B @ u - J.T @ lam
-        worst_dyn = max(worst_dyn, float(np.abs(res).max()))
-        if len(seg.rows):
-            worst_pos = max(worst_pos, float(np.abs(val - anchors).max()))
-            worst_vel = max(worst_vel, float(np.abs(J @ v).max()))
+    q, v, u, lam, a = dyn._plan(ts, acceleration=True)
+    pm, pd = dyn.pm, dyn.pd
+    res = np.array([pin.rnea(pm, pd, q[i], v[i], a[i]) for i in range(len(ts))]) - u @ model.B.T
+    worst_pos = worst_vel = 0.0
+    if len(seg.rows):
+        val, J, _ = dyn._rows(q, v)
+        res -= (np.swapaxes(J, 1, 2) @ lam[:, :, None])[:, :, 0]
+        worst_pos = float(np.abs(val - dyn.anchors).max())
+        worst_vel = float(np.abs((J @ v[:, :, None])[:, :, 0]).max())
+    worst_dyn = float(np.abs(res).max())
     mg = model.total_mass * 9.81
     return {"dyn_residual_max_Nm": worst_dyn, "dyn_residual_rel_mg": worst_dyn / mg,
             "contact_pos_max_m": worst_pos, "contact_vel_max_mps": worst_vel}
@@ -99,8 +64,8 @@ class _BatchDynamics:
     ask for absurd forces).
     """
 
-    def __init__(self, model: PlanarModel, seg: Segment, env: Environment, baumgarte, mu: float,
-                 feedback_omega: float, feedback_zeta: float):
+    def __init__(self, model: PlanarModel, seg: Segment, env: Environment, baumgarte=(400.0, 40.0),
+                 mu: float = 0.35, feedback_omega: float = 0.0, feedback_zeta: float = 1.0):
         self.model, self.seg = model, seg
         self.pm = model.pin_model
         self.pd, self.pk = self.pm.createData(), self.pm.createData()
@@ -151,20 +116,25 @@ class _BatchDynamics:
         dJv = d0 * acc[:, rp, 0] + d1 * acc[:, rp, 2]
         return val, J, dJv
 
-    def _plan(self, t):
-        """The plan at times t: q, v (cubic Hermite splines), u and lambda (linear)."""
+    def _plan(self, t, acceleration: bool = False):
+        """The plan at times t: q, v (cubic Hermite splines), u and lambda (linear); with
+        ``acceleration`` also the slope of the velocity spline."""
         seg = self.seg
         k = np.clip(np.searchsorted(seg.time, t, side="right") - 1, 0, len(seg.time) - 2)
         s = ((t - seg.time[k]) / self._h[k])[:, None]
         c = self._coef[k]             # (batch, 4, columns): value = c0 + s c1 + s^2 c2 + s^3 c3
         y = c[:, 0] + s * (c[:, 1] + s * (c[:, 2] + s * c[:, 3]))
         n, m = self.model.n, self.model.m
-        return y[:, :n], y[:, n:2 * n], y[:, 2 * n:2 * n + m], y[:, 2 * n + m:]
+        out = (y[:, :n], y[:, n:2 * n], y[:, 2 * n:2 * n + m], y[:, 2 * n + m:])
+        if not acceleration:
+            return out
+        dv = c[:, 1, n:2 * n] + s * (2 * c[:, 2, n:2 * n] + 3 * s * c[:, 3, n:2 * n])
+        return out + (dv / self._h[k][:, None],)
 
     @staticmethod
     def _spline_coefficients(seg: Segment) -> np.ndarray:
         """Per knot interval, the power-basis coefficients in s = (t - t_k) / h_k of the plan's
-        splines: q from (q, v) and v from (v, a) cubic Hermite (as ``hermite_eval``), u and lambda
+        splines: q from (q, v) and v from (v, a) cubic Hermite (as ``collocation.hermite_eval``), u and lambda
         linear; columns [q, v, u, lambda]."""
         h = np.diff(seg.time)[:, None]
 
