@@ -219,8 +219,7 @@ class PlanLibrary:
                         continue
                     vr = validate(planner.model, {"kinetic_energy": ke, "direction": direction,
                                                   "wall_distance": wall}, planner.cfg)
-                    rp = self._replan_entry(planner, vr, e, time.perf_counter())
-                    ok = rp.success and (check_plan is None or check_plan(rp.segments) is None)
+                    ok = self._attempt(planner, vr, e, time.perf_counter(), check_plan).success
                     e.probes[round(ke, 6)] = bool(ok)
                     if log is not None:
                         log(f"probe {e.kinetic_energy:g} J entry (direction {direction:+g}, wall {wall:g} m) "
@@ -263,22 +262,28 @@ class PlanLibrary:
         tried = [e for e in ranked if abs(e.kinetic_energy - ke) <= max_ke_gap][:max(1, max_entries)]
         failed: list[str] = []
         for entry in tried:
-            if failed and time.perf_counter() - t0 >= vr.time_budget:
+            if failed and _budget_spent(vr, t0):
                 failed.append(f"{entry.kinetic_energy:g} J entry: not tried, the time budget of "
                               f"{vr.time_budget:g} s is spent")
                 break
-            rp = self._replan_entry(planner, vr, entry, t0)
-            if rp.success and check_plan is not None:
-                why = check_plan(rp.segments)
-                if why:
-                    rp.success = False
-                    rp.reason += f"; rejected by the re-simulation check: {why}"
-                rp.time_s = time.perf_counter() - t0
+            rp = self._attempt(planner, vr, entry, t0, check_plan)
             if rp.success:
                 break
             failed.append(f"{entry.kinetic_energy:g} J entry: {rp.reason}")
         if failed:   # the plan's own figures stay the accepted entry's; time_s counts every attempt
             rp.reason = rp.reason + " (after " + "; ".join(failed) + ")" if rp.success else "; ".join(failed)
+        return rp
+
+    def _attempt(self, planner, vr: ValidRequest, entry: LibraryEntry, t0: float, check_plan=None) -> Replan:
+        """One entry's re-plan as the planner accepts it: converged and stopped (``_replan_entry``), then
+        ``check_plan`` (a rejection makes it a failure that says why)."""
+        rp = self._replan_entry(planner, vr, entry, t0)
+        if rp.success and check_plan is not None:
+            why = check_plan(rp.segments)
+            if why:
+                rp.success = False
+                rp.reason += f"; rejected by the re-simulation check: {why}"
+            rp.time_s = time.perf_counter() - t0
         return rp
 
     def _replan_entry(self, planner, vr: ValidRequest, entry: LibraryEntry, t0: float) -> Replan:
@@ -291,10 +296,9 @@ class PlanLibrary:
         t_plan = 0.0
         limits = planner.opt.cfg.landing_limits
         eps = planner.opt.cfg.eps_ke
-        def spent_budget() -> bool:   # an IPOPT run cannot be stopped from here: none is started after it
-            return time.perf_counter() - t0 >= vr.time_budget
+        # an IPOPT run cannot be stopped from here: none is started once the budget is spent
         for i, stored in enumerate(entry.segments):
-            if i > 0 and spent_budget():
+            if i > 0 and _budget_spent(vr, t0):
                 return Replan(False, f"the time budget of {vr.time_budget:g} s is spent after {i} of "
                                      f"{len(entry.segments)} segments", entry, segs, lands, math.nan,
                               time.perf_counter() - t0, times)
@@ -302,7 +306,7 @@ class PlanLibrary:
             spent = seg.nlp_time
             last = i == len(entry.segments) - 1
             if seg.attempt_log[0].get("multipliers") and (not seg.success or (last and seg.final_ke >= eps)) \
-                    and not spent_budget():
+                    and not _budget_spent(vr, t0):
                 # the stored multipliers led IPOPT to another local optimum (session 25: the 10 J stop
                 # re-solved at 12 J ends at 0.80 J from them, at 0.0 J from the primal guess alone):
                 # the primal start as well, the better of the two kept
@@ -331,6 +335,11 @@ class PlanLibrary:
                   f"({' -> '.join(entry.contact_sequence)}): final kinetic energy {final:.3g} J")
         return Replan(ok, reason if ok else reason + f" >= {planner.opt.cfg.eps_ke:g} J", entry, segs, lands,
                       final, time.perf_counter() - t0, times)
+
+
+def _budget_spent(vr: ValidRequest, t0: float) -> bool:
+    """The request's time budget, counted from ``t0``, is spent."""
+    return time.perf_counter() - t0 >= vr.time_budget
 
 
 __all__ = ["LibraryEntry", "PlanLibrary", "Replan"]
