@@ -65,10 +65,12 @@ bench: setup
 	$(PY) benchmarks/run_all.py
 
 # Rebuild the shipped plan library of the multi-contact planner (paper 2's tree search over a grid of pushes;
-# docs/multicontact.md "Session 31", "Session 32"): `make -j2 library` takes ~13 min on 2 cores (43 plans). Forward 47.5 and
+# docs/multicontact.md "Session 31", "Session 32"): `make -j2 library` takes ~20 min on 2 cores (83 plans). Forward 47.5 and
 # 50 J are planned with the release bounded (release_t_max 0.1: the defaults find no 50 J plan from two feet, and
 # their 47.5 J plan re-solves into plans that fail the re-simulation check above 47.5 J); a re-plan keeps each
 # stored segment's duration bounds. Pushes without a plan (walls 0.6 m 40 / 50 J, 0.7 m 50 J) are left out and listed.
+# --densify 1.25 then adds, between neighbouring entries without a wall, pushes 1.25 J apart as accepted warm re-plans of
+# their neighbours (session 33: ~1 min; the online re-plans from them take fewer IPOPT iterations).
 # --probe re-plans every entry half way to its neighbours (the online ranking tries an entry that failed there last).
 LIBRARY_OUT ?= config/multicontact_library/standing_pushes.json.gz
 LIBRARY_PARTS := build/library/forward.json.gz build/library/forward_bounded_release.json.gz \
@@ -88,7 +90,7 @@ build/library/walls.json.gz: | $(VENV)/.deps-stamp
 	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 20,30,40,50 --walls 0.6,0.7,0.8,0.9,1.0 --out $@
 
 library: $(LIBRARY_PARTS)
-	$(BUILD_LIBRARY) $(foreach f,$(LIBRARY_PARTS),--add $(f)) --probe --out $(LIBRARY_OUT)
+	$(BUILD_LIBRARY) $(foreach f,$(LIBRARY_PARTS),--add $(f)) --densify 1.25 --probe --out $(LIBRARY_OUT)
 
 # Re-resolve the newest versions in a scratch venv and write them to constraints.txt.
 lock:

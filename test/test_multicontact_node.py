@@ -125,7 +125,7 @@ def test_client_reports_missing_service(in_ros_domain):
 
 def test_plan_fall_from_the_shipped_library(ros_env, in_ros_domain, tmp_path):
     """The node with ``library_file`` (the shipped library): a 21 J request is answered by a
-    warm re-plan of the 20 J entry (no tree), a NaN request still gets its reason, the client prints
+    warm re-plan of the 21.25 J entry (no tree), a NaN request still gets its reason, the client prints
     the answer's figures (no tree figure), the node keeps serving, and a request beyond the library goes
     to the tree search with the library's reason in the node's log."""
     with planner_node(ros_env, "library_file:=multicontact_library/standing_pushes.json.gz") as proc:
@@ -135,7 +135,7 @@ def test_plan_fall_from_the_shipped_library(ros_env, in_ros_domain, tmp_path):
                              capture_output=True, text=True, timeout=180)
         assert out.returncode == 0, out.stdout + out.stderr
         d = json.loads(out.stdout)
-        assert d["success"] and "re-solved library plan for 20 J" in d["reason"], d["reason"]
+        assert d["success"] and "re-solved library plan for 21.25 J" in d["reason"], d["reason"]
         assert d["tree_nodes"] == 0 and d["final_ke"] < 0.1 and len(d["contact_sequence"]) >= 1
         assert d["nlp_count"] == len(d["nlp_times_s"]) == len(d["contact_sequence"])
         assert sorted(pathlib.Path(f).name for f in d["plots"]) == ["plan_21J_ke.png", "plan_21J_sticks.png"]

@@ -353,42 +353,56 @@ SHIPPED_LIBRARY = "multicontact_library/standing_pushes.json.gz"
 def test_planner_answers_from_the_shipped_library_and_searches_beyond_it():
     """``library_file``: a request near an entry of its direction and wall is re-solved warm from it (no
     tree); one further than ``library_max_ke_gap`` from every such entry goes to the tree search, which
-    says so. The shipped library (session 32): forward 10-50 J every 2.5 J (47.5 and 50 J planned with the
-    release bounded, ``release_t_max`` 0.1, and re-solved within those bounds), backward 10-50 J every 5 J, a
-    wall at 0.6-1.0 m every 0.1 m."""
+    says so. The shipped library (session 33): tree-search plans forward 10-50 J every 2.5 J (47.5 and 50 J
+    planned with the release bounded, ``release_t_max`` 0.1, and re-solved within those bounds), backward 10-50 J
+    every 5 J, a wall at 0.6-1.0 m every 0.1 m; without a wall densified offline to every 1.25 J by accepted
+    warm re-plans of the neighbours (``derived_from``)."""
     planner = FallPlanner.from_params(library_file=SHIPPED_LIBRARY, nlp_max_wall_time=120.0)
     grid = {(e.direction, e.wall_distance): [] for e in planner.library.entries}
+    tree = {(e.direction, e.wall_distance): [] for e in planner.library.entries}
     for e in planner.library.entries:
         grid[(e.direction, e.wall_distance)].append(e.kinetic_energy)
-    assert grid[(1.0, 0.0)] == [10.0 + 2.5 * i for i in range(17)]
+        if e.derived_from is None:
+            tree[(e.direction, e.wall_distance)].append(e.kinetic_energy)
+        else:   # re-solved from a tree-search neighbour within the gap the online re-plan allows
+            assert abs(e.derived_from - e.kinetic_energy) <= planner.cfg.library_max_ke_gap
+            assert e.derived_from in {x.kinetic_energy for x in planner.library.entries
+                                      if x.derived_from is None and (x.direction, x.wall_distance) ==
+                                      (e.direction, e.wall_distance)}
+    assert grid[(1.0, 0.0)] == grid[(-1.0, 0.0)] == [10.0 + 1.25 * i for i in range(33)]
+    assert tree[(1.0, 0.0)] == [10.0 + 2.5 * i for i in range(17)]
     # each stored segment carries the duration bounds it was planned within: the release of the 47.5 / 50 J
-    # entries is held at 0.1 s, every other segment has the defaults' (a release from 0.1 s to T_max)
+    # entries (and of the entries re-solved from them) is held at 0.1 s, every other segment has the
+    # defaults' (a release from 0.1 s to T_max)
     cfg = planner.opt.cfg
     for e in planner.library.entries:
+        source = e.kinetic_energy if e.derived_from is None else e.derived_from
         for s in e.segments:
-            bounded = e.kinetic_energy >= 47.5 and e.direction > 0 and e.wall_distance == 0 and s.change == "remove"
+            bounded = source >= 47.5 and e.direction > 0 and e.wall_distance == 0 and s.change == "remove"
             assert s.t_bounds == ((0.1, 0.1) if bounded else (cfg.t_min_of(s.change), cfg.t_max_of(s.change)))
     # probed offline (make library: build_library --probe): half way to each neighbour, both sides
     assert all(len(e.probes) == 2 for e in planner.library.entries)
     top = planner.plan({"kinetic_energy": 49.0, "direction": 1.0, "time_budget": 30.0})
     assert top["success"] and top["source"] == "library", top.get("library_attempt", top["reason"])
-    assert top["reason"].startswith("re-solved library plan for 50 J")
+    # from the 48.75 J entry, re-solved offline from the 50 J one: its release still held at 0.1 s
+    assert top["reason"].startswith("re-solved library plan for 48.75 J")
+    assert planner.library.nearest(49.0, 1.0, 0.0).derived_from == 50.0
     releases = [s for s in top["segments"] if s.change == "remove"]
     assert releases and all(float(s.time[-1]) == pytest.approx(0.1) for s in releases)
-    assert grid[(-1.0, 0.0)] == [10.0, 15.0, 20.0, 25.0, 30.0, 35.0, 40.0, 45.0, 50.0]
+    assert tree[(-1.0, 0.0)] == [10.0, 15.0, 20.0, 25.0, 30.0, 35.0, 40.0, 45.0, 50.0]
     assert sorted({w for (_, w) in grid if w > 0}) == [0.6, 0.7, 0.8, 0.9, 1.0]
-    assert grid[(1.0, 0.8)] == [20.0, 30.0, 40.0, 50.0]
+    assert grid[(1.0, 0.8)] == tree[(1.0, 0.8)] == [20.0, 30.0, 40.0, 50.0]     # walls: not densified
     r = planner.plan({"kinetic_energy": 21.0, "direction": 1.0})
     assert r["success"] and r["source"] == "library", r["reason"]
-    assert r["reason"].startswith("re-solved library plan for 20 J") and r["tree"] is None
+    assert r["reason"].startswith("re-solved library plan for 21.25 J") and r["tree"] is None
     entry = planner.library.nearest(21.0, 1.0, 0.0)
-    assert entry.kinetic_energy == 20.0 and r["contact_sequence"] == entry.contact_sequence
+    assert entry.kinetic_energy == 21.25 and r["contact_sequence"] == entry.contact_sequence
     assert r["final_ke"] < planner.opt.cfg.eps_ke and r["initial_ke"] == pytest.approx(21.0, rel=1e-6)
     assert r["node_ke"][0] == pytest.approx(21.0, rel=1e-6) and len(r["segments"]) == len(r["node_ke"])
     assert len(r["landings"]) == sum(s.change == "add" for s in r["segments"])
     # backward and with a wall: their own entries
     back = planner.plan({"kinetic_energy": 22.0, "direction": -1.0})
-    assert back["success"] and back["source"] == "library" and "for 20 J" in back["reason"], back["reason"]
+    assert back["success"] and back["source"] == "library" and "for 22.5 J" in back["reason"], back["reason"]
     assert planner.library.nearest(22.0, -1.0, 0.0).direction == -1.0
     wall = planner.plan({"kinetic_energy": 43.0, "direction": 1.0, "wall_distance": 0.8})
     assert wall["success"] and wall["source"] == "library" and "for 40 J" in wall["reason"], wall["reason"]
@@ -488,6 +502,49 @@ def test_library_probes_half_way_to_the_neighbours_and_ranking_tries_a_failed_si
     r = again.replan_valid(planner, validate(planner.model, {"kinetic_energy": 16.0, "direction": 1.0}, planner.cfg),
                            max_ke_gap=1.2, max_entries=2)
     assert not r.success and tried[-1] == (15.0, 16.0) and r.reason.startswith("15 J entry: fake"), r.reason
+
+
+def test_library_densify_stores_accepted_re_plans_between_neighbours(tmp_path, monkeypatch):
+    """``PlanLibrary.densify`` (offline continuation): between neighbouring entries of a direction and wall,
+    the energies ``step`` J apart from the lower one are answered as an online request would be (nearest
+    first, the next within the gap when it is not accepted, the planner's check passed along), and each
+    accepted answer becomes an entry that names its source (``derived_from``, saved); a point no entry
+    serves is left out. The sources' probes are not consulted (the result must not depend on whether the
+    library was probed yet) and stay as they were; walls only when asked. The re-plans are faked."""
+    from humfall_ros.multicontact.library import LibraryEntry, PlanLibrary, Replan
+    planner = FallPlanner.from_params()
+    seg = Segment.from_dict({**_tiny_segment_dict(), "t_bounds": [0.25, 3.5]})
+    fwd = [LibraryEntry(ke, 1.0, 0.0, ["LF/RF"], [seg]) for ke in (10.0, 15.0)]
+    fwd[0].probes = {12.5: False}        # would rank the 10 J entry last for 12 J online
+    walls = [LibraryEntry(ke, 1.0, 0.8, ["LF/RF"], [seg]) for ke in (20.0, 23.0)]
+    back = [LibraryEntry(20.0, -1.0, 0.0, ["LF/RF"], [seg])]
+    lib = PlanLibrary(fwd + walls + back, {"n_knots": 8, "transition_objective": "pre_impact"})
+    tried = []
+
+    def fake(self, planner_, vr, entry, t0):
+        ke = round(planner_.model.kinetic_energy(vr.q, vr.v), 6)
+        tried.append((entry.kinetic_energy, ke))
+        return Replan(ke != 14.0, "fake", entry, [seg], [], 0.0, 0.0, [0.0])     # nothing serves 14 J
+    monkeypatch.setattr(PlanLibrary, "_replan_entry", fake)
+    checks = []
+    planner.check_fn = lambda env: (lambda segments: checks.append(env.has_wall))
+    with pytest.raises(ValueError, match="step must be > 0"):
+        lib.densify(planner, 0.0)
+    new = lib.densify(planner, 2.0)
+    assert tried == [(10.0, 12.0), (15.0, 14.0), (10.0, 14.0)], tried   # 14 J: the nearest, then the next
+    assert [(e.kinetic_energy, e.derived_from) for e in new] == [(12.0, 10.0)]
+    assert new[0].segments == [seg] and new[0].contact_sequence == ["LF/RF"] and new[0].probes == {}
+    assert len(checks) == 1 and not checks[0]      # the one accepted re-plan went through the check
+    assert fwd[0].probes == {12.5: False}
+    assert [(e.kinetic_energy, e.direction, e.wall_distance) for e in lib.entries] == [
+        (10.0, 1.0, 0.0), (12.0, 1.0, 0.0), (15.0, 1.0, 0.0), (20.0, -1.0, 0.0), (20.0, 1.0, 0.8), (23.0, 1.0, 0.8)]
+    lib.save(tmp_path / "lib.json")
+    again = PlanLibrary.load(tmp_path / "lib.json")
+    assert [e.derived_from for e in again.entries] == [None, 10.0, None, None, None, None]
+    # a wall only when asked; run again nothing new (14 J still has no plan)
+    assert [(e.kinetic_energy, e.derived_from) for e in again.densify(planner, 2.0, wall_distances=(0.8,))] == [
+        (22.0, 23.0)]
+    assert again.densify(planner, 2.0) == []
 
 
 def test_library_re_plans_start_nothing_once_the_request_budget_is_spent():

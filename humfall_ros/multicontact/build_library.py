@@ -11,10 +11,12 @@ from humfall_ros.params import parse_overrides
 
 def main(argv=None) -> int:
     """Build a library file: ``python -m humfall_ros.multicontact.build_library --kes 10,15,20,25,30,35
-    --out FILE [--directions 1] [--walls 0] [--budget 120] [--set name=value,...] [--add LIB ...] [--probe]
-    [--plot PNG]``
+    --out FILE [--directions 1] [--walls 0] [--budget 120] [--set name=value,...] [--add LIB ...]
+    [--densify STEP] [--probe] [--plot PNG]``
     (the planner from config/multicontact_planner.yaml, ``--set`` overrides by parameter name; ``--add``
-    takes the entries of existing library files too, which must fit the planner; ``--probe`` re-plans
+    takes the entries of existing library files too, which must fit the planner; ``--densify STEP`` adds,
+    between neighbouring entries without a wall, the energies STEP J apart as accepted warm re-plans of their
+    neighbours (``PlanLibrary.densify``); ``--probe`` re-plans
     every entry half way to its neighbours and stores the outcome, for the online ranking:
     ``PlanLibrary.probe``). Pushes without a plan are left out and listed."""
     import argparse
@@ -28,6 +30,9 @@ def main(argv=None) -> int:
     ap.add_argument("--budget", type=float, default=120.0, help="tree-search budget per push (s)")
     ap.add_argument("--set", default="", help="planner parameter overrides, name=value,... (YAML values)")
     ap.add_argument("--out", required=True)
+    ap.add_argument("--densify", type=float, default=0.0,
+                    help="add entries this many J apart between neighbouring entries without a wall, each an "
+                         "accepted warm re-plan of its neighbours (0: none)")
     ap.add_argument("--probe", action="store_true",
                     help="re-plan each entry half way to its neighbours and store whether it was accepted")
     ap.add_argument("--plot", default="", help="also draw what the library holds (its landings) to this PNG")
@@ -44,6 +49,10 @@ def main(argv=None) -> int:
         other.check_compatible(planner.opt.cfg)
         lib.entries += other.entries
     lib.entries.sort(key=lambda e: (e.wall_distance, -e.direction, e.kinetic_energy))
+    if a.densify > 0:
+        t1 = time.perf_counter()
+        new = lib.densify(planner, a.densify, log=print)
+        print(f"densify: {len(new)} entries added, {time.perf_counter() - t1:.1f} s")
     if a.probe:
         t1 = time.perf_counter()
         lib.probe(planner, log=print)
@@ -56,7 +65,8 @@ def main(argv=None) -> int:
                            for ke in floats(a.kes)) if k not in have]
     for e in lib.entries:
         print(f"{e.kinetic_energy:g} J, direction {e.direction:+g}, wall {e.wall_distance:g} m: "
-              f"{' -> '.join(e.contact_sequence)}")
+              f"{' -> '.join(e.contact_sequence)}"
+              + (f" (re-solved from {e.derived_from:g} J)" if e.derived_from is not None else ""))
     for ke, d, w in missing:
         print(f"{ke:g} J, direction {d:+g}, wall {w:g} m: no plan (left out)", file=sys.stderr)
     print(f"{len(lib.entries)} plans in {time.perf_counter() - t0:.1f} s -> {a.out}")

@@ -47,6 +47,8 @@ class LibraryEntry:
         probes: push energy [J] -> whether this entry's re-plan there was accepted, tried offline
             (``PlanLibrary.probe``); online an entry whose probe failed on the request's side is tried
             after the others (``ranked``).
+        derived_from: None for a plan of the tree search; else the push energy [J] of the entry this
+            plan was re-solved from offline (``PlanLibrary.densify``: an accepted warm re-plan, stored).
     """
 
     kinetic_energy: float
@@ -55,6 +57,7 @@ class LibraryEntry:
     contact_sequence: list[str]
     segments: list[Segment]
     probes: dict = dataclasses.field(default_factory=dict)
+    derived_from: float | None = None
 
     def to_dict(self) -> dict:
         d = {"kinetic_energy": self.kinetic_energy, "direction": self.direction,
@@ -62,13 +65,16 @@ class LibraryEntry:
              "segments": [s.to_dict(multipliers=True) for s in self.segments]}
         if self.probes:
             d["probes"] = [[float(k), bool(v)] for k, v in sorted(self.probes.items())]
+        if self.derived_from is not None:
+            d["derived_from"] = float(self.derived_from)
         return d
 
     @staticmethod
     def from_dict(d: dict) -> "LibraryEntry":
         return LibraryEntry(float(d["kinetic_energy"]), float(d["direction"]), float(d["wall_distance"]),
                             list(d["contact_sequence"]), [Segment.from_dict(s) for s in d["segments"]],
-                            {float(k): bool(v) for k, v in d.get("probes", [])})
+                            {float(k): bool(v) for k, v in d.get("probes", [])},
+                            None if d.get("derived_from") is None else float(d["derived_from"]))
 
     def fails_toward(self, kinetic_energy: float) -> bool:
         """A probe on the request's side of this entry failed, and the request is at least half way to it
@@ -224,6 +230,54 @@ class PlanLibrary:
                     if log is not None:
                         log(f"probe {e.kinetic_energy:g} J entry (direction {direction:+g}, wall {wall:g} m) "
                             f"at {ke:g} J: {'accepted' if ok else 'not accepted'}")
+
+    def densify(self, planner, step: float, wall_distances=(0.0,), time_budget: float = 60.0,
+                log=None) -> list[LibraryEntry]:
+        """Offline continuation in the push energy: between each two neighbouring entries (same direction
+        and wall distance, for the walls in ``wall_distances``; 0 = none) the energies ``step`` J apart
+        from the lower one are answered as an online request would be (``replan``: nearest entries first,
+        up to ``library_max_entries`` within ``library_max_ke_gap``, and with ``library_check`` the
+        re-simulation check), and each accepted answer is stored as an entry (``derived_from`` its
+        source's energy). Returns the new entries (already added).
+
+        Why: an online re-plan spends most of its time in IPOPT iterations, and they grow with the
+        distance to the stored plan, while a neighbour re-solved offline costs ~1 s. Measured (session 33:
+        the shipped forward 2.5 J and backward 5 J grids densified to 1.25 J): forward 11-49 J within 1 s
+        13 -> 19 of 19 queries, backward 16 -> 18 of 19 (docs/multicontact.md "Session 33").
+
+        The sources are the entries there before this call, ranked by distance alone (their probes are
+        not consulted, so the result does not depend on whether the library was probed yet); a new entry
+        is not a source for the next one, so an error does not propagate along the chain."""
+        if not step > 0:
+            raise ValueError(f"densify step must be > 0 J, got {step!r}")
+        walls = [float(w) for w in wall_distances]
+        groups: dict = {}
+        for e in self.entries:
+            if any(abs(e.wall_distance - w) < 1e-9 for w in walls):
+                groups.setdefault((e.direction, e.wall_distance), []).append(e)
+        new: list[LibraryEntry] = []
+        for (direction, wall), group in sorted(groups.items()):
+            sources = PlanLibrary([dataclasses.replace(e, probes={}) for e in group], self.built_with)
+            kes = sorted({e.kinetic_energy for e in group})
+            check_plan = planner.check_fn(Environment.from_distance(wall)) if planner.cfg.library_check else None
+            for lo, hi in zip(kes, kes[1:]):
+                k = 1
+                while lo + k * step < hi - 1e-6:
+                    ke = round(lo + k * step, 6)
+                    k += 1
+                    rp = sources.replan(planner, {"kinetic_energy": ke, "direction": direction, "wall_distance": wall,
+                                                  "time_budget": time_budget}, planner.cfg.library_max_ke_gap,
+                                        planner.cfg.library_max_entries, check_plan)
+                    if rp.success:
+                        new.append(LibraryEntry(ke, direction, wall, list(rp.entry.contact_sequence), rp.segments,
+                                                derived_from=rp.entry.kinetic_energy))
+                    if log is not None:
+                        log(f"densify direction {direction:+g}, wall {wall:g} m, {ke:g} J: "
+                            + (f"re-solved from the {rp.entry.kinetic_energy:g} J entry in {rp.time_s:.1f} s"
+                               if rp.success else f"not added ({rp.reason})"))
+        self.entries += new
+        self.entries.sort(key=lambda e: (e.wall_distance, -e.direction, e.kinetic_energy))
+        return new
 
     def replan(self, planner, req: dict, max_ke_gap: float = math.inf, max_entries: int = 1,
                check_plan=None) -> Replan:
