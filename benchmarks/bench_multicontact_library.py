@@ -42,6 +42,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     planner = FallPlanner.from_params(**{"library_file": a.library, **parse_overrides(a.set)})
     t0 = time.perf_counter()
+    planner.warm_up_checks()
     for e in planner.library.entries:
         for s in e.segments:
             planner.opt.prepare_warm(s, Environment.from_distance(e.wall_distance))
@@ -68,7 +69,8 @@ def main(argv=None) -> int:
     out = {"library": a.library, "direction": a.direction, "wall": a.wall,
            "entries": [(e.kinetic_energy, e.direction, e.wall_distance) for e in planner.library.entries],
            "warm_start_multipliers": planner.opt.cfg.warm_start_multipliers,
-           "library_check": planner.cfg.library_check, "library_max_entries": planner.cfg.library_max_entries,
+           "library_check": planner.cfg.library_check, "check_workers": planner.cfg.check_workers,
+           "library_max_entries": planner.cfg.library_max_entries,
            "warm_up_s": round(warm_up, 2), "time_budget_s": a.budget,
            "queries": rows, "answered_from_library": f"{len(lib_rows)}/{len(rows)}",
            "within_1s": f"{sum(t <= 1.0 for t in times)}/{len(rows)}",

@@ -222,6 +222,72 @@ def test_plan_check_rejects_a_plan_the_dynamics_do_not_reproduce(plan10, planner
     assert reason is not None and "knot-to-knot error" in reason and "tracked knot-to-knot error" in reason
 
 
+def test_segment_checks_in_a_worker_equal_plan_check(plan10, planner):
+    """``resim.SegmentChecks`` (a library re-plan's check, segment by segment as they are solved, in a worker
+    process): the same answer as ``plan_check`` of the whole plan, in the worker, in process, and with the
+    last segment checked here; the first failing segment in order is the one reported, whichever finishes
+    first; ``failed()`` reports a failure once known; a broken worker pool falls back to the check here."""
+    import concurrent.futures
+
+    from humfall_ros.multicontact.resim import SegmentChecks, check_pool
+    model, env = planner.model, plan10["env"]
+    seg = plan10["segments"][0]
+    bad = dataclasses.replace(seg, u=-seg.u)     # wrong torques: fails open loop and tracked
+    limits = (0.1, 1.0, 40.0, 0.5)
+    for plan in ([seg, seg], [seg, bad], [bad, seg], [bad, bad]):
+        want = plan_check(model, plan, env, *limits)
+        for pool, last_here in ((check_pool(), False), (check_pool(), True), (None, False)):
+            checks = SegmentChecks(model, env, limits, pool)
+            for i, s in enumerate(plan):
+                checks.add(s, in_process=last_here and i == len(plan) - 1)
+            assert checks.result() == want, (pool, last_here)
+    assert plan_check(model, [seg, bad], env, *limits).startswith("segment 1 (")
+    checks = SegmentChecks(model, env, limits, check_pool())
+    checks.add(bad)
+    import time as _time
+    deadline = _time.monotonic() + 60.0
+    while checks.failed() is None and _time.monotonic() < deadline:
+        _time.sleep(0.05)
+    assert checks.failed().startswith("segment 0 (")
+    broken = concurrent.futures.ThreadPoolExecutor(max_workers=1)
+    broken.shutdown()                          # submit now raises: checked here instead
+    checks = SegmentChecks(model, env, limits, broken)
+    checks.add(seg)
+    checks.add(bad)
+    assert checks.result() == plan_check(model, [seg, bad], env, *limits)
+
+
+def test_the_check_worker_leaves_when_its_process_is_killed(tmp_path):
+    """The check's worker process does not outlive a planner killed without its exit handlers (it would
+    hold the node's output pipes open): it leaves within a second or two of its parent's death."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time as _time
+    code = ("import os, sys; from humfall_ros.multicontact import resim; from humfall_ros.paths import urdf_path; "
+            "resim.warm_check_pool(str(urdf_path())); "
+            "print(resim.check_pool().submit(os.getpid).result(), flush=True); sys.stdin.read()")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        worker = int(proc.stdout.readline())
+        os.kill(worker, 0)                       # alive
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+        deadline = _time.monotonic() + 10.0
+        while _time.monotonic() < deadline:
+            try:
+                os.kill(worker, 0)
+            except ProcessLookupError:
+                break
+            _time.sleep(0.1)
+        else:
+            os.kill(worker, signal.SIGKILL)
+            pytest.fail("the check worker outlived its parent by 10 s")
+    finally:
+        proc.kill()
+
+
 def test_tracking_resimulation_holds_what_open_loop_lets_drift(plan10, planner):
     """The tracked re-simulation (joint PD around the plan on top of its
     feed-forward) stays closer to the knots than the open-loop one, with small
@@ -472,7 +538,7 @@ def test_library_probes_half_way_to_the_neighbours_and_ranking_tries_a_failed_si
     lib = PlanLibrary(fwd + back, {"n_knots": 8, "transition_objective": "pre_impact"})
     tried = []
 
-    def fake(planner_, vr, entry, t0):
+    def fake(planner_, vr, entry, t0, checks=None):
         ke = planner_.model.kinetic_energy(vr.q, vr.v)
         tried.append((entry.kinetic_energy, round(ke, 6)))
         ok = not (entry.kinetic_energy == 15.0 and ke > 15.0)     # the 15 J entry does not serve above it
@@ -521,7 +587,7 @@ def test_library_densify_stores_accepted_re_plans_between_neighbours(tmp_path, m
     lib = PlanLibrary(fwd + walls + back, {"n_knots": 8, "transition_objective": "pre_impact"})
     tried = []
 
-    def fake(self, planner_, vr, entry, t0):
+    def fake(self, planner_, vr, entry, t0, checks=None):
         ke = round(planner_.model.kinetic_energy(vr.q, vr.v), 6)
         tried.append((entry.kinetic_energy, ke))
         return Replan(ke != 14.0, "fake", entry, [seg], [], 0.0, 0.0, [0.0])     # nothing serves 14 J
@@ -573,7 +639,7 @@ def test_library_re_plans_start_nothing_once_the_request_budget_is_spent():
     assert "the time budget of 0.2 s is spent after 1 of 2 segments" in r.reason, r.reason
     assert "22 J entry: not tried, the time budget of 0.2 s is spent" in r.reason, r.reason
 
-    def fail(planner_, vr_, entry, t0):
+    def fail(planner_, vr_, entry, t0, checks=None):
         _time.sleep(0.3)
         return Replan(False, "fake", entry, [], [], math.nan, 0.3, [])
     lib._replan_entry = fail
@@ -609,6 +675,25 @@ def test_a_library_answer_passes_the_re_simulation_check():
                               c.check_force_error_max_mg, c.check_feedback_omega, c.check_feedback_max) is None
         else:   # each entry tried is named with its reason (on this machine 48 J: the check, then 45 J's end KE)
             assert r["library_attempt"].count(" J entry: ") >= 1, r["library_attempt"]
+    # the check in a worker process while the next segment is solved (check_workers 1, the default) decides
+    # as the check in process does
+    assert c.check_workers == 1
+    here = FallPlanner.from_params(library_file=SHIPPED_LIBRARY, nlp_max_wall_time=120.0, check_workers=0)
+    for p in (planner, here):
+        p.library.entries = [e for e in p.library.entries if e.direction > 0 and e.wall_distance == 0.0
+                             and e.kinetic_energy in (30.0, 31.25)]
+    a = planner.library.replan(planner, {"kinetic_energy": 31.0, "direction": 1.0}, 5.0, 2,
+                               planner.check_fn(Environment()))
+    b = here.library.replan(here, {"kinetic_energy": 31.0, "direction": 1.0}, 5.0, 2, here.check_fn(Environment()))
+    assert a.success and b.success and a.reason == b.reason and a.final_ke == b.final_ke, (a.reason, b.reason)
+    # a check no plan passes: every entry is rejected with plan_check's reason (its first segment), whether
+    # the re-plan stopped early on the worker's answer ("after 2 of 3 segments") or checked the whole plan
+    strict = FallPlanner.from_params(library_file=SHIPPED_LIBRARY, nlp_max_wall_time=120.0, check_q_error_max=1e-9)
+    strict.library.entries = planner.library.entries
+    r = strict.library.replan(strict, {"kinetic_energy": 31.0, "direction": 1.0}, 5.0, 2,
+                              strict.check_fn(Environment()))
+    assert not r.success and r.reason.count("rejected by the re-simulation check") == 2, r.reason
+    assert r.reason.count("segment 0 (transition) fails the re-simulation") == 2, r.reason
 
 
 def test_library_landings_and_plot(tmp_path):

@@ -331,17 +331,22 @@ class PlanLibrary:
     def _attempt(self, planner, vr: ValidRequest, entry: LibraryEntry, t0: float, check_plan=None) -> Replan:
         """One entry's re-plan as the planner accepts it: converged and stopped (``_replan_entry``), then
         ``check_plan`` (a rejection makes it a failure that says why)."""
-        rp = self._replan_entry(planner, vr, entry, t0)
+        start = getattr(check_plan, "start", None)
+        checks = start() if start is not None else None
+        rp = self._replan_entry(planner, vr, entry, t0, checks)
         if rp.success and check_plan is not None:
-            why = check_plan(rp.segments)
+            why = checks.result() if checks is not None else check_plan(rp.segments)
             if why:
                 rp.success = False
                 rp.reason += f"; rejected by the re-simulation check: {why}"
             rp.time_s = time.perf_counter() - t0
+        elif checks is not None:
+            checks.cancel()
         return rp
 
-    def _replan_entry(self, planner, vr: ValidRequest, entry: LibraryEntry, t0: float) -> Replan:
-        """One entry's warm re-plan (see module doc)."""
+    def _replan_entry(self, planner, vr: ValidRequest, entry: LibraryEntry, t0: float, checks=None) -> Replan:
+        """One entry's warm re-plan (see module doc). ``checks`` (``resim.SegmentChecks``): each solved
+        segment is handed to it at once, and the re-plan stops when one is already known to fail."""
         if mode_label(vr.mode) != entry.contact_sequence[0]:
             return Replan(False, f"library entry starts in {entry.contact_sequence[0]}, request in "
                                  f"{mode_label(vr.mode)}", entry, [], [], math.nan, time.perf_counter() - t0, [])
@@ -356,6 +361,10 @@ class PlanLibrary:
                 return Replan(False, f"the time budget of {vr.time_budget:g} s is spent after {i} of "
                                      f"{len(entry.segments)} segments", entry, segs, lands, math.nan,
                               time.perf_counter() - t0, times)
+            why = checks.failed() if checks is not None and i > 0 else None
+            if why:
+                return Replan(False, f"rejected by the re-simulation check after {i} of {len(entry.segments)} "
+                                     f"segments: {why}", entry, segs, lands, math.nan, time.perf_counter() - t0, times)
             seg = planner.opt.warm_solve(q, v, stored, vr.env)
             spent = seg.nlp_time
             last = i == len(entry.segments) - 1
@@ -374,6 +383,8 @@ class PlanLibrary:
             seg.nlp_time = spent
             segs.append(seg)
             times.append(spent)
+            if checks is not None and seg.success:
+                checks.add(seg, in_process=last)   # nothing else to do meanwhile: check it here
             if not seg.success:
                 return Replan(False, f"warm-started {seg.kind} {mode_label(seg.mode)} -> "
                                      f"{mode_label(seg.target_mode)} did not converge ({seg.status})", entry, segs,

@@ -21,7 +21,7 @@ from humfall_ros.multicontact.collocation import OptConfig, TrajectoryOptimizer
 from humfall_ros.multicontact.landing import LandingLimits
 from humfall_ros.multicontact.library import PlanLibrary
 from humfall_ros.multicontact.model import PlanarModel, load_model
-from humfall_ros.multicontact.resim import plan_check
+from humfall_ros.multicontact.resim import SegmentChecks, check_pool, plan_check, warm_check_pool
 from humfall_ros.multicontact.request import InvalidRequest, ValidRequest, validate  # noqa: F401 (re-exported)
 from humfall_ros.multicontact.tree import SearchResult, search
 from humfall_ros.paths import share_dir
@@ -57,6 +57,9 @@ class PlannerConfig:
     # (rad/s) reproduces it with at most check_feedback_max of a joint's torque limit as feedback
     check_feedback_omega: float = 40.0
     check_feedback_max: float = 0.5
+    # worker processes for the re-simulation check of library re-plans (0: in process; 1: each segment is
+    # checked while the next one is solved, session 33)
+    check_workers: int = 1
     # frontier key of a child reached by a landing: 'pre_impact' (Alg. 1 line 20, the
     # paper) or 'post_impact' (departure); landings beyond the limits: rank_last | refuse | ignore
     frontier_order: str = "capture"   # departure; default since session 11 (session 6-10: mechanical)
@@ -160,16 +163,24 @@ class FallPlanner:
         opt, cfg = configs_from_params(vals)
         return FallPlanner(opt, cfg)
 
+    def warm_up_checks(self) -> None:
+        """Start the check's worker process (``check_workers``) before the first request needs it."""
+        if self.cfg.check_workers > 0 and self.cfg.check_q_error_max > 0 and self.cfg.library_check:
+            warm_check_pool(self.model.urdf)
+
     def check_fn(self, env):
         """The re-simulation acceptance test of a plan in ``env`` (``resim.plan_check`` with this planner's
-        ``check_*`` parameters: segments -> None or the reason), or None when ``check_q_error_max`` <= 0."""
+        ``check_*`` parameters: segments -> None or the reason), or None when ``check_q_error_max`` <= 0.
+        Its ``start()`` gives the same test for segments added one at a time (``resim.SegmentChecks``; in a
+        worker process with ``check_workers`` 1), which the library's re-plans use."""
         if self.cfg.check_q_error_max <= 0:
             return None
+        c = self.cfg
+        limits = (c.check_q_error_max, c.check_force_error_max_mg, c.check_feedback_omega, c.check_feedback_max)
 
         def check(segments):
-            return plan_check(self.model, segments, env, self.cfg.check_q_error_max,
-                              self.cfg.check_force_error_max_mg, self.cfg.check_feedback_omega,
-                              self.cfg.check_feedback_max)
+            return plan_check(self.model, segments, env, *limits)
+        check.start = lambda: SegmentChecks(self.model, env, limits, check_pool() if c.check_workers > 0 else None)
         return check
 
     def plan(self, req: dict) -> dict:

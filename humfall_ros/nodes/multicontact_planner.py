@@ -23,6 +23,7 @@ from rclpy.node import Node
 from humfall_ros.multicontact import contacts as C
 from humfall_ros.multicontact.modes import Environment, mode_label
 from humfall_ros.multicontact.planner import FallPlanner, configs_from_params
+from humfall_ros.multicontact.resim import shutdown_check_pool
 from humfall_ros.nodes.common import Params, leave_now, run_node
 
 NAME = "multicontact_planner"
@@ -72,8 +73,9 @@ class MulticontactPlanner(Node):
             self.planner.opt.structures(mode, change, ext, Environment())   # NLP and seed projector
         self.get_logger().info(f"warm-up: {len(segments)} NLP structures built in {time.perf_counter() - t0:.1f} s")
         if self.planner.library is not None:
-            # the library's re-plans: their structures and warm-start solvers (~2 s each)
+            # the library's re-plans: their structures and warm-start solvers (~2 s each), the check's worker
             t0 = time.perf_counter()
+            self.planner.warm_up_checks()
             stored = [(s, Environment.from_distance(e.wall_distance))
                       for e in self.planner.library.entries for s in e.segments]
             for s, env in stored:
@@ -170,6 +172,7 @@ def landing_msg(rep) -> LandingReport:
 def main(args=None) -> int:
     code = run_node(MulticontactPlanner, args=args, use_sim_time=False,
                     executor_factory=lambda: rclpy.executors.MultiThreadedExecutor(num_threads=4))
+    shutdown_check_pool()   # the library check's worker process (leave_now skips the exit handlers)
     # rclpy is shut down and the node holds no files; what is left is the interpreter freeing the
     # warm-up's casadi NLP structures, measured at 1.65 s of the 1.7 s a SIGINT took with 9 of
     # them (the 2 s stop goal of issue 9), so leave without it
