@@ -9,7 +9,8 @@ The planner is the node's (config/multicontact_planner.yaml) with ``library_file
 ``FallPlanner.plan`` request, answered by a warm re-plan of the nearest entry (or, when that is not
 accepted, by the tree search: ``source``). The library's structures and warm-start solvers are built
 first, as the node's warm-up does (``warm_up_s``, not in the query times). ``--set
-warm_start_multipliers=false`` measures the primal-only warm start of sessions 20-24.
+warm_start_multipliers=false`` measures the primal-only warm start of sessions 20-24, ``--set
+check_workers=0`` the check in process (before session 33).
 """
 from __future__ import annotations
 
