@@ -288,6 +288,19 @@ def test_the_check_worker_leaves_when_its_process_is_killed(tmp_path):
         proc.kill()
 
 
+def test_the_check_worker_starts_under_a_script_without_a_main_guard(tmp_path):
+    """A user's script that plans at its top level (no ``if __name__ == "__main__"``) gets the worker: the
+    spawned process does not re-run the script (multiprocessing would refuse, and the pool would break)."""
+    import subprocess
+    import sys
+    script = tmp_path / "plan_script.py"
+    script.write_text("from humfall_ros.multicontact import resim\nfrom humfall_ros.paths import urdf_path\n"
+                      "print(resim.warm_check_pool(str(urdf_path())))\n"
+                      "print(resim.check_pool().submit(sum, [1, 2]).result())\n")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.split() == ["True", "3"], out.stdout + out.stderr[-2000:]
+
+
 def test_tracking_resimulation_holds_what_open_loop_lets_drift(plan10, planner):
     """The tracked re-simulation (joint PD around the plan on top of its
     feed-forward) stays closer to the knots than the open-loop one, with small

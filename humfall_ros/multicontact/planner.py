@@ -163,10 +163,12 @@ class FallPlanner:
         opt, cfg = configs_from_params(vals)
         return FallPlanner(opt, cfg)
 
-    def warm_up_checks(self) -> None:
-        """Start the check's worker process (``check_workers``) before the first request needs it."""
+    def warm_up_checks(self) -> bool:
+        """Start the check's worker process (``check_workers``) before the first request needs it; False
+        when it cannot be used (the checks then run in process) or is not asked for."""
         if self.cfg.check_workers > 0 and self.cfg.check_q_error_max > 0 and self.cfg.library_check:
-            warm_check_pool(self.model.urdf)
+            return warm_check_pool(self.model.urdf)
+        return False
 
     def check_fn(self, env):
         """The re-simulation acceptance test of a plan in ``env`` (``resim.plan_check`` with this planner's

@@ -13,7 +13,9 @@ Two checks per segment:
 """
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 import time
 
 import numpy as np
@@ -453,7 +455,26 @@ def check_pool():
         _POOL = concurrent.futures.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                                                        initializer=_watch_parent, initargs=(os.getpid(),))
         atexit.register(shutdown_check_pool)
+        with _main_module_hidden():   # the worker process is started by the first submit
+            _POOL.submit(int)
     return _POOL
+
+
+@contextlib.contextmanager
+def _main_module_hidden():
+    """Keep a spawned worker from importing this process's ``__main__``: 'spawn' re-runs the parent's main
+    script in the child, so a user's script without an ``if __name__ == "__main__"`` guard would plan
+    again there (multiprocessing refuses it and the pool breaks), and a node started with ``-m`` would
+    import rclpy for nothing. The worker needs nothing from it."""
+    main = sys.modules.get("__main__")
+    saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if main is not None and k in main.__dict__}
+    try:
+        main.__dict__.pop("__file__", None)
+        if "__spec__" in saved:
+            main.__spec__ = None
+        yield
+    finally:
+        main.__dict__.update(saved)
 
 
 def shutdown_check_pool() -> None:
@@ -475,6 +496,11 @@ def _watch_parent(parent: int) -> None:
     threading.Thread(target=watch, daemon=True).start()
 
 
-def warm_check_pool(urdf: str) -> None:
-    """Start the worker and build its model now (a node's warm-up: ~2 s), not at the first check."""
-    check_pool().submit(_worker_ready, urdf).result()
+def warm_check_pool(urdf: str) -> bool:
+    """Start the worker and build its model now (a node's warm-up: ~2 s), not at the first check. False
+    when the worker cannot be used (the checks then run in process)."""
+    try:
+        check_pool().submit(_worker_ready, urdf).result()
+        return True
+    except Exception:     # noqa: BLE001 (a broken pool: SegmentChecks falls back to the check in process)
+        return False
