@@ -75,7 +75,9 @@ class MulticontactPlanner(Node):
         if self.planner.library is not None:
             # the library's re-plans: their structures and warm-start solvers (~2 s each), the check's worker
             t0 = time.perf_counter()
-            self.planner.warm_up_checks()
+            worker = self.planner.warm_up_checks()
+            self.get_logger().info("warm-up: re-simulation checks of library re-plans "
+                                   + ("in a worker process" if worker else "in process"))
             stored = [(s, Environment.from_distance(e.wall_distance))
                       for e in self.planner.library.entries for s in e.segments]
             for s, env in stored:
