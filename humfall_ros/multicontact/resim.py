@@ -347,7 +347,8 @@ class SegmentChecks:
     def __init__(self, model: PlanarModel, env: Environment, limits: tuple, pool=None):
         self.model, self.env, self.limits, self.pool = model, env, limits, pool
         self.segments: list[Segment] = []
-        self._pending: list = []
+        self._futures: list = []        # per segment: the worker's future, or None (checked here)
+        self._results: dict = {}        # segment index -> its outcome, once known
 
     def add(self, seg: Segment, in_process: bool = False) -> None:
         """Check ``seg`` (the next segment of the plan): in the worker, or with ``in_process`` here when
@@ -360,62 +361,46 @@ class SegmentChecks:
                 future = self.pool.submit(_worker_segment_check, self.model.urdf, seg, self.env, i, self.limits)
             except Exception:     # noqa: BLE001 (a broken or shut-down pool: check in process)
                 future = None
-        self._pending.append(future)
+        self._futures.append(future)
 
     def _outcome(self, i: int, wait: bool):
-        f = self._pending[i]
-        if f is None:
-            return segment_check(self.model, self.segments[i], self.env, i, *self.limits)
-        if not wait and not f.done():
-            return _PENDING
-        try:
-            return f.result()
-        except Exception:         # noqa: BLE001
-            return segment_check(self.model, self.segments[i], self.env, i, *self.limits)
+        """Segment i's reason or None; ``_PENDING`` when ``wait`` is false and the worker is not done."""
+        if i not in self._results:
+            f = self._futures[i]
+            if f is not None and not wait and not f.done():
+                return _PENDING
+            try:
+                r = f.result() if f is not None else _PENDING
+            except Exception:     # noqa: BLE001 (the worker failed on its own: check here)
+                r = _PENDING
+            self._results[i] = (segment_check(self.model, self.segments[i], self.env, i, *self.limits)
+                                if r is _PENDING else r)
+        return self._results[i]
 
     def failed(self) -> str | None:
         """The reason of a segment already known to fail (without waiting for the worker), else None;
         segments checked in process are checked now."""
         for i in range(len(self.segments)):
             r = self._outcome(i, wait=False)
-            if r is not _PENDING:
-                self._pending[i] = _Done(r)
-                if r is not None:
-                    return r
+            if r is not _PENDING and r is not None:
+                return r
         return None
 
     def cancel(self) -> None:
         """Drop the checks not started yet (the plan was given up)."""
-        for f in self._pending:
+        for f in self._futures:
             if f is not None:
                 f.cancel()
 
     def result(self) -> str | None:
         """``plan_check`` of the segments added: None when every one passes, else the first failure."""
         # the ones checked here first, while the worker finishes its own
-        order = sorted(range(len(self.segments)), key=lambda i: self._pending[i] is not None)
-        for i in order:
-            self._pending[i] = _Done(self._outcome(i, wait=True))
-        return next((f.value for f in self._pending if f.value is not None), None)
+        for i in sorted(range(len(self.segments)), key=lambda i: self._futures[i] is not None):
+            self._outcome(i, wait=True)
+        return next((self._results[i] for i in range(len(self.segments)) if self._results[i] is not None), None)
 
 
 _PENDING = object()   # a check the worker has not finished
-
-
-class _Done:
-    """A finished check (the interface of a future that ``SegmentChecks`` reads)."""
-
-    def __init__(self, value):
-        self.value = value
-
-    def done(self) -> bool:
-        return True
-
-    def result(self):
-        return self.value
-
-    def cancel(self) -> bool:
-        return False
 
 
 _WORKER_MODELS: dict = {}
