@@ -100,7 +100,8 @@ def test_planner_is_built_from_its_one_declaration():
                 continue
             assert got == want, name
         elif name in {f.name for f in dataclasses.fields(PlannerConfig)}:
-            assert getattr(cfg, name) == value, name
+            want = tuple(sorted(x for x in value if x > 0)) if name == "release_alternatives" else value
+            assert getattr(cfg, name) == want, name
     assert opt.transition_objective == "pre_impact"   # the paper
     assert cfg.frontier_order == "capture"   # departure from Alg. 1 line 20 (docs/multicontact.md, session 11)
     assert opt.landing_limits.hand_normal_speed_max == decl["landing_hand_normal_speed_max"]

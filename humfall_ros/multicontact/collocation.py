@@ -874,14 +874,18 @@ class TrajectoryOptimizer:
         return self._optimize(q0, v0, mode, "", "", env, deadline, skip_seeds)
 
     def opt_transition_motion(self, q0, v0, mode: Mode, target: Mode, env: Environment,
-                              deadline: float | None = None) -> Segment:
-        """Trajectory from mode sigma_i that ends ready for sigma_j (Alg. 1 line 13)."""
+                              deadline: float | None = None, release_t_max: float | None = None) -> Segment:
+        """Trajectory from mode sigma_i that ends ready for sigma_j (Alg. 1 line 13).
+        ``release_t_max`` (a release only): its T_max for this solve instead of ``OptConfig.release_t_max``
+        (the tree's short-release alternative, ``search(release_alternatives=)``)."""
         added = set(target) - set(mode)
         removed = set(mode) - set(target)
         if len(added) + len(removed) != 1:
             raise ValueError("adjacent modes differ by exactly one extremity")
         change, ext = ("add", added.pop()) if added else ("remove", removed.pop())
-        return self._optimize(q0, v0, mode, change, ext, env, deadline)
+        if release_t_max is not None and change != "remove":
+            raise ValueError("release_t_max bounds a release (a transition that removes a contact) only")
+        return self._optimize(q0, v0, mode, change, ext, env, deadline, release_t_max=release_t_max)
 
     def structures(self, mode: Mode, change: str, ext: str, env: Environment) -> tuple[SegmentNLP, Mode]:
         """The cached NLP of a segment and the mode its seed goal is projected onto
@@ -945,8 +949,12 @@ class TrajectoryOptimizer:
             pass
         return x0
 
-    def _optimize(self, q0, v0, mode, change, ext, env, deadline, skip_seeds: int = 0) -> Segment:
+    def _optimize(self, q0, v0, mode, change, ext, env, deadline, skip_seeds: int = 0,
+                  release_t_max: float | None = None) -> Segment:
         cfg, model = self.cfg, self.model
+        # the T bounds and seed grid of this solve (a release may be given its own T_max)
+        cfg_t = cfg if release_t_max is None else dataclasses.replace(cfg, release_t_max=float(release_t_max))
+        t_bounds = (cfg_t.t_min_of(change), cfg_t.t_max_of(change))
         q0 = np.asarray(q0, float)
         v0 = np.asarray(v0, float)
         target = make_mode(set(mode) | {ext}) if change == "add" else (
@@ -961,13 +969,14 @@ class TrajectoryOptimizer:
         best = None
         attempts = 0
         log = []
-        for T in cfg.seed_durations(change, skip_seeds):
+        for T in cfg_t.seed_durations(change, skip_seeds):
             if deadline is not None and time.perf_counter() >= deadline:
                 break
             attempts += 1
             t_a = time.perf_counter()
             nlp, (_, q, v, a, u, lam), _ = self.seed(q0, v0, mode, change, ext, env, T)
             lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env)
+            lbx[0], ubx[0] = t_bounds
             w0 = np.clip(nlp.pack(T, q, v, a, u, lam), lbx, ubx)
             with nlp.lock:
                 sol = nlp.solver(x0=w0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
@@ -998,6 +1007,7 @@ class TrajectoryOptimizer:
             ok = stats["return_status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level") \
                 and viol <= cfg.feasibility_tol
             seg = self._segment(nlp, w, mode, target, change, ext, ok, stats, T, viol)
+            seg.t_bounds = t_bounds
             seg.objective = float(nlp.f_ke_end(w))
             seg.multipliers = (np.array(sol["lam_x"]).ravel(), np.array(sol["lam_g"]).ravel())
             log.append({"seed_T": round(T, 4), "status": seg.status, "iterations": seg.iterations,
@@ -1016,7 +1026,7 @@ class TrajectoryOptimizer:
                                      and best.objective > cfg.retry_energy_fraction * ke0):
                 break
         if best is None:
-            if skip_seeds and not cfg.seed_durations(change, skip_seeds):
+            if skip_seeds and not cfg_t.seed_durations(change, skip_seeds):
                 raise ValueError("no seed left after skipping")
             raise TimeoutError("time budget exhausted before the first NLP")
         best.nlp_time = time.perf_counter() - t_start

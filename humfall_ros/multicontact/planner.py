@@ -32,7 +32,7 @@ from humfall_ros.paths import share_dir
 # defaults since session 11. DEPARTURE: the planner before issue 14 (post-impact objective and frontier key,
 # departures from paper 2 Sec. III-A / Alg. 1 line 20; landings not limited).
 NO_STEP_OPTIONS = {"frontier_lookahead_steps": False, "step_capture_weight": 0.0, "step_capture_margin": 0.0,
-                   "release_t_min": 0.0, "max_iter": 300, "check_polish_acc_max": 0.0}
+                   "release_t_min": 0.0, "max_iter": 300, "check_polish_acc_max": 0.0, "release_alternatives": [0.0]}
 DEPARTURE = {"transition_objective": "post_impact", "frontier_order": "post_impact", "landing_policy": "ignore",
              "touchdown_speed_constraint": False, **NO_STEP_OPTIONS}
 
@@ -83,7 +83,13 @@ class PlannerConfig:
     # a library re-plan is accepted only if it passes the re-simulation check the tree applies
     # (check_q_error_max > 0); session 31: 49 J re-solved from the 47.5 J entry does not
     library_check: bool = True
+    # departure (session 34): T_max bounds (s) under which each release is solved a second time and added as
+    # another child (tree.search ``release_alternatives``); values <= 0 are dropped (none: the paper)
+    release_alternatives: tuple = (0.1,)
     stance: dict = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        self.release_alternatives = tuple(sorted(float(x) for x in self.release_alternatives if float(x) > 0))
 
     @staticmethod
     def from_params(d: dict) -> PlannerConfig:
@@ -212,7 +218,7 @@ class FallPlanner:
                      lookahead=self.cfg.frontier_lookahead, step_lookahead=self.cfg.frontier_lookahead_steps,
                      check_retry_seeds=self.cfg.check_retry_seeds,
                      polish_acc_max=self.cfg.check_polish_acc_max if check is not None else 0.0,
-                     max_nlps=self.cfg.max_nlps)
+                     max_nlps=self.cfg.max_nlps, release_alternatives=self.cfg.release_alternatives)
         out = result_dict(self.model, res, vr)
         out["total_time_s"] = time.perf_counter() - t0
         if attempt is not None:

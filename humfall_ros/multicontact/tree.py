@@ -13,7 +13,8 @@ and right limbs are identical, so when a node's state and mode are left/right
 symmetric, a neighbour that is the mirror image of one already tried is
 skipped: same NLP up to relabelling), and an optional acceptance check of a
 stabilising path (``check_plan``, the planner passes the knot-to-knot
-re-simulation) before a node is declared terminal.
+re-simulation) before a node is declared terminal. Optionally (``release_alternatives``) a release is
+also solved with a shorter T_max and kept as a second child of the same mode.
 
 The frontier key is E_K(End(y_ij)) as line 20 writes it (for an added contact
 the pre-impact energy; ``frontier_order='post_impact'`` is the departure that
@@ -182,7 +183,8 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
            symmetry_cut: bool = True, check_plan=None, frontier_order: str = "pre_impact",
            landing_policy: str = "rank_last", lookahead: bool = False,
            step_lookahead: bool = False, check_retry_seeds: bool = False,
-           polish_acc_max: float = 0.0, max_nlps: int = 0) -> SearchResult:
+           polish_acc_max: float = 0.0, max_nlps: int = 0,
+           release_alternatives: tuple = ()) -> SearchResult:
     """Algorithm 1: grow the tree by least kinetic energy until a node's
     self-motion ends with E_K < eps_KE, the frontier empties or the budget ends.
 
@@ -230,7 +232,14 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
     ``max_nlps`` > 0: a budget in NLP calls (each entry of the log: one line-5 or line-13
     optimisation with its seeds) besides ``time_budget``; unlike wall time it ends the search
     at the same node on any machine and load, so campaigns and tests that set it are
-    reproducible (the search itself is deterministic for given NLP results)."""
+    reproducible (the search itself is deterministic for given NLP results).
+    ``release_alternatives`` (departure, s): for each release (a transition that removes a
+    contact) whose solution lasts longer than one of these, the release is solved again with that
+    T_max and added as a second child of the same mode when it converges. Why: eq. 9 makes a
+    release brake on both feet for as long as T allows (0.13-0.31 s from two feet), and from
+    there the step that should follow is too late at 50 J; a release bounded at 0.1 s makes the
+    step (session 28) but loses other plans (the 40 J step then lift). With both children the
+    frontier decides (session 34)."""
     if frontier_order not in FRONTIER_ORDERS:
         raise ValueError(f"frontier_order {frontier_order!r}: one of {', '.join(FRONTIER_ORDERS)}")
     if landing_policy not in LANDING_POLICIES:
@@ -332,6 +341,58 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         d.rejected = rejected
         return False
 
+    def add_child(d, sigma_j, change, ext, y_ij):
+        """Lines 14-20 for the transition y_ij from d (nothing when it did not converge); the result
+        when the child's early self-motion (lookahead) is terminal, else None."""
+        nonlocal deepest
+        if not y_ij.success:
+            return None
+        qj, vj = y_ij.q[-1].copy(), y_ij.v[-1].copy()                       # line 15
+        pre, min_imp, landing, rep = None, None, None, None
+        if change == "add":                                                # line 16, eq. 10
+            pre = model.kinetic_energy(qj, vj)
+            rows = C.contact_rows(sigma_j, env)
+            rep, _ = landing_report(model, qj, vj, sigma_j, ext, env, limits)
+            vj, impulse = C.impact_map(model, qj, vj, rows)
+            normals = [impulse[i] for i, r in enumerate(rows) if r.axis == "n"]
+            min_imp = float(min(normals)) if normals else None
+            landing = rep.normal_impulse
+            if not rep.within_limits and landing_policy == "refuse":
+                log[-1]["landing_refused"] = rep.exceeded
+                return None
+        ke_j = model.kinetic_energy(qj, vj)
+        over = d.over_limits or (rep is not None and not rep.within_limits and landing_policy == "rank_last")
+        key = ke_j if (pre is None or frontier_order == "post_impact") else pre      # line 20
+        if frontier_order == "mechanical":
+            key += g_mass * (float(model.com(qj)[1]) - z_root)
+        elif frontier_order == "capture":
+            key += capture_energy(model, qj, vj, sigma_j, env)
+        cls = 1 if (frontier_order == "landing_first" and change == "remove") else 0
+        child = TreeNode(len(nodes), d.id, d.depth + 1, sigma_j, qj, vj, ke_j,
+                         pre_impact_ke=pre, min_normal_impulse=min_imp, landing_impulse=landing, edge=y_ij,
+                         landing=rep, over_limits=over, priority=key)
+        nodes.append(child)                                               # lines 17-19
+        d.children.append(child.id)
+        deepest = max(deepest, child.depth)
+        early = lookahead or (step_lookahead and change == "add" and ext in FEET)
+        if early and not child.over_limits and not spent():
+            try:
+                y_c = opt.opt_self_motion(qj, vj, sigma_j, env, deadline=deadline)   # line 5, early
+            except TimeoutError:
+                y_c = None
+            if y_c is not None:
+                child.self_motion = y_c
+                record("self_motion", child, y_c)
+                log[-1]["lookahead"] = True
+                if try_terminal(child):
+                    return result(True, f"stabilised at depth {child.depth}: final kinetic energy "
+                                        f"{child.self_motion.final_ke:.3g} J < {eps_ke:g} J", path_to(child))
+                if lookahead:
+                    cls = 0 if y_c.success else 1
+                    child.priority = key = y_c.final_ke if y_c.success else key
+        heapq.heappush(frontier, (child.over_limits, cls, key, next(counter), child.id))   # line 20
+        return None
+
     while frontier:
         if spent():
             return out_of_budget()
@@ -370,52 +431,24 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
             except TimeoutError:
                 break
             record("transition", d, y_ij, sigma_j)
-            if not y_ij.success:
+            found = add_child(d, sigma_j, change, ext, y_ij)
+            if found is not None:
+                return found
+            if change != "remove" or not y_ij.success:
                 continue
-            qj, vj = y_ij.q[-1].copy(), y_ij.v[-1].copy()                       # line 15
-            pre, min_imp, landing, rep = None, None, None, None
-            if change == "add":                                                # line 16, eq. 10
-                pre = model.kinetic_energy(qj, vj)
-                rows = C.contact_rows(sigma_j, env)
-                rep, _ = landing_report(model, qj, vj, sigma_j, ext, env, limits)
-                vj, impulse = C.impact_map(model, qj, vj, rows)
-                normals = [impulse[i] for i, r in enumerate(rows) if r.axis == "n"]
-                min_imp = float(min(normals)) if normals else None
-                landing = rep.normal_impulse
-                if not rep.within_limits and landing_policy == "refuse":
-                    log[-1]["landing_refused"] = rep.exceeded
-                    continue
-            ke_j = model.kinetic_energy(qj, vj)
-            over = d.over_limits or (rep is not None and not rep.within_limits and landing_policy == "rank_last")
-            key = ke_j if (pre is None or frontier_order == "post_impact") else pre      # line 20
-            if frontier_order == "mechanical":
-                key += g_mass * (float(model.com(qj)[1]) - z_root)
-            elif frontier_order == "capture":
-                key += capture_energy(model, qj, vj, sigma_j, env)
-            cls = 1 if (frontier_order == "landing_first" and change == "remove") else 0
-            child = TreeNode(len(nodes), d.id, d.depth + 1, sigma_j, qj, vj, ke_j,
-                             pre_impact_ke=pre, min_normal_impulse=min_imp, landing_impulse=landing, edge=y_ij,
-                             landing=rep, over_limits=over, priority=key)
-            nodes.append(child)                                               # lines 17-19
-            d.children.append(child.id)
-            deepest = max(deepest, child.depth)
-            early = lookahead or (step_lookahead and change == "add" and ext in FEET)
-            if early and not child.over_limits and not spent():
+            for t_alt in release_alternatives:
+                if float(y_ij.time[-1]) <= t_alt + 1e-3 or spent():
+                    continue   # the release already ends within the bound: the same child
                 try:
-                    y_c = opt.opt_self_motion(qj, vj, sigma_j, env, deadline=deadline)   # line 5, early
+                    y_alt = opt.opt_transition_motion(d.q, d.v, d.mode, sigma_j, env, deadline=deadline,
+                                                      release_t_max=t_alt)
                 except TimeoutError:
-                    y_c = None
-                if y_c is not None:
-                    child.self_motion = y_c
-                    record("self_motion", child, y_c)
-                    log[-1]["lookahead"] = True
-                    if try_terminal(child):
-                        return result(True, f"stabilised at depth {child.depth}: final kinetic energy "
-                                            f"{child.self_motion.final_ke:.3g} J < {eps_ke:g} J", path_to(child))
-                    if lookahead:
-                        cls = 0 if y_c.success else 1
-                        child.priority = key = y_c.final_ke if y_c.success else key
-            heapq.heappush(frontier, (child.over_limits, cls, key, next(counter), child.id))   # line 20
+                    break
+                record("transition", d, y_alt, sigma_j)
+                log[-1]["release_t_max"] = t_alt
+                found = add_child(d, sigma_j, change, ext, y_alt)
+                if found is not None:
+                    return found
     if spent():   # the last NLPs were cut by the budget: not a complete search
         return out_of_budget()
     return result(False, f"no solution found: tree exhausted (deepest tree depth reached: {deepest})", [])
