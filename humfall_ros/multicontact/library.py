@@ -299,7 +299,8 @@ class PlanLibrary:
         can end in another local optimum than its entry's; a neighbour is ~0.5 s, the tree search
         minutes); the result names every entry tried. ``check_plan(segments) -> reason | None``: the
         acceptance test of a re-plan besides convergence (the planner's re-simulation check, as the tree
-        applies it before it declares a node terminal)."""
+        applies it before it declares a node terminal); a ``resim.PlanCheck`` checks each segment as it
+        is solved (its ``start()``), any other callable the whole re-plan at the end."""
         t0 = time.perf_counter() if t0 is None else t0
         model = planner.model
         ke = model.kinetic_energy(vr.q, vr.v)

@@ -21,7 +21,7 @@ from humfall_ros.multicontact.collocation import OptConfig, TrajectoryOptimizer
 from humfall_ros.multicontact.landing import LandingLimits
 from humfall_ros.multicontact.library import PlanLibrary
 from humfall_ros.multicontact.model import PlanarModel, load_model
-from humfall_ros.multicontact.resim import SegmentChecks, check_pool, plan_check, warm_check_pool
+from humfall_ros.multicontact.resim import PlanCheck, warm_check_pool
 from humfall_ros.multicontact.request import InvalidRequest, ValidRequest, validate  # noqa: F401 (re-exported)
 from humfall_ros.multicontact.tree import SearchResult, search
 from humfall_ros.paths import share_dir
@@ -176,20 +176,16 @@ class FallPlanner:
             return warm_check_pool(self.model.urdf)
         return False
 
-    def check_fn(self, env):
-        """The re-simulation acceptance test of a plan in ``env`` (``resim.plan_check`` with this planner's
-        ``check_*`` parameters: segments -> None or the reason), or None when ``check_q_error_max`` <= 0.
-        Its ``start()`` gives the same test for segments added one at a time (``resim.SegmentChecks``; in a
-        worker process with ``check_workers`` 1), which the library's re-plans use."""
+    def check_fn(self, env) -> PlanCheck | None:
+        """The re-simulation acceptance test of a plan in ``env`` (``resim.PlanCheck`` with this planner's
+        ``check_*`` parameters: segments -> None or the reason; its ``start()`` checks segments one at a time,
+        in a worker process with ``check_workers`` 1, for the library's re-plans), or None when
+        ``check_q_error_max`` <= 0."""
         if self.cfg.check_q_error_max <= 0:
             return None
         c = self.cfg
-        limits = (c.check_q_error_max, c.check_force_error_max_mg, c.check_feedback_omega, c.check_feedback_max)
-
-        def check(segments):
-            return plan_check(self.model, segments, env, *limits)
-        check.start = lambda: SegmentChecks(self.model, env, limits, check_pool() if c.check_workers > 0 else None)
-        return check
+        return PlanCheck(self.model, env, (c.check_q_error_max, c.check_force_error_max_mg, c.check_feedback_omega,
+                                           c.check_feedback_max), c.check_workers)
 
     def plan(self, req: dict) -> dict:
         """A plan for one request: from the library when one is loaded and its re-plan is accepted

@@ -400,6 +400,23 @@ class SegmentChecks:
         return next((self._results[i] for i in range(len(self.segments)) if self._results[i] is not None), None)
 
 
+class PlanCheck:
+    """The re-simulation acceptance test of plans in one environment, with one set of limits
+    (``limits``: q_error_max, force_error_max_mg, feedback_omega, feedback_max, as ``plan_check`` takes
+    them). Calling it checks a whole plan (``plan_check``: the tree's terminal nodes); ``start()`` gives
+    the same test for segments added one at a time (``SegmentChecks``, in the worker process when
+    ``workers`` > 0: the library's re-plans)."""
+
+    def __init__(self, model: PlanarModel, env: Environment, limits: tuple, workers: int = 0):
+        self.model, self.env, self.limits, self.workers = model, env, tuple(limits), int(workers)
+
+    def __call__(self, segments: list) -> str | None:
+        return plan_check(self.model, segments, self.env, *self.limits)
+
+    def start(self) -> SegmentChecks:
+        return SegmentChecks(self.model, self.env, self.limits, check_pool() if self.workers > 0 else None)
+
+
 _PENDING = object()   # a check the worker has not finished
 
 
