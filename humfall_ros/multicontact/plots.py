@@ -33,7 +33,8 @@ def plot_tree(tree: dict, path: str, title: str = "") -> str:
 
     Yellow root, blue terminal (stabilised), green connectable (reached, not
     yet expanded), red expanded without a stabilising self-motion; the solution
-    path in orange; labels give the mode and the node's kinetic energy.
+    path in orange; labels give the mode, the node's kinetic energy and the duration of the edge that
+    made it (two children of the same mode differ in it: a release and its short alternative).
     """
     nodes = tree["nodes"]
     sol = tree.get("path") or []
@@ -56,10 +57,14 @@ def plot_tree(tree: dict, path: str, title: str = "") -> str:
         ax.scatter([x], [y], s=140, color=_node_color(n, sol), edgecolor="k", zorder=3)
         sm = n.get("self_motion")
         extra = f"\nself: {sm['final_ke']:.2g} J" if sm else ""
-        ax.annotate(f"{n['mode']}\n{n['ke']:.1f} J{extra}", (x, y), textcoords="offset points", xytext=(9, 4),
-                    fontsize=7)
+        edge = n.get("edge")
+        duration = (edge.get("duration") or (edge.get("time") or [None])[-1]) if edge else None
+        after = f" ({duration:.2f} s)" if duration is not None else ""
+        ax.annotate(f"{n['mode']}{after}\n{n['ke']:.1f} J{extra}", (x, y), textcoords="offset points",
+                    xytext=(9, 4), fontsize=7)
     ax.set_xlabel("tree depth")
     ax.set_yticks([])
+    ax.margins(y=0.12)   # room for the top row's labels under the title
     ax.set_xlim(-0.3, max(by_depth) + 0.9 if by_depth else 1)
     ax.set_title(title or ("solution: " + " -> ".join(nodes[i]["mode"] for i in sol) if sol else "no solution"),
                  fontsize=9)
