@@ -606,15 +606,16 @@ class SegmentNLP:
 
     # ------------------------------------------------------------ bounds
     def bounds(self, q0, v0, env: Environment, lb_clear_start: np.ndarray | None = None,
-               acc_max: float | None = None):
+               acc_max: float | None = None, t_bounds: tuple | None = None):
         """Numeric variable and constraint bounds for one solve (``acc_max``: the knot
-        acceleration bound of this solve instead of ``OptConfig.acc_max``)."""
+        acceleration bound of this solve instead of ``OptConfig.acc_max``; ``t_bounds``: the
+        duration's (T_min, T_max) instead of ``OptConfig``'s for this segment kind)."""
         model, cfg, key = self.model, self.cfg, self.key
         acc = cfg.acc_max if acc_max is None or acc_max <= 0 else float(acc_max)
         n, m, N = model.n, model.m, key.n_knots
         lbx = np.full(self.nw, -np.inf)
         ubx = np.full(self.nw, np.inf)
-        lbx[0], ubx[0] = cfg.t_min_of(key.change), cfg.t_max_of(key.change)
+        lbx[0], ubx[0] = t_bounds if t_bounds is not None else (cfg.t_min_of(key.change), cfg.t_max_of(key.change))
         for k, (a, b) in enumerate(self.knot_slices):
             o = a
             # q
@@ -975,8 +976,7 @@ class TrajectoryOptimizer:
             attempts += 1
             t_a = time.perf_counter()
             nlp, (_, q, v, a, u, lam), _ = self.seed(q0, v0, mode, change, ext, env, T)
-            lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env)
-            lbx[0], ubx[0] = t_bounds
+            lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env, t_bounds=t_bounds)
             w0 = np.clip(nlp.pack(T, q, v, a, u, lam), lbx, ubx)
             with nlp.lock:
                 sol = nlp.solver(x0=w0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
@@ -1006,8 +1006,7 @@ class TrajectoryOptimizer:
             stats["iter_count"] = iters
             ok = stats["return_status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level") \
                 and viol <= cfg.feasibility_tol
-            seg = self._segment(nlp, w, mode, target, change, ext, ok, stats, T, viol)
-            seg.t_bounds = t_bounds
+            seg = self._segment(nlp, w, mode, target, change, ext, ok, stats, T, viol, t_bounds)
             seg.objective = float(nlp.f_ke_end(w))
             seg.multipliers = (np.array(sol["lam_x"]).ravel(), np.array(sol["lam_g"]).ravel())
             log.append({"seed_T": round(T, 4), "status": seg.status, "iterations": seg.iterations,
@@ -1073,9 +1072,7 @@ class TrajectoryOptimizer:
             and nlp.fits(guess.multipliers)
         solver = nlp.warm_solver() if use_mult else nlp.solver   # built on first use: part of build_time
         build_time = time.perf_counter() - t0
-        lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env, acc_max=acc_max)
-        if guess.t_bounds is not None:
-            lbx[0], ubx[0] = guess.t_bounds
+        lbx, ubx, lbg, ubg = nlp.bounds(q0, v0, env, acc_max=acc_max, t_bounds=guess.t_bounds)
         # the stored knots moved so that they start at the new state, the shift fading
         # out linearly to the last knot (which keeps the stored end)
         fade = np.linspace(1.0, 0.0, len(guess.time))[:, None]
@@ -1110,8 +1107,7 @@ class TrajectoryOptimizer:
                 and viol <= self.cfg.feasibility_tol
         stats["iter_count"] = iters
         seg = self._segment(nlp, w, guess.mode, guess.target_mode, guess.change, guess.extremity, ok, stats,
-                            float(guess.time[-1]), viol)
-        seg.t_bounds = (float(lbx[0]), float(ubx[0]))
+                            float(guess.time[-1]), viol, (float(lbx[0]), float(ubx[0])))
         seg.objective = float(nlp.f_ke_end(w))
         seg.multipliers = (np.array(sol["lam_x"]).ravel(), np.array(sol["lam_g"]).ravel())
         seg.nlp_time, seg.build_time, seg.cpu_time = time.perf_counter() - t0, build_time, time.thread_time() - c0
@@ -1122,7 +1118,8 @@ class TrajectoryOptimizer:
                             "violation": viol, "success": bool(ok), "warm_restarts": restarts}]
         return seg
 
-    def _segment(self, nlp, w, mode, target, change, ext, ok, stats, T_seed, viol) -> Segment:
+    def _segment(self, nlp, w, mode, target, change, ext, ok, stats, T_seed, viol, t_bounds: tuple) -> Segment:
+        """The solved NLP ``w`` as a Segment; ``t_bounds``: the (T_min, T_max) it was solved within."""
         T, q, v, a, u, lam = nlp.unpack(w)
         N = nlp.key.n_knots
         ke = np.array([self.model.kinetic_energy(q[k], v[k]) for k in range(N)])
@@ -1130,5 +1127,4 @@ class TrajectoryOptimizer:
                        change=change, extremity=ext, time=np.linspace(0, T, N), q=q, v=v, a=a, u=u, lam=lam,
                        rows=list(nlp.rows), ke=ke, success=bool(ok), status=str(stats["return_status"]),
                        iterations=int(stats.get("iter_count", -1)), nlp_time=0.0, seed_duration=T_seed,
-                       attempts=1, max_violation=viol,
-                       t_bounds=(self.cfg.t_min_of(change), self.cfg.t_max_of(change)))
+                       attempts=1, max_violation=viol, t_bounds=tuple(t_bounds))

@@ -57,9 +57,8 @@ def plot_tree(tree: dict, path: str, title: str = "") -> str:
         ax.scatter([x], [y], s=140, color=_node_color(n, sol), edgecolor="k", zorder=3)
         sm = n.get("self_motion")
         extra = f"\nself: {sm['final_ke']:.2g} J" if sm else ""
-        edge = n.get("edge")
-        duration = (edge.get("duration") or (edge.get("time") or [None])[-1]) if edge else None
-        after = f" ({duration:.2f} s)" if duration is not None else ""
+        edge = n.get("edge")   # the tree dict without trajectories, as every caller passes it
+        after = f" ({edge['duration']:.2f} s)" if edge else ""
         ax.annotate(f"{n['mode']}{after}\n{n['ke']:.1f} J{extra}", (x, y), textcoords="offset points",
                     xytext=(9, 4), fontsize=7)
     ax.set_xlabel("tree depth")
