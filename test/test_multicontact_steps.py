@@ -21,9 +21,10 @@ from humfall_ros.multicontact.planner import FallPlanner
 from test_multicontact_landing import _FakeOpt
 
 # the options session 7's step plans use (docs/multicontact.md, "Session 7: protective steps"); the
-# declared defaults since session 11 (checked below), with the polish of a rejected stop
+# declared defaults since session 11 (checked below), with the polish of a rejected stop; releases from 0.05 s
+# since session 35 (0.1 s before)
 STEP_OPTIONS = {"frontier_order": "capture", "frontier_lookahead_steps": True, "step_capture_weight": 2000.0,
-                "step_capture_margin": 0.12, "release_t_min": 0.1, "max_iter": 600}
+                "step_capture_margin": 0.12, "release_t_min": 0.05, "max_iter": 600}
 
 
 @pytest.fixture(scope="module")
@@ -317,7 +318,7 @@ def test_40J_search_expands_the_short_release_before_the_hand_and_lands_a_step_w
     """Sec. IV-B puts 40 J among the protective steps. With the defaults (paper objective, step
     options, polish, the short-release alternative), on a budget of 7 NLPs (``max_nlps``: the same tree on
     any machine): the root has a hand landing and, per released foot, two releases of the same mode: eq. 9's
-    (braking on both feet beyond 0.1 s) and the one bounded at 0.1 s (``release_alternatives``, session 34).
+    (braking on both feet beyond T_min) and the one bounded at T_min, 0.05 s (``release_alternatives``, sessions 34-35).
     The short release is expanded before the hand landing, which lands harder than the released foot; the
     released foot lands ahead (> 0.3 m) within the limits, and the stop of that double support is tried at
     once (step lookahead). When the stop converges and passes the check, the plan is the step:
@@ -328,7 +329,8 @@ def test_40J_search_expands_the_short_release_before_the_hand_and_lands_a_step_w
     converged on another). Until that is settled this test asserts what every machine reproduces and the plan
     where it is found."""
     planner = FallPlanner.from_params(max_nlps=7, nlp_max_wall_time=60.0)
-    assert planner.cfg.release_alternatives == (0.1,)
+    (bound,) = planner.cfg.release_alternatives
+    assert bound == pytest.approx(planner.opt.cfg.release_t_min)   # session 35: the short release lasts T_min
     r = planner.plan({"kinetic_energy": 40.0, "direction": 1.0, "time_budget": 600.0})
     res = r["search"]
     nodes = res.nodes
@@ -339,7 +341,7 @@ def test_40J_search_expands_the_short_release_before_the_hand_and_lands_a_step_w
     assert releases[0].mode == releases[1].mode
     (hand,) = hand
     durations = [float(n.edge.time[-1]) for n in releases]
-    assert durations[0] > 0.1 + 1e-3 and durations[1] <= 0.1 + 1e-6, durations   # eq. 9's, then the bounded one
+    assert durations[0] > bound + 1e-3 and durations[1] <= bound + 1e-6, durations   # eq. 9's, then the bounded one
     release = releases[1]
     assert release.status in ("expanded", "terminal") and release.self_motion is not None
     # the hand landing is not expanded before the release (whether it is over the limits or just at the hand's

@@ -144,14 +144,16 @@ class OptConfig:
     transition_objective: str = "pre_impact"
     # T_min of a transition that removes a contact (s; <= 0: t_min). A release is
     # a lift-off: it has no reason to last as long as the shortest landing.
-    release_t_min: float = 0.1     # session 7, default since session 11 (Table I: t_min for all)
+    # 0.1: session 7, default in sessions 11-34; 0.05 since session 35 (with the 0.05 s alternative of
+    # ``PlannerConfig.release_alternatives``): the executor's task-space swing lifts the foot at once anyway
+    release_t_min: float = 0.05    # Table I: t_min (0.25 s) for all
     # T_max of a release (s; <= 0: t_max, the paper). Ours (session 28): the release's objective (its end
     # energy) prefers braking on both feet as long as T allows, so the step comes late; from one foot, where a
     # step is a single landing, the same planner steps at 30-60 J in 2-10 s
     release_t_max: float = 0.0
     # seed durations of a release (s; values <= 0 dropped; empty: the general list). Tried in order: increasing
-    # from the release's T_min, as the general list from T_min (session 30)
-    release_seed_durations: tuple = (0.1, 0.25, 0.5)
+    # from the release's T_min, as the general list from T_min (session 30; the first 0.05 since session 35)
+    release_seed_durations: tuple = (0.05, 0.25, 0.5)
     # foot landing seeds: the seed goal puts the landing foot's toe this far past
     # the capture point of the pushed state (m; nan: the paper's seed, the goal
     # projection alone decides)

@@ -85,7 +85,7 @@ class PlannerConfig:
     library_check: bool = True
     # departure (session 34): T_max bounds (s) under which each release is solved a second time and added as
     # another child (tree.search ``release_alternatives``); values <= 0 are dropped (none: the paper)
-    release_alternatives: tuple = (0.1,)
+    release_alternatives: tuple = (0.05,)   # session 34: (0.1,); session 35: (0.05,) with release_t_min 0.05
     stance: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
