@@ -154,8 +154,9 @@ def plan30():
 
 def test_30J_paper_objective_takes_a_protective_step(plan30):
     """The paper's ladder at 30 J (Sec. IV-B): a protective step, with the paper's
-    transition objective (pre-impact KE) and this session's step options: release one
-    foot, land it ahead of the capture point, stop in the new double support."""
+    transition objective (pre-impact KE) and the step options: release one foot, land it
+    ahead of the capture point with no more energy than the push gave, stop in the new
+    double support."""
     planner, r = plan30
     assert r["success"], r["reason"]
     seq = r["contact_sequence"]
@@ -165,6 +166,8 @@ def test_30J_paper_objective_takes_a_protective_step(plan30):
     (land,) = r["landings"]
     assert land.limb in ("LF", "RF") and land.within_limits
     assert land.normal_speed <= planner.opt.cfg.landing_limits.foot_normal_speed_max + 1e-4
+    # issue 14's goal, met at 30 J since releases start at 0.05 s (session 35: 28.7 J; 32.0 J from 0.1 s)
+    assert land.pre_impact_ke <= 30.0, land.pre_impact_ke
     step = r["segments"][1]   # the landing edge: the stepped foot ends ahead of where it started
     ext = land.limb
     x0 = planner.model.point(f"{ext}_toe", step.q[0])[0]
