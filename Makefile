@@ -74,7 +74,7 @@ bench: setup
 # --probe re-plans every entry half way to its neighbours (the online ranking tries an entry that failed there last).
 # The tree searches run with the release options the shipped library was built with (LIBRARY_TREE: releases from 0.1 s,
 # no short-release children; sessions 34 / 35 changed both defaults after it), so this target reproduces it; a library
-# built with the new defaults is not shipped (docs/multicontact.md "Session 34").
+# built with the new defaults is measured, not shipped (docs/multicontact.md "Session 34", "Session 35").
 LIBRARY_OUT ?= config/multicontact_library/standing_pushes.json.gz
 LIBRARY_PARTS := build/library/forward.json.gz build/library/forward_bounded_release.json.gz \
 	build/library/backward.json.gz build/library/walls.json.gz
