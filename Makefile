@@ -72,21 +72,23 @@ bench: setup
 # --densify 1.25 then adds, between neighbouring entries without a wall, pushes 1.25 J apart as accepted warm re-plans of
 # their neighbours (session 33: ~1 min; the online re-plans from them take fewer IPOPT iterations).
 # --probe re-plans every entry half way to its neighbours (the online ranking tries an entry that failed there last).
-# The tree searches run with the release options the shipped library was built with (LIBRARY_RELEASES: from 0.1 s,
-# no short-release children; sessions 34 / 35 changed both defaults after it), so this target reproduces it; a library
-# built with the new defaults is measured, not shipped (docs/multicontact.md "Session 34", "Session 35").
+# The tree searches run with the release options the shipped library was built with (LIBRARY_PINS: from 0.1 s,
+# no short-release children; sessions 34 / 35 changed both defaults after it) and its capture-cost weight (2000 J/m^2;
+# 6000 since session 36: each file records it, the merge keeps it and the re-plans, densify and probes included, solve
+# with it), so this target reproduces it; a library
+# built with the new defaults is measured, not shipped (docs/multicontact.md "Session 34", "Session 35", "Session 36").
 LIBRARY_OUT ?= config/multicontact_library/standing_pushes.json.gz
 LIBRARY_PARTS := build/library/forward.json.gz build/library/forward_bounded_release.json.gz \
 	build/library/backward.json.gz build/library/walls.json.gz
 BUILD_LIBRARY := OMP_NUM_THREADS=1 $(PY) -m humfall_ros.multicontact.build_library
-LIBRARY_RELEASES := release_alternatives=[0],release_t_min=0.1
-LIBRARY_TREE := --set '$(LIBRARY_RELEASES)'
+LIBRARY_PINS := release_alternatives=[0],release_t_min=0.1,step_capture_weight=2000
+LIBRARY_TREE := --set '$(LIBRARY_PINS)'
 
 build/library/forward.json.gz: | $(VENV)/.deps-stamp
 	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 10,12.5,15,17.5,20,22.5,25,27.5,30,32.5,35,37.5,40,42.5,45 $(LIBRARY_TREE) --out $@
 
 build/library/forward_bounded_release.json.gz: | $(VENV)/.deps-stamp
-	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 47.5,50 --set 'release_t_max=0.1,$(LIBRARY_RELEASES)' --out $@
+	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 47.5,50 --set 'release_t_max=0.1,$(LIBRARY_PINS)' --out $@
 
 build/library/backward.json.gz: | $(VENV)/.deps-stamp
 	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 10,15,20,25,30,35,40,45,50 --directions -1 $(LIBRARY_TREE) --out $@

@@ -409,8 +409,8 @@ def test_library_replan_reuses_a_stored_plan_warm(tmp_path):
     # guess, and that one is kept; the time reported is both runs'
     real = planner.opt.warm_solve
 
-    def astray(q0, v0, guess, env, acc_max=None, multipliers=None):
-        seg = real(q0, v0, guess, env, acc_max=acc_max, multipliers=multipliers)
+    def astray(q0, v0, guess, env, acc_max=None, multipliers=None, **kw):
+        seg = real(q0, v0, guess, env, acc_max=acc_max, multipliers=multipliers, **kw)
         if seg.attempt_log[0]["multipliers"]:
             ke = seg.ke.copy()
             ke[-1] = 1.0
@@ -472,7 +472,12 @@ def test_planner_answers_from_the_shipped_library_and_searches_beyond_it():
     assert tree[(-1.0, 0.0)] == [10.0, 15.0, 20.0, 25.0, 30.0, 35.0, 40.0, 45.0, 50.0]
     assert sorted({w for (_, w) in grid if w > 0}) == [0.6, 0.7, 0.8, 0.9, 1.0]
     assert grid[(1.0, 0.8)] == tree[(1.0, 0.8)] == [20.0, 30.0, 40.0, 50.0]     # walls: not densified
+    # the re-plans solve with the capture-cost weight the library records, not the tree search's (session 36)
+    solves, warm_solve = [], planner.opt.warm_solve
+    planner.opt.warm_solve = lambda *a, **k: solves.append(k.get("capture_weight")) or warm_solve(*a, **k)
     r = planner.plan({"kinetic_energy": 21.0, "direction": 1.0})
+    del planner.opt.warm_solve
+    assert solves and set(solves) == {planner.library.capture_weight} != {planner.opt.cfg.step_capture_weight}
     assert r["success"] and r["source"] == "library", r["reason"]
     assert r["reason"].startswith("re-solved library plan for 21.25 J") and r["tree"] is None
     entry = planner.library.nearest(21.0, 1.0, 0.0)
@@ -642,7 +647,7 @@ def test_library_re_plans_start_nothing_once_the_request_budget_is_spent():
     vr = validate(planner.model, {"kinetic_energy": 20.8, "direction": 1.0, "time_budget": 0.2}, planner.cfg)
     solves = []
 
-    def slow_solve(q0, v0, guess, env, acc_max=None, multipliers=None):
+    def slow_solve(q0, v0, guess, env, acc_max=None, multipliers=None, **kw):
         solves.append(multipliers)
         _time.sleep(0.3)
         return dataclasses.replace(guess, attempt_log=[{"multipliers": True}], ke=guess.ke + 1.0)  # does not stop
@@ -745,7 +750,10 @@ def test_library_file_checks(tmp_path):
     with pytest.raises(ValueError, match="transition_objective"):
         FallPlanner.from_params(library_file=SHIPPED_LIBRARY, transition_objective="post_impact")
     lib = FallPlanner.from_params(library_file=SHIPPED_LIBRARY).library
-    assert lib.built_with == {"n_knots": 8, "transition_objective": "pre_impact"}
+    # the shipped library was planned with the capture-cost weight of sessions 11-35 (the Makefile pins it);
+    # its re-plans solve with that weight, whatever the tree search uses
+    assert lib.built_with == {"n_knots": 8, "transition_objective": "pre_impact", "step_capture_weight": 2000.0}
+    assert lib.capture_weight == 2000.0
     old = tmp_path / "old.json"
     old.write_text(json.dumps([e.to_dict() for e in lib.entries[:1]]))
     assert [e.contact_sequence for e in PlanLibrary.load(old).entries] == [lib.entries[0].contact_sequence]
@@ -753,7 +761,14 @@ def test_library_file_checks(tmp_path):
     from humfall_ros.multicontact.build_library import main as library_main
     from humfall_ros.multicontact.planner import library_path
     merged = tmp_path / "merged.json"
+    other_weight = tmp_path / "other_weight.json"      # plans of another capture-cost weight: not merged
+    PlanLibrary(lib.entries[:1], {**lib.built_with, "step_capture_weight": 1000.0}).save(other_weight)
+    with pytest.raises(SystemExit, match="different step_capture_weight"):
+        library_main(["--add", str(library_path(SHIPPED_LIBRARY)), "--add", str(other_weight), "--out", str(merged)])
+    assert not merged.exists()
+    # a merge keeps the files' weight, not the planner's (the shipped library's differs from the default)
     assert library_main(["--add", str(library_path(SHIPPED_LIBRARY)), "--add", str(old), "--out", str(merged)]) == 0
+    assert PlanLibrary.load(merged).built_with == lib.built_with
     both = PlanLibrary.load(merged).entries
     assert len(both) == len(lib.entries) + 1
     assert sum(e.kinetic_energy == 10.0 and e.direction > 0 and e.wall_distance == 0 for e in both) == 2

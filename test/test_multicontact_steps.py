@@ -22,8 +22,8 @@ from test_multicontact_landing import _FakeOpt
 
 # the options session 7's step plans use (docs/multicontact.md, "Session 7: protective steps"); the
 # declared defaults since session 11 (checked below), with the polish of a rejected stop; releases from 0.05 s
-# since session 35 (0.1 s before)
-STEP_OPTIONS = {"frontier_order": "capture", "frontier_lookahead_steps": True, "step_capture_weight": 2000.0,
+# since session 35 (0.1 s before); the capture cost's weight 6000 since session 36 (2000 before)
+STEP_OPTIONS = {"frontier_order": "capture", "frontier_lookahead_steps": True, "step_capture_weight": 6000.0,
                 "step_capture_margin": 0.12, "release_t_min": 0.05, "max_iter": 600}
 
 
@@ -138,7 +138,11 @@ def test_soft_capture_cost_of_a_foot_landing(model):
     assert np.all(lbx[oc:] == 0.0) and np.all(ubx[oc:] == np.inf)
     w = np.zeros(nlp.nw)
     w[oc:] = (0.1, 0.2)
-    assert float(nlp.f_cap_cost(w)) == pytest.approx(w_cap * (0.01 + 0.04))
+    assert float(nlp.f_cap_cost(w, nlp.parameters())) == pytest.approx(w_cap * (0.01 + 0.04))
+    # the weight is the NLP's parameter: another weight in the same structure (a library re-plan's)
+    assert float(nlp.f_cap_cost(w, nlp.parameters(3000.0))) == pytest.approx(3000.0 * (0.01 + 0.04))
+    with pytest.raises(ValueError):
+        nlp.parameters(float("nan"))
     hand, _ = opt.structures(("LF", "RF"), "add", "LH", env)
     assert hand.n_cap == 0 and "capture_soft" not in hand._block_idx
     plain = TrajectoryOptimizer(model, OptConfig(step_capture_weight=0.0))

@@ -44,10 +44,22 @@ def main(argv=None) -> int:
     planner = FallPlanner.from_params(**overrides)
     t0 = time.perf_counter()
     lib = PlanLibrary.build(planner, floats(a.kes), floats(a.directions), floats(a.walls), a.budget)
+    # one file holds plans of one capture-cost weight (its re-plans solve with it): the searched plans' and
+    # the added files' (a merge without a search keeps the files' weight, whatever the planner's)
+    weights = {"this build's searches": lib.capture_weight} if floats(a.kes) else {}
     for path in a.add:
         other = PlanLibrary.load(path)
         other.check_compatible(planner.opt.cfg)
+        if other.capture_weight is not None:
+            weights[path] = other.capture_weight
         lib.entries += other.entries
+    if len(set(weights.values())) > 1:
+        raise SystemExit("plans of different step_capture_weight cannot share a library: "
+                         + ", ".join(f"{k} {w:g}" for k, w in weights.items()))
+    if weights:
+        lib.built_with["step_capture_weight"] = next(iter(weights.values()))
+    else:   # only files that do not say: neither does the merge (their re-plans use the planner's weight)
+        lib.built_with.pop("step_capture_weight", None)
     lib.entries.sort(key=lambda e: (e.wall_distance, -e.direction, e.kinetic_energy))
     if a.densify > 0:
         t1 = time.perf_counter()

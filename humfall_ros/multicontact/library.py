@@ -113,11 +113,19 @@ class PlanLibrary:
     """Stored plans and the warm re-plan from them.
 
     ``built_with``: what the plans were made with (``n_knots``, ``transition_objective``; saved in the
-    file): a planner whose NLPs differ in these cannot re-solve them (``check_compatible``)."""
+    file): a planner whose NLPs differ in these cannot re-solve them (``check_compatible``). With
+    ``step_capture_weight`` the re-plans solve the foot landings with that weight of the capture cost, the
+    plans' own, whatever the planner's tree search uses (``capture_weight``)."""
 
     def __init__(self, entries: list[LibraryEntry] | None = None, built_with: dict | None = None):
         self.entries = list(entries or [])
         self.built_with = dict(built_with or {})
+
+    @property
+    def capture_weight(self) -> float | None:
+        """The capture cost's weight the plans were made with (J/m^2; None: not recorded, the planner's)."""
+        w = self.built_with.get("step_capture_weight")
+        return None if w is None else float(w)
 
     def check_compatible(self, cfg: OptConfig) -> None:
         """ValueError unless every stored segment has ``cfg.n_knots`` knots and the library was built
@@ -137,7 +145,8 @@ class PlanLibrary:
               time_budget: float = 120.0) -> "PlanLibrary":
         """Full tree searches over the grid; failed pushes are left out."""
         lib = PlanLibrary(built_with={"n_knots": planner.opt.cfg.n_knots,
-                                      "transition_objective": planner.opt.cfg.transition_objective})
+                                      "transition_objective": planner.opt.cfg.transition_objective,
+                                      "step_capture_weight": planner.opt.cfg.step_capture_weight})
         for w in wall_distances:
             for d in directions:
                 for ke in kinetic_energies:
@@ -366,7 +375,7 @@ class PlanLibrary:
             if why:
                 return Replan(False, f"rejected by the re-simulation check after {i} of {len(entry.segments)} "
                                      f"segments: {why}", entry, segs, lands, math.nan, time.perf_counter() - t0, times)
-            seg = planner.opt.warm_solve(q, v, stored, vr.env)
+            seg = planner.opt.warm_solve(q, v, stored, vr.env, capture_weight=self.capture_weight)
             spent = seg.nlp_time
             last = i == len(entry.segments) - 1
             if seg.attempt_log[0].get("multipliers") and (not seg.success or (last and seg.final_ke >= eps)) \
@@ -374,7 +383,8 @@ class PlanLibrary:
                 # the stored multipliers led IPOPT to another local optimum (session 25: the 10 J stop
                 # re-solved at 12 J ends at 0.80 J from them, at 0.0 J from the primal guess alone):
                 # the primal start as well, the better of the two kept
-                alt = planner.opt.warm_solve(q, v, stored, vr.env, multipliers=False)
+                alt = planner.opt.warm_solve(q, v, stored, vr.env, multipliers=False,
+                                             capture_weight=self.capture_weight)
                 spent += alt.nlp_time
                 if alt.success and (not seg.success or (last and alt.final_ke < seg.final_ke)):
                     alt.attempt_log = seg.attempt_log + alt.attempt_log
