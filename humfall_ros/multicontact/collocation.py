@@ -132,6 +132,12 @@ class OptConfig:
     contact_pos_tol: float = 0.002   # m, eq. 3 at the knots (drift bound)
     contact_vel_tol: float = 0.02    # m/s, eq. 4 at the knots
     nlp_max_wall_time: float = 10.0
+    # IPOPT's heuristics for problems expected to be infeasible (``expect_infeasible_problem``: the restoration
+    # phase is entered sooner and left later) in the tree search's cold solves (not in warm re-solves from a
+    # neighbouring optimum, ``SegmentNLP.WARM_START_OPTIONS``). Most of a search's time goes to NLPs that end
+    # infeasible (the stops and hands from a stepped node: ~10 s each over three seeds); measured (session 36):
+    # the same plans 10-80 J from two feet, 60 / 70 / 80 J in 71 / 55 / 65 s instead of 87 / 63 / 84 s
+    expect_infeasible: bool = True
     # a warm re-solve (``warm_solve``: the library re-plan) whose guess carries the IPOPT multipliers of
     # its own solve starts IPOPT from them too (warm_start_init_point); false: from the primal guess only
     # (before session 25). The tree's polish of a rejected stop never uses them (its bounds differ).
@@ -536,6 +542,7 @@ class SegmentNLP:
             "ipopt.mu_strategy": "adaptive",
             "ipopt.linear_solver": "mumps",
             "ipopt.max_wall_time": cfg.nlp_max_wall_time,
+            "ipopt.expect_infeasible_problem": "yes" if cfg.expect_infeasible else "no",
         }
         self.solver = ca.nlpsol(f"seg_{id(self)}", "ipopt", {"x": w, "p": capture_weight, "f": f, "g": G}, opts)
         self._opts = opts
@@ -550,9 +557,11 @@ class SegmentNLP:
 
     # IPOPT's warm start from a known solution's multipliers: the initial point is not pushed into the
     # interior (bound pushes ~0) and the barrier starts small, since the guess is a neighbouring optimum
+    # (so no heuristics for an infeasible problem either: measured with them, the library's answers were
+    # 0.02-0.15 s slower at the slowest, session 36)
     WARM_START_OPTIONS = {"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-3,
                           "ipopt.warm_start_bound_push": 1e-6, "ipopt.warm_start_mult_bound_push": 1e-6,
-                          "ipopt.warm_start_slack_bound_push": 1e-6}
+                          "ipopt.warm_start_slack_bound_push": 1e-6, "ipopt.expect_infeasible_problem": "no"}
 
     def warm_solver(self):
         """The same NLP (its oracle: no second symbolic build) with IPOPT's warm-start options; built
