@@ -72,8 +72,9 @@ bench: setup
 # --densify 1.25 then adds, between neighbouring entries without a wall, pushes 1.25 J apart as accepted warm re-plans of
 # their neighbours (session 33: ~1 min; the online re-plans from them take fewer IPOPT iterations).
 # --probe re-plans every entry half way to its neighbours (the online ranking tries an entry that failed there last).
-# The tree searches run with the release options the shipped library was built with (LIBRARY_PINS: from 0.1 s,
-# no short-release children; sessions 34 / 35 changed both defaults after it) and its capture-cost weight (2000 J/m^2;
+# The tree searches, the densify and the probes run with the settings the shipped library was built with (LIBRARY_PINS:
+# releases from 0.1 s, no short-release children; sessions 34 / 35 changed both defaults after it; 600 IPOPT iterations
+# and none of IPOPT's infeasibility heuristics, both changed in session 36) and its capture-cost weight (2000 J/m^2;
 # 6000 since session 36: each file records it, the merge keeps it and the re-plans, densify and probes included, solve
 # with it), so this target reproduces it; a library
 # built with the new defaults is measured, not shipped (docs/multicontact.md "Session 34", "Session 35", "Session 36").
@@ -81,7 +82,7 @@ LIBRARY_OUT ?= config/multicontact_library/standing_pushes.json.gz
 LIBRARY_PARTS := build/library/forward.json.gz build/library/forward_bounded_release.json.gz \
 	build/library/backward.json.gz build/library/walls.json.gz
 BUILD_LIBRARY := OMP_NUM_THREADS=1 $(PY) -m humfall_ros.multicontact.build_library
-LIBRARY_PINS := release_alternatives=[0],release_t_min=0.1,step_capture_weight=2000
+LIBRARY_PINS := release_alternatives=[0],release_t_min=0.1,step_capture_weight=2000,max_iter=600,expect_infeasible=false
 LIBRARY_TREE := --set '$(LIBRARY_PINS)'
 
 build/library/forward.json.gz: | $(VENV)/.deps-stamp
@@ -97,7 +98,7 @@ build/library/walls.json.gz: | $(VENV)/.deps-stamp
 	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 20,30,40,50 --walls 0.6,0.7,0.8,0.9,1.0 $(LIBRARY_TREE) --out $@
 
 library: $(LIBRARY_PARTS)
-	$(BUILD_LIBRARY) $(foreach f,$(LIBRARY_PARTS),--add $(f)) --densify 1.25 --probe --out $(LIBRARY_OUT)
+	$(BUILD_LIBRARY) $(foreach f,$(LIBRARY_PARTS),--add $(f)) $(LIBRARY_TREE) --densify 1.25 --probe --out $(LIBRARY_OUT)
 
 # Re-resolve the newest versions in a scratch venv and write them to constraints.txt.
 lock:

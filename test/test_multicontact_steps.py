@@ -22,9 +22,10 @@ from test_multicontact_landing import _FakeOpt
 
 # the options session 7's step plans use (docs/multicontact.md, "Session 7: protective steps"); the
 # declared defaults since session 11 (checked below), with the polish of a rejected stop; releases from 0.05 s
-# since session 35 (0.1 s before); the capture cost's weight 6000 since session 36 (2000 before)
+# since session 35 (0.1 s before); the capture cost's weight 6000 and 450 IPOPT iterations since session 36 (2000 /
+# 600 before)
 STEP_OPTIONS = {"frontier_order": "capture", "frontier_lookahead_steps": True, "step_capture_weight": 6000.0,
-                "step_capture_margin": 0.12, "release_t_min": 0.05, "max_iter": 600}
+                "step_capture_margin": 0.12, "release_t_min": 0.05, "max_iter": 450}
 
 
 @pytest.fixture(scope="module")

@@ -112,7 +112,7 @@ class OptConfig:
     mu: float = 0.35              # friction coefficient
     torque_reg: float = 1e-4      # weight of sum (u/u_max)^2 h (tie breaker)
     force_reg: float = 0.0        # weight of sum (lambda/(M g))^2 h: picks one of the non-unique internal forces
-    max_iter: int = 600            # 300 until session 11 (the 40 J step's stop needs ~400)
+    max_iter: int = 450            # 300 until session 11 (the 40 J step's stop needs ~400); 600 in sessions 11-35
     tol: float = 1e-4
     constr_viol_tol: float = 1e-5
     feasibility_tol: float = 1e-4  # our own check of the returned solution
