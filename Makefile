@@ -76,8 +76,8 @@ bench: setup
 # releases from 0.1 s, no short-release children; sessions 34 / 35 changed both defaults after it; 600 IPOPT iterations
 # and none of IPOPT's infeasibility heuristics, both changed in session 36) and its capture-cost weight (2000 J/m^2;
 # 6000 since session 36: each file records it, the merge keeps it and the re-plans, densify and probes included, solve
-# with it), so this target reproduces it; a library
-# built with the new defaults is measured, not shipped (docs/multicontact.md "Session 34", "Session 35", "Session 36").
+# with it), so this target reproduces it; a library built with the new defaults is measured, not shipped
+# (docs/multicontact.md "Session 34", "Session 35", "Session 36").
 LIBRARY_OUT ?= config/multicontact_library/standing_pushes.json.gz
 LIBRARY_PARTS := build/library/forward.json.gz build/library/forward_bounded_release.json.gz \
 	build/library/backward.json.gz build/library/walls.json.gz
