@@ -749,6 +749,8 @@ def test_library_file_checks(tmp_path):
         FallPlanner.from_params(library_file=SHIPPED_LIBRARY, n_knots=10)
     with pytest.raises(ValueError, match="transition_objective"):
         FallPlanner.from_params(library_file=SHIPPED_LIBRARY, transition_objective="post_impact")
+    with pytest.raises(ValueError, match="no capture cost"):    # its capture-cost weight would be ignored
+        FallPlanner.from_params(library_file=SHIPPED_LIBRARY, step_capture_weight=0.0)
     lib = FallPlanner.from_params(library_file=SHIPPED_LIBRARY).library
     # the shipped library was planned with the capture-cost weight of sessions 11-35 (the Makefile pins it);
     # its re-plans solve with that weight, whatever the tree search uses

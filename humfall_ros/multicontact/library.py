@@ -128,8 +128,10 @@ class PlanLibrary:
         return None if w is None else float(w)
 
     def check_compatible(self, cfg: OptConfig) -> None:
-        """ValueError unless every stored segment has ``cfg.n_knots`` knots and the library was built
-        with ``cfg.transition_objective`` (when it says)."""
+        """ValueError unless every stored segment has ``cfg.n_knots`` knots, the library was built
+        with ``cfg.transition_objective`` (when it says), and a library planned with a capture cost meets
+        foot-landing NLPs that have it (``cfg.step_capture_weight`` 0 builds them without: the library's
+        weight would be ignored)."""
         bad = {len(s.time) for e in self.entries for s in e.segments} - {cfg.n_knots}
         if bad:
             raise ValueError(f"plan library: segments with {sorted(bad)} knots, the planner's NLPs have "
@@ -138,6 +140,9 @@ class PlanLibrary:
         if obj is not None and obj != cfg.transition_objective:
             raise ValueError(f"plan library built with transition_objective {obj!r}, the planner uses "
                              f"{cfg.transition_objective!r}: rebuild the library")
+        if (self.capture_weight or 0.0) > 0 and cfg.step_capture_weight <= 0:
+            raise ValueError(f"plan library planned with step_capture_weight {self.capture_weight:g}, the planner's "
+                             f"foot landings have no capture cost (step_capture_weight 0): rebuild the library")
 
     # ------------------------------------------------------------- offline
     @staticmethod
