@@ -8,6 +8,8 @@ graph): 3 of the 1,000 standing pushes and 1 safe-fall trial of the avoidance ma
 from __future__ import annotations
 
 import os
+import pathlib
+import tempfile
 import time
 
 import numpy as np
@@ -30,6 +32,8 @@ def test_domain_locks_are_exclusive(tmp_path):
 
 def test_graph_trial_runs_in_its_own_domain(tmp_path, monkeypatch):
     monkeypatch.setenv(TAG_ENV, "graph-test-" + tmp_path.name)
+    scratch = pathlib.Path(tempfile.gettempdir())
+    before = set(scratch.glob("humfall-campaign-run*"))
     d = {"name": "graph_smoke", "base_scenario": "standing_push", "set": ["obstacles=[]", "duration=0.6"],
          "design": {"grid": {"push.0.magnitude_n": [80.0]}}, "trial": {"time_limit_s": 120},
          "output": {"dir": str(tmp_path / "out")}}
@@ -40,6 +44,8 @@ def test_graph_trial_runs_in_its_own_domain(tmp_path, monkeypatch):
     assert row["mode"] == "graph" and row["m.fell"] is False
     assert row["m.ticks"] == 300                  # the bridge ran 0.6 s at 500 Hz
     assert tagged_pids(TAG_ENV, os.environ[TAG_ENV]) == []
+    # the unrecorded run's folder goes with its trial (a server used to leave one in /tmp per start)
+    assert set(scratch.glob("humfall-campaign-run*")) - before == set()
 
 
 def _bag_joint_positions(bag: str) -> np.ndarray:

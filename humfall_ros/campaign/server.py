@@ -173,15 +173,19 @@ def _run_until_fallen(sc: dict):
         loop.close()
 
 
-def run_graph(req: TrialRequest, runs_dir: str) -> dict:
-    """The trial as ``humfall up`` in a ROS domain of its own; returns the bridge's metrics."""
+def run_graph(req: TrialRequest) -> dict:
+    """The trial as ``humfall up`` in a ROS domain of its own; returns the bridge's metrics.
+
+    Without a ``bag_dir`` nothing is recorded and the run's folder (its result.json, read here) is a
+    temporary one, removed with the trial: a server used to keep one folder per start in /tmp for good
+    (hundreds after a test session)."""
     from humfall_ros import launch
 
-    with DomainLock() as domain:
+    with DomainLock() as domain, tempfile.TemporaryDirectory(prefix="humfall-campaign-run-") as scratch:
         os.environ["ROS_DOMAIN_ID"] = str(domain)
         os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
         print(f"[campaign] trial {req.trial_id} in ROS_DOMAIN_ID={domain}", flush=True)
-        status, result = launch.up(req.base_scenario, None, list(req.overrides), runs_dir=req.bag_dir or runs_dir,
+        status, result = launch.up(req.base_scenario, None, list(req.overrides), runs_dir=req.bag_dir or scratch,
                                    record=bool(req.bag_dir), plots=False, quiet=False,
                                    timeout=req.time_limit_s + 60.0)  # the worker's limit governs
     if status != 0:
@@ -216,7 +220,6 @@ def serve(fd: int, parent: int) -> None:
     from humfall_ros.model.humanoid import load_model
 
     load_model()
-    runs_dir = tempfile.mkdtemp(prefix="humfall-campaign-runs-")
     conn.send({"ready": os.getpid()})
     while True:
         try:
@@ -233,7 +236,7 @@ def serve(fd: int, parent: int) -> None:
             if req.mode == "graph":
                 graph_mode["on"] = True
                 signal.signal(signal.SIGINT, signal.default_int_handler)  # launch.up installs its own
-                out["metrics"] = run_graph(req, runs_dir)
+                out["metrics"] = run_graph(req)
                 signal.signal(signal.SIGINT, signal.SIG_IGN)
             else:
                 out["metrics"] = run_inprocess(req)
