@@ -25,7 +25,7 @@ from test_multicontact_landing import _FakeOpt
 # since session 35 (0.1 s before); the capture cost's weight 6000 and 450 IPOPT iterations since session 36 (2000 /
 # 600 before)
 STEP_OPTIONS = {"frontier_order": "capture", "frontier_lookahead_steps": True, "step_capture_weight": 6000.0,
-                "step_capture_margin": 0.12, "release_t_min": 0.05, "max_iter": 450}
+                "step_capture_margin": 0.12, "release_t_min": 0.05, "max_iter": 450, "step_t_min": 0.15}
 
 
 @pytest.fixture(scope="module")
@@ -178,6 +178,9 @@ def test_30J_paper_objective_takes_a_protective_step(plan30):
     x0 = planner.model.point(f"{ext}_toe", step.q[0])[0]
     x1 = planner.model.point(f"{ext}_toe", step.q[-1])[0]
     assert x1 - x0 > 0.3, (x0, x1)
+    # the swing's duration is the NLP's choice, not its bound (session 37: Table I's 0.25 s held every step of
+    # 20-50 J at T = 0.25 s exactly; with step_t_min 0.15 the 30 J swing ends between the two)
+    assert planner.opt.cfg.step_t_min + 0.01 < step.time[-1] < planner.opt.cfg.t_min - 0.01, step.time[-1]
 
 
 def test_seed_durations_skip_starts_after_the_seeds_already_used():
@@ -291,7 +294,7 @@ def test_polish_bound_replaces_acc_max_in_the_nlp_bounds(model):
 
 def test_release_t_max_bounds_only_a_release_and_its_seeds(model):
     """``release_t_max`` is the duration bound of a transition that removes a contact (NLP variable T and the
-    seed grid); landings and self-motions keep [t_min, t_max]; 0 leaves every transition at t_max (the paper)."""
+    seed grid); landings and self-motions keep their T_min and t_max; 0 leaves every transition at t_max (the paper)."""
     env = Environment()
     q0, v0 = _pushed(model, 30.0)
     bounded = OptConfig(release_t_max=0.15)
@@ -300,14 +303,40 @@ def test_release_t_max_bounds_only_a_release_and_its_seeds(model):
     lbx, ubx, *_ = release.bounds(q0, v0, env)
     assert (lbx[0], ubx[0]) == (pytest.approx(bounded.release_t_min), pytest.approx(0.15))
     assert all(bounded.release_t_min - 1e-12 <= d <= 0.15 + 1e-12 for d in bounded.seed_durations("remove"))
-    for mode, change, ext in ((("RF",), "add", "LF"), (("LF", "RF"), "", "")):
+    for mode, change, ext, t_min in ((("RF",), "add", "LF", bounded.step_t_min), (("LF", "RF"), "", "", bounded.t_min)):
         nlp, _ = opt.structures(mode, change, ext, env)
         lbx, ubx, *_ = nlp.bounds(q0, v0, env)
-        assert (lbx[0], ubx[0]) == (pytest.approx(bounded.t_min), pytest.approx(bounded.t_max))
+        assert (lbx[0], ubx[0]) == (pytest.approx(t_min), pytest.approx(bounded.t_max))
     assert max(bounded.seed_durations("add")) > 0.15
     # a bound below the release's T_min is raised to it (an empty interval would make every release infeasible)
     assert OptConfig(release_t_max=0.01).t_max_of("remove") == pytest.approx(OptConfig().release_t_min)
     assert OptConfig().t_max_of("remove") == OptConfig().t_max
+
+
+def test_step_t_min_bounds_only_a_foot_landing_and_its_seed_grid(model):
+    """``step_t_min`` (session 37) is the shortest foot landing (a step's swing: the NLP variable T and the seed
+    grid); a hand landing, a release and a self-motion keep their own T_min; 0 gives the foot landing Table I's
+    t_min back (the paper)."""
+    env = Environment()
+    q0, v0 = _pushed(model, 30.0)
+    cfg = OptConfig(step_t_min=0.12)
+    assert cfg.step_t_min < cfg.t_min and cfg.release_t_min != cfg.step_t_min
+    opt = TrajectoryOptimizer(model, cfg)
+    for mode, change, ext, t_min in ((("RF",), "add", "LF", 0.12), (("LF", "RF"), "add", "LH", cfg.t_min),
+                                     (("LF", "RF"), "remove", "LF", cfg.release_t_min),
+                                     (("LF", "RF"), "", "", cfg.t_min)):
+        assert cfg.t_min_of(change, ext) == pytest.approx(t_min), (change, ext)
+        nlp, _ = opt.structures(mode, change, ext, env)
+        lbx, ubx, *_ = nlp.bounds(q0, v0, env)
+        assert (lbx[0], ubx[0]) == (pytest.approx(t_min), pytest.approx(cfg.t_max)), (change, ext)
+    feet = cfg.seed_durations("add", extremity="LF")
+    hands = cfg.seed_durations("add", extremity="LH")
+    assert min(feet) >= 0.12 - 1e-12 and feet != hands     # the foot's grid starts at its own T_min
+    assert hands == OptConfig(step_t_min=0.0).seed_durations("add", extremity="LH")
+    # 0: Table I's T_min for every landing, feet included
+    paper = OptConfig(step_t_min=0.0)
+    assert paper.t_min_of("add", "LF") == paper.t_min_of("add", "LH") == paper.t_min
+    assert paper.seed_durations("add", extremity="LF") == paper.seed_durations("add", extremity="LH")
 
 
 def test_the_step_options_and_the_polish_are_the_declared_defaults():

@@ -157,6 +157,11 @@ class OptConfig:
     # energy) prefers braking on both feet as long as T allows, so the step comes late; from one foot, where a
     # step is a single landing, the same planner steps at 30-60 J in 2-10 s
     release_t_max: float = 0.0
+    # T_min of a foot landing (a step's swing; s; <= 0: t_min, Table I's 0.25 s for all). Ours (session 37): with
+    # Table I's T_min every step from 20 to 50 J lands at T = 0.25 s exactly, the bound active: the pre-impact
+    # energy (eq. 9) wants a faster swing, and the joint speed limits (eq. 6) bound how fast. With 0.15 no swing
+    # of the two-foot sweep is at the bound (0.175-0.24 s)
+    step_t_min: float = 0.15
     # seed durations of a release (s; values <= 0 dropped; empty: the general list). Tried in order: increasing
     # from the release's T_min, as the general list from T_min (session 30; the first 0.05 since session 35)
     release_seed_durations: tuple = (0.05, 0.25, 0.5)
@@ -216,17 +221,22 @@ class OptConfig:
         declaration by ``planner.configs_from_params``); unknown keys are refused."""
         return params.config_from(OptConfig, d)
 
-    def t_min_of(self, change: str) -> float:
-        """T_min of a segment of this kind (s)."""
-        return self.release_t_min if change == "remove" and self.release_t_min > 0 else self.t_min
+    def t_min_of(self, change: str, extremity: str = "") -> float:
+        """T_min of a segment of this kind (s): a release's ``release_t_min``, a foot landing's
+        ``step_t_min``, when set; else ``t_min``."""
+        if change == "remove" and self.release_t_min > 0:
+            return self.release_t_min
+        if change == "add" and extremity in FEET and self.step_t_min > 0:
+            return self.step_t_min
+        return self.t_min
 
-    def t_max_of(self, change: str) -> float:
+    def t_max_of(self, change: str, extremity: str = "") -> float:
         """T_max of a segment of this kind (s)."""
         if change == "remove" and self.release_t_max > 0:
-            return max(self.release_t_max, self.t_min_of(change))
+            return max(self.release_t_max, self.t_min_of(change, extremity))
         return self.t_max
 
-    def seed_durations(self, change: str = "", skip: int = 0) -> list[float]:
+    def seed_durations(self, change: str = "", skip: int = 0, extremity: str = "") -> list[float]:
         """Seed durations in the order they are tried (Sec. III-D).
 
         The paper sweeps the whole N_tot grid by increasing duration until a
@@ -234,10 +244,12 @@ class OptConfig:
         ``seed_first_duration`` first, then ``seed_retry_durations``, each
         snapped to the grid, duplicates dropped, at most ``max_seed_attempts``.
         A release (``change == 'remove'``) uses ``release_seed_durations`` when
-        given, on a grid that starts at its own T_min. ``skip``: start after that
+        given, on a grid that starts at its own T_min (a foot landing's grid at ``step_t_min``, when
+        set: ``extremity``). ``skip``: start after that
         many seeds of the list (another local optimum of the same NLP).
         """
-        grid = np.linspace(self.t_min_of(change), self.t_max_of(change), max(2, self.n_seed_durations))
+        grid = np.linspace(self.t_min_of(change, extremity), self.t_max_of(change, extremity),
+                           max(2, self.n_seed_durations))
         wanted = (self.release_seed_durations if change == "remove" and self.release_seed_durations
                   else (self.seed_first_duration, *self.seed_retry_durations))
         out: list[float] = []
@@ -637,7 +649,8 @@ class SegmentNLP:
         n, m, N = model.n, model.m, key.n_knots
         lbx = np.full(self.nw, -np.inf)
         ubx = np.full(self.nw, np.inf)
-        lbx[0], ubx[0] = t_bounds if t_bounds is not None else (cfg.t_min_of(key.change), cfg.t_max_of(key.change))
+        lbx[0], ubx[0] = t_bounds if t_bounds is not None else (cfg.t_min_of(key.change, key.extremity),
+                                                                 cfg.t_max_of(key.change, key.extremity))
         for k, (a, b) in enumerate(self.knot_slices):
             o = a
             # q
@@ -977,7 +990,7 @@ class TrajectoryOptimizer:
         cfg, model = self.cfg, self.model
         # the T bounds and seed grid of this solve (a release may be given its own T_max)
         cfg_t = cfg if release_t_max is None else dataclasses.replace(cfg, release_t_max=float(release_t_max))
-        t_bounds = (cfg_t.t_min_of(change), cfg_t.t_max_of(change))
+        t_bounds = (cfg_t.t_min_of(change, ext), cfg_t.t_max_of(change, ext))
         q0 = np.asarray(q0, float)
         v0 = np.asarray(v0, float)
         target = make_mode(set(mode) | {ext}) if change == "add" else (
@@ -992,7 +1005,7 @@ class TrajectoryOptimizer:
         best = None
         attempts = 0
         log = []
-        for T in cfg_t.seed_durations(change, skip_seeds):
+        for T in cfg_t.seed_durations(change, skip_seeds, ext):
             if deadline is not None and time.perf_counter() >= deadline:
                 break
             attempts += 1
@@ -1047,7 +1060,7 @@ class TrajectoryOptimizer:
                                      and best.objective > cfg.retry_energy_fraction * ke0):
                 break
         if best is None:
-            if skip_seeds and not cfg_t.seed_durations(change, skip_seeds):
+            if skip_seeds and not cfg_t.seed_durations(change, skip_seeds, ext):
                 raise ValueError("no seed left after skipping")
             raise TimeoutError("time budget exhausted before the first NLP")
         best.nlp_time = time.perf_counter() - t_start

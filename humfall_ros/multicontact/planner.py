@@ -32,7 +32,8 @@ from humfall_ros.paths import share_dir
 # defaults since session 11. DEPARTURE: the planner before issue 14 (post-impact objective and frontier key,
 # departures from paper 2 Sec. III-A / Alg. 1 line 20; landings not limited).
 NO_STEP_OPTIONS = {"frontier_lookahead_steps": False, "step_capture_weight": 0.0, "step_capture_margin": 0.0,
-                   "release_t_min": 0.0, "max_iter": 300, "check_polish_acc_max": 0.0, "release_alternatives": [0.0]}
+                   "release_t_min": 0.0, "step_t_min": 0.0, "max_iter": 300, "check_polish_acc_max": 0.0,
+                   "release_alternatives": [0.0]}
 DEPARTURE = {"transition_objective": "post_impact", "frontier_order": "post_impact", "landing_policy": "ignore",
              "touchdown_speed_constraint": False, **NO_STEP_OPTIONS}
 
