@@ -505,3 +505,44 @@ def test_a_release_t_max_override_bounds_one_release_solve(model):
     assert opt.cfg.release_t_max == 0.0
     with pytest.raises(ValueError, match="release"):
         opt.opt_transition_motion(q0, v0, ("RF",), ("LF", "RF"), env, release_t_max=0.12)
+
+
+def test_one_foot_alone_names_the_supports_without_a_lateral_base():
+    from humfall_ros.multicontact.modes import one_foot_alone, parse_mode
+    assert one_foot_alone(parse_mode("LF")) and one_foot_alone(parse_mode("RF"))
+    for label in ("LF/RF", "LH", "RF/LH", "LF/RF/LH", "LH/RH"):
+        assert not one_foot_alone(parse_mode(label)), label
+
+
+def test_without_single_foot_modes_the_20J_push_lands_a_hand_and_no_node_stands_on_one_foot(plan30):
+    """``single_foot_modes`` false (session 37): the search never makes a node on one foot alone. At 20 J the
+    defaults step (through one foot); without those modes the plan lands a hand within the limits and stops,
+    which the 3-D robot executes at rest (docs/multicontact.md "Session 37")."""
+    from humfall_ros.multicontact.modes import one_foot_alone, parse_mode
+    planner = FallPlanner.from_params(single_foot_modes=False)
+    assert planner.cfg.single_foot_modes is False and FallPlanner.from_params().cfg.single_foot_modes is True
+    r = planner.plan({"kinetic_energy": 20.0, "direction": 1.0, "time_budget": 120.0})
+    assert r["success"], r["reason"]
+    assert not any(one_foot_alone(n.mode) for n in r["search"].nodes), [n.mode for n in r["search"].nodes]
+    final = parse_mode(r["contact_sequence"][-1])
+    assert {"LF", "RF"} <= set(final) and set(final) & {"LH", "RH"}, r["contact_sequence"]
+    assert r["final_ke"] < planner.opt.cfg.eps_ke
+    assert r["landings_within_limits"] and all(x.pre_impact_ke <= 20.0 * 1.1 for x in r["landings"])
+    # the same push with the whole mode graph passes through one foot (a step or a foot lifted)
+    _, r30 = plan30
+    assert any(one_foot_alone(parse_mode(m)) for m in r30["contact_sequence"]), r30["contact_sequence"]
+
+
+def test_a_library_without_single_foot_modes_keeps_the_entries_that_never_stand_on_one_foot():
+    from humfall_ros.multicontact.modes import one_foot_alone, parse_mode
+    full = FallPlanner.from_params(library_file="multicontact_library/standing_pushes.json.gz").library
+    planner = FallPlanner.from_params(library_file="multicontact_library/standing_pushes.json.gz",
+                                      single_foot_modes=False)
+
+    def stands_on_one_foot(e):
+        return any(one_foot_alone(parse_mode(m)) for m in e.contact_sequence[1:])
+
+    kept = planner.library.entries
+    assert kept and all(not stands_on_one_foot(e) for e in kept)
+    assert len(kept) == sum(not stands_on_one_foot(e) for e in full.entries) < len(full.entries)
+    assert planner.library.built_with == full.built_with

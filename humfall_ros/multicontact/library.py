@@ -28,7 +28,7 @@ import time
 
 from humfall_ros.multicontact.collocation import OptConfig, Segment
 from humfall_ros.multicontact.landing import LandingReport, landing_report
-from humfall_ros.multicontact.modes import Environment, mode_label
+from humfall_ros.multicontact.modes import Environment, mode_label, one_foot_alone, parse_mode
 from humfall_ros.multicontact.request import InvalidRequest, ValidRequest, validate
 
 FORMAT = 1
@@ -143,6 +143,13 @@ class PlanLibrary:
         if (self.capture_weight or 0.0) > 0 and cfg.step_capture_weight <= 0:
             raise ValueError(f"plan library planned with step_capture_weight {self.capture_weight:g}, the planner's "
                              f"foot landings have no capture cost (step_capture_weight 0): rebuild the library")
+
+    def without_single_foot_modes(self) -> "PlanLibrary":
+        """The entries whose plans never stand on one foot alone after the push (``modes.one_foot_alone``;
+        the planner's ``single_foot_modes`` false): a re-plan keeps its entry's contact sequence."""
+        keep = [e for e in self.entries
+                if not any(one_foot_alone(parse_mode(m)) for m in e.contact_sequence[1:])]
+        return PlanLibrary(keep, self.built_with)
 
     # ------------------------------------------------------------- offline
     @staticmethod

@@ -21,6 +21,13 @@ def make_mode(extremities) -> Mode:
     return tuple(e for e in EXTREMITIES if e in s)
 
 
+def one_foot_alone(mode: Mode) -> bool:
+    """Only one foot in contact: a support the planar model balances in the sagittal plane alone, while a
+    3-D robot there also needs a lateral weight shift the plan does not have (docs/multicontact.md,
+    "Session 27"; the planner's ``single_foot_modes``)."""
+    return len(mode) == 1 and mode[0] in FEET
+
+
 def mode_label(mode: Mode) -> str:
     return "/".join(mode) if mode else "-"
 

@@ -87,6 +87,10 @@ class PlannerConfig:
     # departure (session 34): T_max bounds (s) under which each release is solved a second time and added as
     # another child (tree.search ``release_alternatives``); values <= 0 are dropped (none: the paper)
     release_alternatives: tuple = (0.05,)   # session 34: (0.1,); session 35: (0.05,) with release_t_min 0.05
+    # false (ours, session 37): no plan passes through one foot alone in contact (tree.search
+    # ``single_foot_modes``; library entries that do are not used): plans a 3-D robot can follow without the
+    # lateral weight shift the planar model has no coordinate for. True: Fig. 2's whole mode graph (the paper)
+    single_foot_modes: bool = True
     stance: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
@@ -157,6 +161,8 @@ class FallPlanner:
                 raise ValueError(f"library_file {self.cfg.library_file!r} ({path}) cannot be read: "
                                  f"{type(e).__name__}: {e}") from e
             self.library.check_compatible(self.opt.cfg)
+            if not self.cfg.single_foot_modes:
+                self.library = self.library.without_single_foot_modes()
 
     @staticmethod
     def from_params(values: dict | None = None, **overrides) -> FallPlanner:
@@ -215,7 +221,8 @@ class FallPlanner:
                      lookahead=self.cfg.frontier_lookahead, step_lookahead=self.cfg.frontier_lookahead_steps,
                      check_retry_seeds=self.cfg.check_retry_seeds,
                      polish_acc_max=self.cfg.check_polish_acc_max if check is not None else 0.0,
-                     max_nlps=self.cfg.max_nlps, release_alternatives=self.cfg.release_alternatives)
+                     max_nlps=self.cfg.max_nlps, release_alternatives=self.cfg.release_alternatives,
+                     single_foot_modes=self.cfg.single_foot_modes)
         out = result_dict(self.model, res, vr)
         out["total_time_s"] = time.perf_counter() - t0
         if attempt is not None:

@@ -45,6 +45,7 @@ from humfall_ros.multicontact.modes import (
     adjacent_modes,
     make_mode,
     mode_label,
+    one_foot_alone,
 )
 
 
@@ -184,7 +185,7 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
            landing_policy: str = "rank_last", lookahead: bool = False,
            step_lookahead: bool = False, check_retry_seeds: bool = False,
            polish_acc_max: float = 0.0, max_nlps: int = 0,
-           release_alternatives: tuple = ()) -> SearchResult:
+           release_alternatives: tuple = (), single_foot_modes: bool = True) -> SearchResult:
     """Algorithm 1: grow the tree by least kinetic energy until a node's
     self-motion ends with E_K < eps_KE, the frontier empties or the budget ends.
 
@@ -239,7 +240,9 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
     release brake on both feet for as long as T allows (0.13-0.31 s from two feet), and from
     there the step that should follow is too late at 50 J; a release bounded at 0.1 s makes the
     step (session 28) but loses other plans (the 40 J step then lift). With both children the
-    frontier decides (session 34)."""
+    frontier decides (session 34).
+    ``single_foot_modes`` false (ours, session 37): no transition ends with one foot alone in contact
+    (``modes.one_foot_alone``); the root may start there. Fig. 2's whole mode graph is the paper's."""
     if frontier_order not in FRONTIER_ORDERS:
         raise ValueError(f"frontier_order {frontier_order!r}: one of {', '.join(FRONTIER_ORDERS)}")
     if landing_policy not in LANDING_POLICIES:
@@ -417,6 +420,8 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         parent_mode = nodes[d.parent].mode if d.parent is not None else None
         for sigma_j, change, ext in adjacent_modes(d.mode):                   # line 12
             if symmetric and _mirror_mode(sigma_j) in tried:
+                continue
+            if not single_foot_modes and one_foot_alone(sigma_j):
                 continue
             if sigma_j == parent_mode and change == "remove":
                 # removing the contact the parent edge just added undoes that
