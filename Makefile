@@ -74,8 +74,9 @@ bench: setup
 # --probe re-plans every entry half way to its neighbours (the online ranking tries an entry that failed there last).
 # The tree searches, the densify and the probes run with the settings the shipped library was built with (LIBRARY_PINS:
 # releases from 0.1 s, no short-release children; sessions 34 / 35 changed both defaults after it; 600 IPOPT iterations
-# and none of IPOPT's infeasibility heuristics, both changed in session 36; foot landings from Table I's 0.25 s, 0.15 s
-# since session 37: each stored segment keeps its duration bounds, so re-plans are unchanged) and its capture-cost weight (2000 J/m^2;
+# and none of IPOPT's infeasibility heuristics, both changed in session 36; foot landings from Table I's 0.25 s,
+# 0.15 s since session 37: each stored segment keeps its duration bounds, so re-plans are unchanged) and its
+# capture-cost weight (2000 J/m^2;
 # 6000 since session 36: each file records it, the merge keeps it and the re-plans, densify and probes included, solve
 # with it), so this target reproduces it; a library built with the new defaults is measured, not shipped
 # (docs/multicontact.md "Session 34", "Session 35", "Session 36").

@@ -333,6 +333,8 @@ def test_step_t_min_bounds_only_a_foot_landing_and_its_seed_grid(model):
     hands = cfg.seed_durations("add", extremity="LH")
     assert min(feet) >= 0.12 - 1e-12 and feet != hands     # the foot's grid starts at its own T_min
     assert hands == OptConfig(step_t_min=0.0).seed_durations("add", extremity="LH")
+    with pytest.raises(ValueError, match="step_t_min"):   # an empty interval is refused, not planned into
+        OptConfig(step_t_min=4.0, t_max=3.5)
     # 0: Table I's T_min for every landing, feet included
     paper = OptConfig(step_t_min=0.0)
     assert paper.t_min_of("add", "LF") == paper.t_min_of("add", "LH") == paper.t_min

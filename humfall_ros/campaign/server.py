@@ -181,7 +181,8 @@ def run_graph(req: TrialRequest) -> dict:
     (hundreds after a test session)."""
     from humfall_ros import launch
 
-    with DomainLock() as domain, tempfile.TemporaryDirectory(prefix="humfall-campaign-run-") as scratch:
+    scratch_dir = tempfile.TemporaryDirectory(prefix="humfall-campaign-run-", ignore_cleanup_errors=True)
+    with DomainLock() as domain, scratch_dir as scratch:
         os.environ["ROS_DOMAIN_ID"] = str(domain)
         os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
         print(f"[campaign] trial {req.trial_id} in ROS_DOMAIN_ID={domain}", flush=True)

@@ -203,6 +203,8 @@ class OptConfig:
         if self.post_impact_speed_fraction_limbs not in POST_IMPACT_SPEED_LIMBS:
             raise ValueError(f"post_impact_speed_fraction_limbs {self.post_impact_speed_fraction_limbs!r} is not "
                              f"one of {', '.join(POST_IMPACT_SPEED_LIMBS)}")
+        if self.step_t_min > self.t_max:   # an empty duration interval: every foot landing infeasible, silently
+            raise ValueError(f"step_t_min {self.step_t_min:g} s exceeds t_max {self.t_max:g} s")
         self.seed_retry_durations = tuple(float(x) for x in self.seed_retry_durations)
         self.release_seed_durations = tuple(float(x) for x in self.release_seed_durations if float(x) > 0)
 
