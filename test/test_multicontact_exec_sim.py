@@ -86,3 +86,27 @@ def test_a_walking_push_is_planned_from_the_stance_foot_alone():
     assert min(pm.point("RF_toe", q)[1], pm.point("RF_heel", q)[1]) > 0.005
     with pytest.raises(ValueError, match="unknown extremity"):
         execute(sc, planner=planner, initial_mode="LF/XX")
+
+
+def test_a_20J_plan_without_one_foot_alone_is_planned_live_and_executes_at_rest():
+    """Session 37: with ``single_foot_modes`` false the 20 J push (the paper's objective, the defaults otherwise)
+    is planned from the measured 3-D state as a hand landing, not the foot lift the defaults plan (which falls: the
+    planar plan has no lateral weight shift), and the robot ends at rest on the planned extremities with nothing
+    else on the ground (the bench's success: the planned feet and hands touching, a foot may rest unloaded)."""
+    from humfall_ros.multicontact.modes import one_foot_alone, parse_mode
+    from humfall_ros.multicontact.planner import FallPlanner
+
+    plan = StoredPlan.load(plan_path("multicontact_push_20J"))
+    force = plan.meta["push_force"]
+    sc = scenario.load("multicontact_push", [f"push.0.force=[{force[0]}, {force[1]}, {force[2]}]"])
+    sc["controllers"] = []
+    planner = FallPlanner.from_params(single_foot_modes=False)
+    r = execute(sc, planner=planner)
+    assert r["plan"]["success"], r["plan"]["reason"]
+    seq = r["plan"]["contact_sequence"]
+    assert not any(one_foot_alone(parse_mode(m)) for m in seq) and set(parse_mode(seq[-1])) & {"LH", "RH"}, seq
+    assert r["success"], (r["final_mode_touching"], r["planned_final_mode"], r["final_ke"], r["other_links_touching"])
+    assert r["final_ke"] < 0.5 and r["other_links_touching"] == {}
+    hands = [ev for ev in r["contact_events"] if ev["extremity"] in ("LH", "RH")]
+    assert hands and all(ev["executed_time"] is not None and abs(ev["executed_time"] - ev["planned_time"]) < 0.1
+                         for ev in hands), hands
