@@ -232,10 +232,10 @@ class OptConfig:
             return self.step_t_min
         return self.t_min
 
-    def t_max_of(self, change: str, extremity: str = "") -> float:
+    def t_max_of(self, change: str) -> float:
         """T_max of a segment of this kind (s)."""
         if change == "remove" and self.release_t_max > 0:
-            return max(self.release_t_max, self.t_min_of(change, extremity))
+            return max(self.release_t_max, self.t_min_of(change))
         return self.t_max
 
     def seed_durations(self, change: str = "", skip: int = 0, extremity: str = "") -> list[float]:
@@ -250,8 +250,7 @@ class OptConfig:
         set: ``extremity``). ``skip``: start after that
         many seeds of the list (another local optimum of the same NLP).
         """
-        grid = np.linspace(self.t_min_of(change, extremity), self.t_max_of(change, extremity),
-                           max(2, self.n_seed_durations))
+        grid = np.linspace(self.t_min_of(change, extremity), self.t_max_of(change), max(2, self.n_seed_durations))
         wanted = (self.release_seed_durations if change == "remove" and self.release_seed_durations
                   else (self.seed_first_duration, *self.seed_retry_durations))
         out: list[float] = []
@@ -652,7 +651,7 @@ class SegmentNLP:
         lbx = np.full(self.nw, -np.inf)
         ubx = np.full(self.nw, np.inf)
         lbx[0], ubx[0] = t_bounds if t_bounds is not None else (cfg.t_min_of(key.change, key.extremity),
-                                                                 cfg.t_max_of(key.change, key.extremity))
+                                                                 cfg.t_max_of(key.change))
         for k, (a, b) in enumerate(self.knot_slices):
             o = a
             # q
@@ -992,7 +991,7 @@ class TrajectoryOptimizer:
         cfg, model = self.cfg, self.model
         # the T bounds and seed grid of this solve (a release may be given its own T_max)
         cfg_t = cfg if release_t_max is None else dataclasses.replace(cfg, release_t_max=float(release_t_max))
-        t_bounds = (cfg_t.t_min_of(change, ext), cfg_t.t_max_of(change, ext))
+        t_bounds = (cfg_t.t_min_of(change, ext), cfg_t.t_max_of(change))
         q0 = np.asarray(q0, float)
         v0 = np.asarray(v0, float)
         target = make_mode(set(mode) | {ext}) if change == "add" else (
