@@ -453,13 +453,15 @@ def test_planner_answers_from_the_shipped_library_and_searches_beyond_it():
     # each stored segment carries the duration bounds it was planned within: the release of the 47.5 / 50 J
     # entries (and of the entries re-solved from them) is held at 0.1 s, every other segment has the
     # bounds the library was built with (a release from 0.1 s to T_max: the defaults until session 34, pinned by
-    # the Makefile's LIBRARY_TREE since session 35 made releases start at 0.05 s)
-    cfg = dataclasses.replace(planner.opt.cfg, release_t_min=0.1)
+    # the Makefile's LIBRARY_TREE since session 35 made releases start at 0.05 s; foot landings from Table I's
+    # T_min, pinned since session 37 made them start at step_t_min)
+    cfg = dataclasses.replace(planner.opt.cfg, release_t_min=0.1, step_t_min=0.0)
     for e in planner.library.entries:
         source = e.kinetic_energy if e.derived_from is None else e.derived_from
         for s in e.segments:
             bounded = source >= 47.5 and e.direction > 0 and e.wall_distance == 0 and s.change == "remove"
-            assert s.t_bounds == ((0.1, 0.1) if bounded else (cfg.t_min_of(s.change), cfg.t_max_of(s.change)))
+            planned = (cfg.t_min_of(s.change, s.extremity), cfg.t_max_of(s.change))
+            assert s.t_bounds == ((0.1, 0.1) if bounded else planned)
     # probed offline (make library: build_library --probe): half way to each neighbour, both sides
     assert all(len(e.probes) == 2 for e in planner.library.entries)
     top = planner.plan({"kinetic_energy": 49.0, "direction": 1.0, "time_budget": 30.0})
