@@ -548,3 +548,85 @@ def test_a_library_without_single_foot_modes_keeps_the_entries_that_never_stand_
     assert kept and all(not stands_on_one_foot(e) for e in kept)
     assert len(kept) == sum(not stands_on_one_foot(e) for e in full.entries) < len(full.entries)
     assert planner.library.built_with == full.built_with
+
+
+class _OneFootStopOpt(_FakeOpt):
+    """A stop is possible on one foot alone and, after a step, on both feet; the bounds the tree passes to
+    each transition are recorded. Releases from one foot and hand landings do not converge."""
+
+    def __init__(self, model):
+        big = 1e9
+        super().__init__(model, LandingLimits(big, big, big, big), stop_at=set(), pre_ke_of={})
+        self.t_max_of = []
+
+    def opt_self_motion(self, q0, v0, mode, env, deadline=None):
+        label = mode_label(mode)
+        self.popped.append(label)
+        stops = label in ("LF", "RF") or (label == "LF/RF" and q0[0] > 0.1)
+        return self._seg(q0, v0, mode, mode, "", "", True, 0.0 if stops else 5.0)
+
+    def opt_transition_motion(self, q0, v0, mode, target, env, deadline=None, **bounds):
+        ext = (set(target) ^ set(mode)).pop()
+        change = "add" if ext in target else "remove"
+        self.t_max_of.append((mode_label(mode), mode_label(target), bounds.get("t_max")))
+        q, v = np.array(q0, float), np.array(v0, float)
+        if change == "remove":
+            return self._seg(q, v, mode, target, change, ext, len(mode) > 1, 5.0)
+        if ext not in ("LF", "RF"):
+            return self._seg(q, v, mode, target, change, ext, False, 5.0)
+        q[0] += 0.3
+        return self._seg(q, 0 * v, mode, target, change, ext, True, 0.0)
+
+
+@pytest.mark.parametrize("terminal", [True, False])
+def test_single_foot_terminal_false_passes_through_one_foot_but_never_ends_there(model, terminal):
+    """``single_foot_terminal`` (session 38): with the whole mode graph a released foot's node that stops on
+    the other foot ends the plan; with false that node is never solved for a stop (no line-5 NLP), only
+    expanded, and the plan ends on both feet after the step. ``single_foot_t_max`` bounds the transitions
+    out of that node only, not the root's."""
+    q0, v0 = _pushed(model, 30.0)
+    fake = _OneFootStopOpt(model)
+    res = tree_mod.search(fake, q0, v0, ("LF", "RF"), Environment(), time_budget=30.0, max_depth=2,
+                          landing_policy="ignore", symmetry_cut=False, single_foot_terminal=terminal,
+                          single_foot_t_max=0.0 if terminal else 0.4)
+    assert res.success, res.reason
+    if terminal:
+        assert res.contact_sequence[-1] in ("LF", "RF"), res.contact_sequence
+        assert all(b is None for *_, b in fake.t_max_of)
+    else:
+        assert res.contact_sequence[-1] == "LF/RF" and len(res.contact_sequence) == 3, res.contact_sequence
+        assert "LF" not in fake.popped and "RF" not in fake.popped, fake.popped
+        out_of_one_foot = [b for m, _, b in fake.t_max_of if m in ("LF", "RF")]
+        assert out_of_one_foot and all(b == 0.4 for b in out_of_one_foot), fake.t_max_of
+        assert all(b is None for m, _, b in fake.t_max_of if m == "LF/RF"), fake.t_max_of
+
+
+def test_a_transition_t_max_override_bounds_one_solve_and_is_refused_below_its_t_min(model):
+    """``opt_transition_motion(t_max=)`` (the tree's ``single_foot_t_max``): a step's landing from one foot is
+    solved within [step_t_min, t_max] and records those bounds; the configuration is unchanged; a bound below
+    the transition's T_min is refused rather than solved empty."""
+    opt = TrajectoryOptimizer(model, OptConfig())
+    q0, v0 = _pushed(model, 30.0, mode=("RF",))
+    env = Environment()
+    seg = opt.opt_transition_motion(q0, v0, ("RF",), ("LF", "RF"), env, t_max=0.3)
+    assert seg.t_bounds == (pytest.approx(opt.cfg.step_t_min), pytest.approx(0.3))
+    assert float(seg.time[-1]) <= 0.3 + 1e-6 and all(a["seed_T"] <= 0.3 + 1e-9 for a in seg.attempt_log)
+    assert opt.cfg.t_max > 0.3
+    with pytest.raises(ValueError, match="T_min"):
+        opt.opt_transition_motion(q0, v0, ("RF",), ("LF", "RF"), env, t_max=opt.cfg.step_t_min / 2)
+    with pytest.raises(ValueError, match="T_min"):   # a hand landing keeps Table I's T_min
+        opt.opt_transition_motion(q0, v0, ("RF",), ("RF", "LH"), env, t_max=opt.cfg.t_min - 0.01)
+
+
+def test_a_library_without_single_foot_ends_drops_the_entries_that_end_on_one_foot():
+    from humfall_ros.multicontact.modes import one_foot_alone, parse_mode
+    full = FallPlanner.from_params(library_file="multicontact_library/standing_pushes.json.gz").library
+    planner = FallPlanner.from_params(library_file="multicontact_library/standing_pushes.json.gz",
+                                      single_foot_terminal=False)
+    assert FallPlanner.from_params().cfg.single_foot_terminal is True
+    kept = planner.library.entries
+    assert kept and not any(one_foot_alone(parse_mode(e.contact_sequence[-1])) for e in kept)
+    ends_on_one_foot = sum(one_foot_alone(parse_mode(e.contact_sequence[-1])) for e in full.entries)
+    assert ends_on_one_foot > 0 and len(kept) == len(full.entries) - ends_on_one_foot
+    # entries that pass through one foot (steps) are kept
+    assert any(one_foot_alone(parse_mode(m)) for e in kept for m in e.contact_sequence[1:-1])

@@ -911,10 +911,12 @@ class TrajectoryOptimizer:
         return self._optimize(q0, v0, mode, "", "", env, deadline, skip_seeds)
 
     def opt_transition_motion(self, q0, v0, mode: Mode, target: Mode, env: Environment,
-                              deadline: float | None = None, release_t_max: float | None = None) -> Segment:
+                              deadline: float | None = None, release_t_max: float | None = None,
+                              t_max: float | None = None) -> Segment:
         """Trajectory from mode sigma_i that ends ready for sigma_j (Alg. 1 line 13).
         ``release_t_max`` (a release only): its T_max for this solve instead of ``OptConfig.release_t_max``
-        (the tree's short-release alternative, ``search(release_alternatives=)``)."""
+        (the tree's short-release alternative, ``search(release_alternatives=)``). ``t_max``: a T_max for
+        this solve below the one of its kind (the tree's ``single_foot_t_max``); refused below its T_min."""
         added = set(target) - set(mode)
         removed = set(mode) - set(target)
         if len(added) + len(removed) != 1:
@@ -922,7 +924,10 @@ class TrajectoryOptimizer:
         change, ext = ("add", added.pop()) if added else ("remove", removed.pop())
         if release_t_max is not None and change != "remove":
             raise ValueError("release_t_max bounds a release (a transition that removes a contact) only")
-        return self._optimize(q0, v0, mode, change, ext, env, deadline, release_t_max=release_t_max)
+        if t_max is not None and not t_max >= self.cfg.t_min_of(change, ext):
+            raise ValueError(f"t_max {t_max!r} s is below this transition's T_min "
+                             f"{self.cfg.t_min_of(change, ext):g} s")
+        return self._optimize(q0, v0, mode, change, ext, env, deadline, release_t_max=release_t_max, t_max=t_max)
 
     def structures(self, mode: Mode, change: str, ext: str, env: Environment) -> tuple[SegmentNLP, Mode]:
         """The cached NLP of a segment and the mode its seed goal is projected onto
@@ -987,10 +992,14 @@ class TrajectoryOptimizer:
         return x0
 
     def _optimize(self, q0, v0, mode, change, ext, env, deadline, skip_seeds: int = 0,
-                  release_t_max: float | None = None) -> Segment:
+                  release_t_max: float | None = None, t_max: float | None = None) -> Segment:
         cfg, model = self.cfg, self.model
-        # the T bounds and seed grid of this solve (a release may be given its own T_max)
+        # the T bounds and seed grid of this solve (a release may be given its own T_max; any transition a
+        # lower one)
         cfg_t = cfg if release_t_max is None else dataclasses.replace(cfg, release_t_max=float(release_t_max))
+        if t_max is not None and t_max < cfg_t.t_max_of(change):
+            cfg_t = dataclasses.replace(cfg_t, t_max=float(t_max),
+                                        release_t_max=min(cfg_t.release_t_max, float(t_max)))
         t_bounds = (cfg_t.t_min_of(change, ext), cfg_t.t_max_of(change))
         q0 = np.asarray(q0, float)
         v0 = np.asarray(v0, float)

@@ -151,6 +151,13 @@ class PlanLibrary:
                 if not any(one_foot_alone(parse_mode(m)) for m in e.contact_sequence[1:])]
         return PlanLibrary(keep, self.built_with)
 
+    def without_single_foot_ends(self) -> "PlanLibrary":
+        """The entries whose plans do not end on one foot alone after the push (the planner's
+        ``single_foot_terminal`` false): a re-plan keeps its entry's contact sequence."""
+        keep = [e for e in self.entries
+                if len(e.contact_sequence) < 2 or not one_foot_alone(parse_mode(e.contact_sequence[-1]))]
+        return PlanLibrary(keep, self.built_with)
+
     # ------------------------------------------------------------- offline
     @staticmethod
     def build(planner, kinetic_energies, directions=(1.0,), wall_distances=(0.0,),

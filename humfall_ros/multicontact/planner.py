@@ -91,6 +91,13 @@ class PlannerConfig:
     # ``single_foot_modes``; library entries that do are not used): plans a 3-D robot can follow without the
     # lateral weight shift the planar model has no coordinate for. True: Fig. 2's whole mode graph (the paper)
     single_foot_modes: bool = True
+    # false (ours, session 38): a plan may pass through one foot alone (a step's swing) but never ends there
+    # (tree.search ``single_foot_terminal``): a planar stop on one foot leaves a 3-D robot's centre of mass
+    # between the feet, over nothing. True: any mode may end a plan (the paper)
+    single_foot_terminal: bool = True
+    # > 0 (ours, session 38; s): T_max of every transition out of a node on one foot alone other than the root
+    # (tree.search ``single_foot_t_max``): one foot alone for a swing, not a stance. 0: t_max (the paper)
+    single_foot_t_max: float = 0.0
     stance: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
@@ -163,6 +170,8 @@ class FallPlanner:
             self.library.check_compatible(self.opt.cfg)
             if not self.cfg.single_foot_modes:
                 self.library = self.library.without_single_foot_modes()
+            if not self.cfg.single_foot_terminal:
+                self.library = self.library.without_single_foot_ends()
 
     @staticmethod
     def from_params(values: dict | None = None, **overrides) -> FallPlanner:
@@ -222,7 +231,9 @@ class FallPlanner:
                      check_retry_seeds=self.cfg.check_retry_seeds,
                      polish_acc_max=self.cfg.check_polish_acc_max if check is not None else 0.0,
                      max_nlps=self.cfg.max_nlps, release_alternatives=self.cfg.release_alternatives,
-                     single_foot_modes=self.cfg.single_foot_modes)
+                     single_foot_modes=self.cfg.single_foot_modes,
+                     single_foot_terminal=self.cfg.single_foot_terminal,
+                     single_foot_t_max=self.cfg.single_foot_t_max)
         out = result_dict(self.model, res, vr)
         out["total_time_s"] = time.perf_counter() - t0
         if attempt is not None:

@@ -185,7 +185,8 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
            landing_policy: str = "rank_last", lookahead: bool = False,
            step_lookahead: bool = False, check_retry_seeds: bool = False,
            polish_acc_max: float = 0.0, max_nlps: int = 0,
-           release_alternatives: tuple = (), single_foot_modes: bool = True) -> SearchResult:
+           release_alternatives: tuple = (), single_foot_modes: bool = True,
+           single_foot_terminal: bool = True, single_foot_t_max: float = 0.0) -> SearchResult:
     """Algorithm 1: grow the tree by least kinetic energy until a node's
     self-motion ends with E_K < eps_KE, the frontier empties or the budget ends.
 
@@ -242,7 +243,12 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
     step (session 28) but loses other plans (the 40 J step then lift). With both children the
     frontier decides (session 34).
     ``single_foot_modes`` false (ours, session 37): no transition ends with one foot alone in contact
-    (``modes.one_foot_alone``); the root may start there. Fig. 2's whole mode graph is the paper's."""
+    (``modes.one_foot_alone``); the root may start there. Fig. 2's whole mode graph is the paper's.
+    ``single_foot_terminal`` false (ours, session 38): a node on one foot alone other than the root is
+    passed through (a step's swing) but never solved for a stop nor accepted as the plan's end: a planar
+    stop on one foot leaves a 3-D robot with its centre of mass between the feet, over nothing.
+    ``single_foot_t_max`` > 0 (ours, session 38): the T_max of every transition out of a node on one foot
+    alone other than the root (how long the plan stands on one foot: a swing, not a stance)."""
     if frontier_order not in FRONTIER_ORDERS:
         raise ValueError(f"frontier_order {frontier_order!r}: one of {', '.join(FRONTIER_ORDERS)}")
     if landing_policy not in LANDING_POLICIES:
@@ -378,6 +384,8 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         d.children.append(child.id)
         deepest = max(deepest, child.depth)
         early = lookahead or (step_lookahead and change == "add" and ext in FEET)
+        if not single_foot_terminal and one_foot_alone(sigma_j):
+            early = False   # never a stop on one foot alone: nothing to look ahead to
         if early and not child.over_limits and not spent():
             try:
                 y_c = opt.opt_self_motion(qj, vj, sigma_j, env, deadline=deadline)   # line 5, early
@@ -402,7 +410,8 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         *_, nid = heapq.heappop(frontier)
         d = nodes[nid]
         deepest = max(deepest, d.depth)
-        if d.self_motion is None:
+        passing = not single_foot_terminal and d.parent is not None and one_foot_alone(d.mode)
+        if d.self_motion is None and not passing:
             try:
                 y = opt.opt_self_motion(d.q, d.v, d.mode, env, deadline=deadline)   # line 5
             except TimeoutError:
@@ -431,8 +440,12 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
             tried.add(sigma_j)
             if spent():
                 break
+            # one foot alone after the push is a swing: its transitions get their own T_max
+            bound = ({"t_max": single_foot_t_max} if single_foot_t_max > 0 and d.parent is not None
+                     and one_foot_alone(d.mode) else {})
             try:
-                y_ij = opt.opt_transition_motion(d.q, d.v, d.mode, sigma_j, env, deadline=deadline)  # line 13
+                y_ij = opt.opt_transition_motion(d.q, d.v, d.mode, sigma_j, env, deadline=deadline,
+                                                 **bound)   # line 13
             except TimeoutError:
                 break
             record("transition", d, y_ij, sigma_j)
@@ -446,7 +459,7 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
                     continue   # the release already ends within the bound: the same child
                 try:
                     y_alt = opt.opt_transition_motion(d.q, d.v, d.mode, sigma_j, env, deadline=deadline,
-                                                      release_t_max=t_alt)
+                                                      release_t_max=t_alt, **bound)
                 except TimeoutError:
                     break
                 record("transition", d, y_alt, sigma_j)
