@@ -68,10 +68,11 @@ bench: setup
 	$(PY) benchmarks/run_all.py
 
 # Rebuild the shipped plan library of the multi-contact planner (paper 2's tree search over a grid of pushes;
-# docs/multicontact.md "Session 31", "Session 32"): `make -j2 library` takes ~20 min on 2 cores (83 plans). Forward 47.5 and
+# docs/multicontact.md "Session 31", "Session 32"): `make -j2 library` takes ~20 min on 2 cores (97 plans). Forward 47.5 and
 # 50 J are planned with the release bounded (release_t_max 0.1: the defaults find no 50 J plan from two feet, and
 # their 47.5 J plan re-solves into plans that fail the re-simulation check above 47.5 J); a re-plan keeps each
-# stored segment's duration bounds. Pushes without a plan (walls 0.6 m 40 / 50 J, 0.7 m 50 J) are left out and listed.
+# stored segment's duration bounds. Pushes without a plan (walls 0.6 m 40 / 50 J, 0.65 m 50 J, 0.7 m 50 J, 0.75 m 40 J)
+# are left out and listed.
 # --densify 1.25 then adds, between neighbouring entries without a wall, pushes 1.25 J apart as accepted warm re-plans of
 # their neighbours (session 33: ~1 min; the online re-plans from them take fewer IPOPT iterations).
 # --probe re-plans every entry half way to its neighbours (the online ranking tries an entry that failed there last).
@@ -85,7 +86,8 @@ bench: setup
 # (docs/multicontact.md "Session 34", "Session 35", "Session 36").
 LIBRARY_OUT ?= config/multicontact_library/standing_pushes.json.gz
 LIBRARY_PARTS := build/library/forward.json.gz build/library/forward_bounded_release.json.gz \
-	build/library/backward.json.gz build/library/walls.json.gz
+	build/library/backward.json.gz build/library/walls.json.gz \
+	build/library/walls_between_a.json.gz build/library/walls_between_b.json.gz
 BUILD_LIBRARY := OMP_NUM_THREADS=1 $(PY) -m humfall_ros.multicontact.build_library
 LIBRARY_PINS := release_alternatives=[0],release_t_min=0.1,step_capture_weight=2000,max_iter=600,expect_infeasible=false,step_t_min=0
 LIBRARY_TREE := --set '$(LIBRARY_PINS)'
@@ -101,6 +103,13 @@ build/library/backward.json.gz: | $(VENV)/.deps-stamp
 
 build/library/walls.json.gz: | $(VENV)/.deps-stamp
 	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 20,30,40,50 --walls 0.6,0.7,0.8,0.9,1.0 $(LIBRARY_TREE) --out $@
+
+# the walls half way between (session 38): re-plans from a wall 5 cm away instead of 10
+build/library/walls_between_a.json.gz: | $(VENV)/.deps-stamp
+	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 20,30,40,50 --walls 0.65,0.75 $(LIBRARY_TREE) --out $@
+
+build/library/walls_between_b.json.gz: | $(VENV)/.deps-stamp
+	mkdir -p $(@D) && $(BUILD_LIBRARY) --kes 20,30,40,50 --walls 0.85,0.95 $(LIBRARY_TREE) --out $@
 
 library: $(LIBRARY_PARTS)
 	$(BUILD_LIBRARY) $(foreach f,$(LIBRARY_PARTS),--add $(f)) $(LIBRARY_TREE) --densify 1.25 --probe --out $(LIBRARY_OUT)

@@ -434,8 +434,8 @@ def test_planner_answers_from_the_shipped_library_and_searches_beyond_it():
     tree); one further than ``library_max_ke_gap`` from every such entry goes to the tree search, which
     says so. The shipped library (session 33): tree-search plans forward 10-50 J every 2.5 J (47.5 and 50 J
     planned with the release bounded, ``release_t_max`` 0.1, and re-solved within those bounds), backward 10-50 J
-    every 5 J, a wall at 0.6-1.0 m every 0.1 m; without a wall densified offline to every 1.25 J by accepted
-    warm re-plans of the neighbours (``derived_from``)."""
+    every 5 J, a wall at 0.6-1.0 m every 0.05 m (every 0.1 m before session 38); without a wall densified offline to
+    every 1.25 J by accepted warm re-plans of the neighbours (``derived_from``)."""
     planner = FallPlanner.from_params(library_file=SHIPPED_LIBRARY, nlp_max_wall_time=120.0)
     grid = {(e.direction, e.wall_distance): [] for e in planner.library.entries}
     tree = {(e.direction, e.wall_distance): [] for e in planner.library.entries}
@@ -472,8 +472,10 @@ def test_planner_answers_from_the_shipped_library_and_searches_beyond_it():
     releases = [s for s in top["segments"] if s.change == "remove"]
     assert releases and all(float(s.time[-1]) == pytest.approx(0.1) for s in releases)
     assert tree[(-1.0, 0.0)] == [10.0, 15.0, 20.0, 25.0, 30.0, 35.0, 40.0, 45.0, 50.0]
-    assert sorted({w for (_, w) in grid if w > 0}) == [0.6, 0.7, 0.8, 0.9, 1.0]
-    assert grid[(1.0, 0.8)] == tree[(1.0, 0.8)] == [20.0, 30.0, 40.0, 50.0]     # walls: not densified
+    # walls every 0.05 m since session 38 (every 0.1 m before), not densified: tree searches only
+    assert sorted({w for (_, w) in grid if w > 0}) == [0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95, 1.0]
+    assert all(d == 1.0 and grid[(d, w)] == tree[(d, w)] for d, w in grid if w > 0)
+    assert grid[(1.0, 0.8)] == [20.0, 30.0, 40.0, 50.0] and grid[(1.0, 0.75)] == [20.0, 30.0, 50.0]
     # the re-plans solve with the capture-cost weight the library records, not the tree search's (session 36)
     solves, warm_solve = [], planner.opt.warm_solve
     planner.opt.warm_solve = lambda *a, **k: solves.append(k.get("capture_weight")) or warm_solve(*a, **k)
