@@ -578,17 +578,18 @@ class _OneFootStopOpt(_FakeOpt):
         return self._seg(q, 0 * v, mode, target, change, ext, True, 0.0)
 
 
-@pytest.mark.parametrize("terminal", [True, False])
-def test_single_foot_terminal_false_passes_through_one_foot_but_never_ends_there(model, terminal):
+@pytest.mark.parametrize("terminal, t_max", [(True, 0.0), (False, 0.4), (False, 0.2)])
+def test_single_foot_terminal_false_passes_through_one_foot_but_never_ends_there(model, terminal, t_max):
     """``single_foot_terminal`` (session 38): with the whole mode graph a released foot's node that stops on
     the other foot ends the plan; with false that node is never solved for a stop (no line-5 NLP), only
     expanded, and the plan ends on both feet after the step. ``single_foot_t_max`` bounds the transitions
-    out of that node only, not the root's."""
+    out of that node only, not the root's; a hand landing, whose T_min (Table I's 0.25 s) exceeds a 0.2 s
+    bound, is not tried from there."""
     q0, v0 = _pushed(model, 30.0)
     fake = _OneFootStopOpt(model)
     res = tree_mod.search(fake, q0, v0, ("LF", "RF"), Environment(), time_budget=30.0, max_depth=2,
                           landing_policy="ignore", symmetry_cut=False, single_foot_terminal=terminal,
-                          single_foot_t_max=0.0 if terminal else 0.4)
+                          single_foot_t_max=t_max)
     assert res.success, res.reason
     if terminal:
         assert res.contact_sequence[-1] in ("LF", "RF"), res.contact_sequence
@@ -597,8 +598,10 @@ def test_single_foot_terminal_false_passes_through_one_foot_but_never_ends_there
         assert res.contact_sequence[-1] == "LF/RF" and len(res.contact_sequence) == 3, res.contact_sequence
         assert "LF" not in fake.popped and "RF" not in fake.popped, fake.popped
         out_of_one_foot = [b for m, _, b in fake.t_max_of if m in ("LF", "RF")]
-        assert out_of_one_foot and all(b == 0.4 for b in out_of_one_foot), fake.t_max_of
+        assert out_of_one_foot and all(b == t_max for b in out_of_one_foot), fake.t_max_of
         assert all(b is None for m, _, b in fake.t_max_of if m == "LF/RF"), fake.t_max_of
+        hands_from_one_foot = [t for m, t, _ in fake.t_max_of if m in ("LF", "RF") and ("LH" in t or "RH" in t)]
+        assert bool(hands_from_one_foot) == (t_max >= fake.cfg.t_min), fake.t_max_of
 
 
 def test_a_transition_t_max_override_bounds_one_solve_and_is_refused_below_its_t_min(model):

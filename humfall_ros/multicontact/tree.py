@@ -440,9 +440,12 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
             tried.add(sigma_j)
             if spent():
                 break
-            # one foot alone after the push is a swing: its transitions get their own T_max
+            # one foot alone after the push is a swing: its transitions get their own T_max, and one that
+            # cannot be that short (a hand landing's T_min with a shorter bound) is not tried
             bound = ({"t_max": single_foot_t_max} if single_foot_t_max > 0 and d.parent is not None
                      and one_foot_alone(d.mode) else {})
+            if bound and single_foot_t_max < opt.cfg.t_min_of(change, ext):
+                continue
             try:
                 y_ij = opt.opt_transition_motion(d.q, d.v, d.mode, sigma_j, env, deadline=deadline,
                                                  **bound)   # line 13
