@@ -50,6 +50,7 @@ from humfall_ros.multicontact.model import EXTREMITIES, FEET, PlanarModel
 from humfall_ros.multicontact.modes import (
     Environment,
     Mode,
+    is_foot_landing,
     make_mode,
     mode_label,
     parse_mode,
@@ -228,7 +229,7 @@ class OptConfig:
         ``step_t_min``, when set; else ``t_min``."""
         if change == "remove" and self.release_t_min > 0:
             return self.release_t_min
-        if change == "add" and extremity in FEET and self.step_t_min > 0:
+        if is_foot_landing(change, extremity) and self.step_t_min > 0:
             return self.step_t_min
         return self.t_min
 
@@ -412,7 +413,7 @@ class SegmentNLP:
                             if key.change == "add" else [])
         self.n_imp = (n + len(self.impact_rows)) if key.change == "add" else 0
         # slacks (forward, backward) of the soft capture-point cost of a foot landing
-        self.n_cap = 2 if (key.change == "add" and key.extremity in FEET and cfg.step_capture_weight > 0) else 0
+        self.n_cap = 2 if (is_foot_landing(key.change, key.extremity) and cfg.step_capture_weight > 0) else 0
         self.imp_scale = model.total_mass
         w = ca.SX.sym("w", 1 + N * nk + self.n_imp + self.n_cap)
         # the capture cost's weight is the NLP's parameter, not a constant of the structure: a library

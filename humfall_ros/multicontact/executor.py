@@ -50,6 +50,7 @@ from humfall_ros.model.ik import OrientationTask
 from humfall_ros.model.humanoid import base_rotation_from_imu, imu_quaternion
 from humfall_ros.multicontact.collocation import Segment, hermite_eval
 from humfall_ros.multicontact.model import FEET
+from humfall_ros.multicontact.modes import is_foot_landing
 
 
 @dataclasses.dataclass(frozen=True)
@@ -286,7 +287,7 @@ class MulticontactExecutor:
             return []
         out = []
         for i, seg in enumerate(self.segments):
-            if seg.change != "add" or seg.extremity not in FEET:
+            if not is_foot_landing(seg.change, seg.extremity):
                 continue
             prev = self.segments[i - 1] if i > 0 else None
             first = (i - 1 if self.cfg.swing_over_release and prev is not None and prev.change == "remove"
@@ -398,7 +399,7 @@ class MulticontactExecutor:
             seg = self.segments[self._seg]
             local = tp - self._seg_start
             T = float(seg.time[-1])
-            foot_landing = seg.change == "add" and seg.extremity in FEET
+            foot_landing = is_foot_landing(seg.change, seg.extremity)
             if foot_landing and local >= T - self.cfg.early_switch and self._foot_loaded(observation, seg.extremity):
                 why = "touchdown"
             elif local >= T and not foot_landing:

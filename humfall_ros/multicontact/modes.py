@@ -28,6 +28,12 @@ def one_foot_alone(mode: Mode) -> bool:
     return len(mode) == 1 and mode[0] in FEET
 
 
+def is_foot_landing(change: str, extremity: str) -> bool:
+    """A transition that puts a foot down: the landing half of a protective step (its own T_min,
+    ``OptConfig.step_t_min``; the capture cost of ``step_capture_weight``; the executor's touchdown switch)."""
+    return change == "add" and extremity in FEET
+
+
 def mode_label(mode: Mode) -> str:
     return "/".join(mode) if mode else "-"
 

@@ -43,6 +43,7 @@ from humfall_ros.multicontact.modes import (
     Environment,
     Mode,
     adjacent_modes,
+    is_foot_landing,
     make_mode,
     mode_label,
     one_foot_alone,
@@ -383,7 +384,7 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         nodes.append(child)                                               # lines 17-19
         d.children.append(child.id)
         deepest = max(deepest, child.depth)
-        early = lookahead or (step_lookahead and change == "add" and ext in FEET)
+        early = lookahead or (step_lookahead and is_foot_landing(change, ext))
         if not single_foot_terminal and one_foot_alone(sigma_j):
             early = False   # never a stop on one foot alone: nothing to look ahead to
         if early and not child.over_limits and not spent():
