@@ -11,7 +11,9 @@ BENCHES = ["bench_suite.py", "bench_recorder.py", "bench_multicontact.py",
            # paper 2's sweep from one foot, as its own trees start (session 28; the issue's is from two feet)
            "bench_multicontact.py --initial-mode RF --wall 0",
            "bench_multicontact_library.py", "bench_multicontact_exec_tick.py",
-           "bench_walking.py", "bench_fall.py", "bench_estop.py"]
+           "bench_walking.py", "bench_fall.py", "bench_estop.py",
+           # the ankle balance after a touchdown, as a function of the step and the capture point's depth (session 38)
+           "bench_capture_balance.py"]
 # bench_contract.py (vs a base commit) and bench_campaign.py (long) run on their own
 
 

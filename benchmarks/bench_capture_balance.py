@@ -1,0 +1,134 @@
+"""Does the 3-D robot stop after a touchdown that leaves its capture point d inside the front toe? (session 38)
+
+Both open issues fail after a touchdown: issue 14's executed steps and paper 1's captures above 1.35x land with the
+capture point near the front toe, and the robot does not stop. This maps where it does, from a scripted state:
+
+* the left sole ``L`` ahead of the right, both flat (the shared IK: right sole hard, left sole, the CoM half way
+  between the soles and 3 cm below standing, the trunk upright);
+* the CoM moving forward at the speed that puts the capture point xi = x + v / omega (paper 1 eq. 1-2) ``d``
+  inside the left toe, the legs' joint velocities chosen so that both soles are still (the body rotates over the
+  feet; no sliding start);
+* then the ankle balance of ``control/standing.py`` (the safe-fall controller's capture balance, its gains from
+  ``config/safe_fall_controller.yaml`` unless given) about the scripted posture, the CoM held over the feet's
+  middle, for ``--duration`` s on ground truth.
+
+A case stops when nothing but the feet touched and the CoM is slower than 0.1 m/s at the end.
+
+    python benchmarks/bench_capture_balance.py [--steps 0.3,0.45,0.6] [--depths 0.15,0.1,0.06,0.03,0]
+                                               [--kp 0.3 --kd 0.1 --max-offset 0.12] [--duration 2]
+
+Prints one JSON object: per case the CoM speed at the start, whether it stopped, and per step length the
+smallest depth that stopped.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import pathlib
+import sys
+
+import numpy as np
+import pinocchio as pin
+import pybullet as pb
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+from humfall_ros import params  # noqa: E402
+from humfall_ros.control.standing import StandingBalance  # noqa: E402
+from humfall_ros.dynamics.pendulum import GRAVITY  # noqa: E402
+from humfall_ros.model.ik import ComTask, FrameTask, OrientationTask, PostureTask, WholeBodyIK  # noqa: E402
+from humfall_ros.sim.world import SimWorld  # noqa: E402
+
+STOPPED_SPEED = 0.1   # m/s: the CoM slower than this at the end
+
+
+def scripted_state(world: SimWorld, step: float, depth: float, com_drop: float = 0.03):
+    """(q, qd, v_com, toe_x, com_x, ik converged, the soles' middle) of the scripted touchdown state (module
+    docstring)."""
+    m = world.model
+    q0, _ = world.pinocchio_state()
+    pin.framesForwardKinematics(m.model, m.data, q0)
+    right = m.data.oMf[m.frame_ids[m.sole_frame["r"]]].copy()
+    left0 = m.data.oMf[m.frame_ids[m.sole_frame["l"]]]
+    left = pin.SE3(left0.rotation, left0.translation + np.array([step, 0.0, 0.0]))
+    z = pin.centerOfMass(m.model, m.data, q0)[2]
+    com_target = np.array([right.translation[0] + 0.5 * step, 0.5 * (right.translation[1] + left.translation[1]),
+                           z - com_drop])
+    tasks = [FrameTask(m.sole_frame["r"], right, hard=True), FrameTask(m.sole_frame["l"], left, weight=1000.0),
+             ComTask(com_target, weight=100.0), OrientationTask(m.imu_frame, np.eye(3), weight=10.0),
+             PostureTask(q0[7:].copy())]
+    res = WholeBodyIK(m).solve_to_convergence(q0, tasks, dt=0.05, max_iterations=400, tolerance=1e-3)
+    q = res.q
+    pin.framesForwardKinematics(m.model, m.data, q)
+    com = pin.centerOfMass(m.model, m.data, q)
+    toe_x = float(m.data.oMf[m.frame_ids[m.sole_frame["l"]]].translation[0] + 0.5 * m.foot_length)
+    v_com = math.sqrt(GRAVITY / com[2]) * (toe_x - depth - com[0])
+    # the base moving forward, each leg's joints keeping its sole still; scaled to the CoM speed wanted
+    pin.computeJointJacobians(m.model, m.data, q)
+    pin.updateFramePlacements(m.model, m.data)
+    qd = np.zeros(m.model.nv)
+    qd[0] = 1.0
+    for side in ("l", "r"):
+        J = pin.getFrameJacobian(m.model, m.data, m.frame_ids[m.sole_frame[side]], pin.LOCAL_WORLD_ALIGNED)
+        cols = [6 + i for i in m.leg_joint_indices(side)]
+        qd[cols] = np.linalg.solve(J[:, cols], -J[:, :6] @ qd[:6])
+    pin.centerOfMass(m.model, m.data, q, qd)
+    qd *= v_com / float(m.data.vcom[0][0])
+    return q, qd, v_com, toe_x, float(com[0]), bool(res.converged), 0.5 * (right.translation + left.translation)
+
+
+def run_case(step: float, depth: float, kp: float, kd: float, max_offset: float, duration: float) -> dict:
+    world = SimWorld()
+    try:
+        m, c = world.model, world.client
+        q, qd, v_com, toe_x, com_x, ik_ok, feet_mid = scripted_state(world, step, depth)
+        pb.resetBasePositionAndOrientation(world.robot, q[:3], q[3:7], physicsClientId=c)
+        pb.resetBaseVelocity(world.robot, qd[:3], qd[3:6], physicsClientId=c)
+        for i, name in enumerate(m.joint_names):
+            pb.resetJointState(world.robot, world.joint_ids[name], q[7 + i], qd[6 + i], physicsClientId=c)
+        world._readings = {}
+        balance = StandingBalance(m, dict(zip(m.joint_names, q[7:])), kp=kp, kd=kd, max_offset=max_offset)
+        balance.reference = np.zeros(2)   # the CoM over the feet's middle
+        touched = False
+        for _ in range(int(round(duration * world.control_rate))):
+            qq, vv = world.pinocchio_state()
+            pin.centerOfMass(m.model, m.data, qq, vv)
+            world.set_joint_targets(balance.command(m.data.com[0], m.data.vcom[0], feet_center=feet_mid))
+            world.step_control()
+            touched |= world.non_foot_contact()
+        qq, vv = world.pinocchio_state()
+        pin.centerOfMass(m.model, m.data, qq, vv)
+        speed = float(np.linalg.norm(m.data.vcom[0]))
+        return {"step_m": step, "depth_m": depth, "ik_converged": ik_ok, "com_x_m": round(com_x, 3),
+                "toe_x_m": round(toe_x, 3), "com_speed_start_mps": round(v_com, 3),
+                "touched_besides_feet": bool(touched), "com_speed_end_mps": round(speed, 3),
+                "stopped": bool(not touched and speed < STOPPED_SPEED)}
+    finally:
+        world.close()
+
+
+def main() -> int:
+    d = params.defaults("safe_fall_controller")
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--steps", default="0.3,0.45,0.6", help="step lengths L (m), comma-separated")
+    ap.add_argument("--depths", default="0.15,0.1,0.06,0.03,0", help="capture point inside the toe (m)")
+    ap.add_argument("--kp", type=float, default=d["balance_kp"])
+    ap.add_argument("--kd", type=float, default=d["balance_kd"])
+    ap.add_argument("--max-offset", type=float, default=d["balance_max_offset"])
+    ap.add_argument("--duration", type=float, default=2.0)
+    a = ap.parse_args()
+    steps = [float(x) for x in a.steps.split(",")]
+    depths = sorted((float(x) for x in a.depths.split(",")), reverse=True)
+    cases = [run_case(s, dep, a.kp, a.kd, a.max_offset, a.duration) for s in steps for dep in depths]
+    smallest = {}
+    for s in steps:
+        ok = [c["depth_m"] for c in cases if c["step_m"] == s and c["stopped"]]
+        smallest[str(s)] = min(ok) if ok else None
+    print(json.dumps({"gains": {"kp": a.kp, "kd": a.kd, "max_offset": a.max_offset}, "duration_s": a.duration,
+                      "cases": cases, "smallest_depth_that_stopped_m": smallest}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
