@@ -411,8 +411,10 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         *_, nid = heapq.heappop(frontier)
         d = nodes[nid]
         deepest = max(deepest, d.depth)
-        passing = not single_foot_terminal and d.parent is not None and one_foot_alone(d.mode)
-        if d.self_motion is None and not passing:
+        # one foot alone after the push: with single_foot_terminal false passed through without a stop (a
+        # swing), and with single_foot_t_max its transitions get that T_max
+        swing_node = d.parent is not None and one_foot_alone(d.mode)
+        if d.self_motion is None and not (swing_node and not single_foot_terminal):
             try:
                 y = opt.opt_self_motion(d.q, d.v, d.mode, env, deadline=deadline)   # line 5
             except TimeoutError:
@@ -428,6 +430,7 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
         symmetric = symmetry_cut and model.is_symmetric(d.q, d.v) and _mirror_mode(d.mode) == d.mode
         tried: set = set()
         parent_mode = nodes[d.parent].mode if d.parent is not None else None
+        bound = {"t_max": single_foot_t_max} if swing_node and single_foot_t_max > 0 else {}
         for sigma_j, change, ext in adjacent_modes(d.mode):                   # line 12
             if symmetric and _mirror_mode(sigma_j) in tried:
                 continue
@@ -441,10 +444,8 @@ def search(opt: TrajectoryOptimizer, q0, v0, mode0: Mode, env: Environment, *,
             tried.add(sigma_j)
             if spent():
                 break
-            # one foot alone after the push is a swing: its transitions get their own T_max, and one that
-            # cannot be that short (a hand landing's T_min with a shorter bound) is not tried
-            bound = ({"t_max": single_foot_t_max} if single_foot_t_max > 0 and d.parent is not None
-                     and one_foot_alone(d.mode) else {})
+            # a transition that cannot be as short as the swing's bound (a hand landing's T_min with a shorter
+            # bound) is not tried
             if bound and single_foot_t_max < opt.cfg.t_min_of(change, ext):
                 continue
             try:
