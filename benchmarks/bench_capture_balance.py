@@ -14,6 +14,11 @@ capture point near the front toe, and the robot does not stop. This maps where i
 
 A case stops when nothing but the feet touched and the CoM is slower than 0.1 m/s at the end.
 
+The depth ``d`` is along x, to the front toe's line. What decides is the capture point's margin inside the two soles'
+hull (``xi_margin_m``, reported per case): the soles are 0.18 m apart sideways, so the hull's side towards the rear
+foot runs diagonally from the rear toe to the front sole's inner toe corner, and a capture point d inside the toe
+line is much less deep inside the hull (0.3 m step, d = 6 cm: 2.7 cm), the more so the longer the step.
+
     python benchmarks/bench_capture_balance.py [--steps 0.3,0.45,0.6] [--depths 0.15,0.1,0.06,0.03,0]
                                                [--kp 0.3 --kd 0.1 --max-offset 0.12] [--duration 2]
 
@@ -37,6 +42,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 from humfall_ros import params  # noqa: E402
 from humfall_ros.control.standing import StandingBalance  # noqa: E402
 from humfall_ros.dynamics.pendulum import GRAVITY  # noqa: E402
+from humfall_ros.model.humanoid import point_in_polygon_margin, support_polygon  # noqa: E402
 from humfall_ros.model.ik import ComTask, FrameTask, OrientationTask, PostureTask, WholeBodyIK  # noqa: E402
 from humfall_ros.sim.world import SimWorld  # noqa: E402
 
@@ -44,8 +50,8 @@ STOPPED_SPEED = 0.1   # m/s: the CoM slower than this at the end
 
 
 def scripted_state(world: SimWorld, step: float, depth: float, com_drop: float = 0.03):
-    """(q, qd, v_com, toe_x, com_x, ik converged, the soles' middle) of the scripted touchdown state (module
-    docstring)."""
+    """(q, qd, v_com, toe_x, com_x, ik converged, the soles' middle, the capture point's margin inside the soles'
+    hull [m]) of the scripted touchdown state (module docstring)."""
     m = world.model
     q0, _ = world.pinocchio_state()
     pin.framesForwardKinematics(m.model, m.data, q0)
@@ -64,6 +70,8 @@ def scripted_state(world: SimWorld, step: float, depth: float, com_drop: float =
     com = pin.centerOfMass(m.model, m.data, q)
     toe_x = float(m.data.oMf[m.frame_ids[m.sole_frame["l"]]].translation[0] + 0.5 * m.foot_length)
     v_com = math.sqrt(GRAVITY / com[2]) * (toe_x - depth - com[0])
+    hull = support_polygon(np.vstack([m.sole_corners(sd)[:, :2] for sd in ("l", "r")]))
+    xi_margin = point_in_polygon_margin([toe_x - depth, com[1]], hull)
     # the base moving forward, each leg's joints keeping its sole still; scaled to the CoM speed wanted
     pin.computeJointJacobians(m.model, m.data, q)
     pin.updateFramePlacements(m.model, m.data)
@@ -75,14 +83,15 @@ def scripted_state(world: SimWorld, step: float, depth: float, com_drop: float =
         qd[cols] = np.linalg.solve(J[:, cols], -J[:, :6] @ qd[:6])
     pin.centerOfMass(m.model, m.data, q, qd)
     qd *= v_com / float(m.data.vcom[0][0])
-    return q, qd, v_com, toe_x, float(com[0]), bool(res.converged), 0.5 * (right.translation + left.translation)
+    return (q, qd, v_com, toe_x, float(com[0]), bool(res.converged), 0.5 * (right.translation + left.translation),
+            float(xi_margin))
 
 
 def run_case(step: float, depth: float, kp: float, kd: float, max_offset: float, duration: float) -> dict:
     world = SimWorld()
     try:
         m, c = world.model, world.client
-        q, qd, v_com, toe_x, com_x, ik_ok, feet_mid = scripted_state(world, step, depth)
+        q, qd, v_com, toe_x, com_x, ik_ok, feet_mid, xi_margin = scripted_state(world, step, depth)
         pb.resetBasePositionAndOrientation(world.robot, q[:3], q[3:7], physicsClientId=c)
         pb.resetBaseVelocity(world.robot, qd[:3], qd[3:6], physicsClientId=c)
         for i, name in enumerate(m.joint_names):
@@ -100,7 +109,8 @@ def run_case(step: float, depth: float, kp: float, kd: float, max_offset: float,
         qq, vv = world.pinocchio_state()
         pin.centerOfMass(m.model, m.data, qq, vv)
         speed = float(np.linalg.norm(m.data.vcom[0]))
-        return {"step_m": step, "depth_m": depth, "ik_converged": ik_ok, "com_x_m": round(com_x, 3),
+        return {"step_m": step, "depth_m": depth, "xi_margin_m": round(xi_margin, 4),
+                "ik_converged": ik_ok, "com_x_m": round(com_x, 3),
                 "toe_x_m": round(toe_x, 3), "com_speed_start_mps": round(v_com, 3),
                 "touched_besides_feet": bool(touched), "com_speed_end_mps": round(speed, 3),
                 "stopped": bool(not touched and speed < STOPPED_SPEED)}
@@ -121,12 +131,14 @@ def main() -> int:
     steps = [float(x) for x in a.steps.split(",")]
     depths = sorted((float(x) for x in a.depths.split(",")), reverse=True)
     cases = [run_case(s, dep, a.kp, a.kd, a.max_offset, a.duration) for s in steps for dep in depths]
-    smallest = {}
+    smallest, smallest_margin = {}, {}
     for s in steps:
-        ok = [c["depth_m"] for c in cases if c["step_m"] == s and c["stopped"]]
-        smallest[str(s)] = min(ok) if ok else None
+        ok = [c for c in cases if c["step_m"] == s and c["stopped"]]
+        smallest[str(s)] = min(c["depth_m"] for c in ok) if ok else None
+        smallest_margin[str(s)] = min(c["xi_margin_m"] for c in ok) if ok else None
     print(json.dumps({"gains": {"kp": a.kp, "kd": a.kd, "max_offset": a.max_offset}, "duration_s": a.duration,
-                      "cases": cases, "smallest_depth_that_stopped_m": smallest}, indent=1))
+                      "cases": cases, "smallest_depth_that_stopped_m": smallest,
+                      "smallest_xi_margin_that_stopped_m": smallest_margin}, indent=1))
     return 0
 
 

@@ -388,3 +388,45 @@ def test_predicted_falls_report_the_edge_fall_angle_and_captures_do_not():
             assert 0.0 <= d.alpha2_edge <= math.pi, (d.case, d.alpha2_edge)
             falls += 1
     assert falls and captures
+
+
+def test_shifted_q2_moves_each_cells_capture_test_by_the_gain_times_its_step():
+    """``swing_com_shift`` (ours): each landing cell's Q2 is Q2 + gain (landing - swing sole now). The best cell, the
+    ranked cells and the batch agree with a search run cell by cell on the shifted points; with a zero gain the
+    search is the paper's; a forward gain makes a forward cell's capture shallower than without it."""
+    rng = np.random.default_rng(11)
+    sole = np.array([[0.145, 0.06], [-0.095, 0.06], [-0.095, -0.06], [0.145, -0.06]])
+    cfg = ss.SearchConfig()
+    gain = np.diag([0.09, 0.09])
+    start = np.array([0.0, 0.09])
+    for _ in range(15):
+        cells = np.column_stack([rng.uniform(0.0, 0.5, 150), rng.uniform(-0.1, 0.3, 150), rng.uniform(-0.3, 0.3, 150)])
+        pivot, q2, target = np.array([[0.145, -0.03], [0.145, -0.15]]), rng.uniform(0.1, 0.5, 2) * [1, 0.2], \
+            np.array([2.0, 0.5])
+        got = ss._cells(ss.StepCase.STEP_LEFT, cells, pivot, q2, target, np.zeros(3), sole, cfg, start=start,
+                        com_gain=gain)
+        shifted = q2 + (cells[:, :2] - start) @ gain.T
+        assert np.allclose(ss.shifted_q2(q2, cells, start, gain), shifted)
+        each = [ss._cells(ss.StepCase.STEP_LEFT, cells[i:i + 1], pivot, shifted[i], target, np.zeros(3), sole, cfg,
+                          start=start) for i in range(len(cells))]
+        best = max(each, key=lambda r: r.score)
+        assert got.score == pytest.approx(best.score, abs=1e-12) and got.captured == best.captured
+        i = int(np.argmin(np.hypot(*(cells[:, :2] - got.landing[:2]).T)))
+        assert np.allclose(got.q2, shifted[i])
+        ranked = ss.ranked_cells(ss.StepCase.STEP_LEFT, cells, pivot, q2, target, np.zeros(3), sole, cfg, limit=20,
+                                 start=start, com_gain=gain)
+        assert ranked[0].score == pytest.approx(got.score, abs=1e-12)
+        zero = ss._cells(ss.StepCase.STEP_LEFT, cells, pivot, q2, target, np.zeros(3), sole, cfg, start=start,
+                         com_gain=np.zeros((2, 2)))
+        paper = ss._cells(ss.StepCase.STEP_LEFT, cells, pivot, q2, target, np.zeros(3), sole, cfg, start=start)
+        assert zero.score == pytest.approx(paper.score, abs=1e-12)
+    # one forward cell, Q2 2.5 cm behind its toe (the nearest side): the swing leg's mass carried 0.4 m forward
+    # moves Q2 3.6 cm on, past the toe: the capture becomes a fall
+    cell = np.array([[0.4, 0.09, 0.0]])
+    q2 = np.array([0.52, 0.09])
+    plain = ss._cells(ss.StepCase.STEP_LEFT, cell, np.array([[0.145, -0.03]]), q2, [2.0, 0.0], np.zeros(3), sole, cfg,
+                      start=start)
+    moved = ss._cells(ss.StepCase.STEP_LEFT, cell, np.array([[0.145, -0.03]]), q2, [2.0, 0.0], np.zeros(3), sole, cfg,
+                      start=start, com_gain=gain)
+    assert plain.captured and plain.margin == pytest.approx(0.025, abs=1e-9)
+    assert not moved.captured and moved.margin == pytest.approx(plain.margin - 0.036, abs=1e-9)

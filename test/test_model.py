@@ -168,3 +168,36 @@ def test_imu_quaternion_reads_every_shape_of_reading_and_refuses_unusable_ones()
     for bad in (None, (np.full(4, np.nan), np.zeros(3)), (np.zeros(4), np.zeros(3)), (np.ones(3), np.zeros(3)),
                 {"gyro": q}, SimpleNamespace(gyro=q), object(), (("a", "b", "c", "d"), None)):
         assert imu_quaternion(bad) is None
+
+
+def test_swing_com_gain_is_the_com_shift_of_a_sole_moved_by_its_leg_alone():
+    """``HumanoidModel.swing_com_gain``: the shared IK moves the left sole 1 cm forward and 0.6 cm sideways with
+    the base and the other joints held; the CoM moves by the gain times that (to 2 %; it is a linearisation: 5 cm
+    forward moves the CoM 7 % less, 5 cm back 5 % more), and the gain is a fraction of the leg's share of the mass
+    (the foot moves fully, the thigh less)."""
+    import pinocchio as pin
+
+    from humfall_ros.model.humanoid import load_model
+    from humfall_ros.model.ik import FrameTask, PostureTask, WholeBodyIK
+
+    m = load_model()
+    q = pin.neutral(m.model)
+    q[7:] = m.joint_vector(m.standing_posture)
+    gain = m.swing_com_gain(q, "l")
+    m.forward(q)
+    sole = m.frame_placement(m.sole_frame["l"]).copy()
+    move = np.array([0.01, 0.006])
+    target = pin.SE3(sole.rotation, sole.translation + np.append(move, 0.0))
+    others = [i for i in range(m.njoints) if i not in m.leg_joint_indices("l")]
+    w = np.zeros(m.njoints)
+    w[others] = 1e3
+    ik = WholeBodyIK(m, fixed_base=True)
+    r = ik.solve_to_convergence(q, [FrameTask(m.sole_frame["l"], target, weight=1e3), PostureTask(q[7:], weight=w)],
+                                dt=0.05, max_iterations=300, tolerance=1e-5)
+    assert r.converged
+    shift = (m.com(r.q) - m.com(q))[:2]
+    assert np.allclose(shift, gain @ move, atol=0.02 * np.linalg.norm(gain @ move))
+    leg_mass = sum(m.model.inertias[m.model.joints[m.model.getJointId(f"l_{j}")].id].mass
+                   for j in ("hip_yaw", "hip_roll", "hip_pitch", "knee", "ankle_pitch", "ankle_roll"))
+    assert 0.3 * leg_mass / m.total_mass < gain[0, 0] < leg_mass / m.total_mass
+    assert abs(gain[0, 1]) < 0.1 * gain[0, 0] and abs(gain[1, 0]) < 0.1 * gain[0, 0]

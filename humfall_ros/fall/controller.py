@@ -86,6 +86,7 @@ class SafeFallConfig:
     capture_depth_m: float = 0.04
     capture_cop_delay_s: float = 0.0
     capture_offset_m: float = 0.0
+    swing_com_shift: bool = False
     max_step_length_m: float = 0.0
     fall_heading_horizon_s: float = 0.5
     fall_ranking: str = "paper"
@@ -307,6 +308,7 @@ class SafeFallController:
         self.gait = None
         self.single_support: str | None = None
         self.balancer = None
+        self.swing_com_gain: dict = {}      # set at each decision (swing_com_shift)
         self.shape_allowed = self.config.inertia_shaping   # set at touchdown (a target, not a lift)
         self._swept_noted = False
         self.recovered_since: float | None = None
@@ -544,6 +546,9 @@ class SafeFallController:
                                {sd: sole_pose_2d(placements[sd]) for sd in SIDES}, target, touchdown, dT,
                                obstacles=self._obstacle_footprints(obs), single_support=single,
                                planned_landing=planned)
+        # (ours) Q2 moved by the swing leg's own mass carried to each landing (HumanoidModel.swing_com_gain)
+        self.swing_com_gain = {sd: self.m.swing_com_gain(q, sd) for sd in SIDES} if c.swing_com_shift else {}
+        sit.swing_com_gain = self.swing_com_gain
         scfg = c.search
         stance_sides, pivots = ss.case_pivots(sit, scfg)
         G, V, Q = ss.predict_touchdown(s.com, s.com_velocity, pivots, touchdown, scfg.rk4_steps,
@@ -596,7 +601,7 @@ class SafeFallController:
             start = np.asarray(sit.sole_poses[swing], float)[:2]
             cand = ss.ranked_cells(cr.case, ss.zone_cells(zones[swing], scfg, self._obstacle_footprints(obs), start),
                                    piv, Q_td, target, G_td, self._sole_local, scfg, start=start,
-                                   v_td=velocity_td.get(swing))
+                                   v_td=velocity_td.get(swing), com_gain=self.swing_com_gain.get(swing))
             tries = 0
             for alt in cand:
                 if alt.score < floor or tries >= c.ik_retry_cells:
@@ -905,6 +910,7 @@ class SafeFallController:
         if case is ss.StepCase.CONTINUE_STEP:   # re-deciding the planned step over the cells: a re-target
             case = ss.StepCase.STEP_LEFT if swing == "l" else ss.StepCase.STEP_RIGHT
         start = self.m.frame_placement(self.m.sole_frame[swing]).translation[:2]
+        gain = self.swing_com_gain.get(swing)   # (from the decision's posture; the rest of the step is from here)
         r = None
         if c.replan_keep_capture and self.chosen.captured and len(cells):
             # hysteresis (ours): the landing chosen last tick stays while it still captures and the zone still
@@ -912,20 +918,23 @@ class SafeFallController:
             # x 1.06 <-> 1.69 m from one tick to the next), so the outcome hung on which tick the window ended at
             cur = np.asarray(self.chosen.landing, float).reshape(1, 3)
             if np.any(np.hypot(cells[:, 0] - cur[0, 0], cells[:, 1] - cur[0, 1]) <= c.search.cell_xy):
-                kept = ss._cells(case, cur, pivot, Q[0], self.target, G[0], self._sole_local, c.search, start=start)
+                kept = ss._cells(case, cur, pivot, Q[0], self.target, G[0], self._sole_local, c.search, start=start,
+                                 com_gain=gain)
                 if kept is not None and kept.captured:
                     r = kept
         if r is None and c.replan_capture_away and len(cells):
             # among the captures (Q2 >= capture_margin inside), the landing farthest from the target (ours): the
             # deepest one moves forward with the push, towards the target (walking_push 360 N: under its edge)
-            h = ss._hull_core(cells, self._sole_local, pivot.reshape(-1, 2), np.asarray(Q[0], float)[:2])
+            h = ss._hull_core(cells, self._sole_local, pivot.reshape(-1, 2),
+                              np.ascontiguousarray(ss.shifted_q2(Q[0], cells, start, gain)))
             ok = h.margin >= c.capture_margin
             if np.any(ok):
                 far = np.hypot(cells[:, 0] - self.target[0], cells[:, 1] - self.target[1])
                 i = int(np.argmax(np.where(ok, far, -np.inf)))
                 cells = cells[i:i + 1]
         if r is None:
-            r = ss._cells(case, cells, pivot, Q[0], self.target, G[0], self._sole_local, c.search, start=start)
+            r = ss._cells(case, cells, pivot, Q[0], self.target, G[0], self._sole_local, c.search, start=start,
+                          com_gain=gain)
         if r is None:
             return
         if r.case is not self.chosen.case:

@@ -145,6 +145,9 @@ class FallSituation:
         obstacles: ground footprints the landing sole must avoid.
         single_support: the stance side while walking ("l"/"r"), None in double support.
         planned_landing: the gait's planned (x, y, yaw) of the swing sole (single support).
+        swing_com_gain: by swing side, the CoM's horizontal shift per horizontal move of that sole (2 x 2) [m/m]
+            (``HumanoidModel.swing_com_gain``); given, each landing cell's Q2 moves by it times the step (ours:
+            the swing leg's mass carried to the landing, which eq. 1-2's rigid pendulum leaves out). {}: the paper.
     """
 
     com: np.ndarray
@@ -162,6 +165,17 @@ class FallSituation:
     obstacles: list = dataclasses.field(default_factory=list)
     single_support: str | None = None
     planned_landing: np.ndarray | None = None
+    swing_com_gain: dict = dataclasses.field(default_factory=dict)
+
+
+def shifted_q2(q2, cells, start, gain) -> np.ndarray:
+    """Q2 per landing cell (n, 2): ``q2`` plus ``gain`` (2 x 2) times the step from ``start`` (x, y) to each cell
+    (ours, ``FallSituation.swing_com_gain``); ``q2`` broadcast when the gain or the start is unknown."""
+    cells = np.asarray(cells, float).reshape(-1, 3)
+    q2 = np.asarray(q2, float)[:2]
+    if gain is None or start is None:
+        return np.broadcast_to(q2, (len(cells), 2))
+    return q2 + (cells[:, :2] - np.asarray(start, float)[:2]) @ np.asarray(gain, float).T
 
 
 @dataclasses.dataclass
@@ -393,8 +407,9 @@ def _fall_alpha(cells, sole_local, pivot, p2x, p2y, q2, g_td, v_td, target, cfg:
 
 
 def _alpha(p2x, p2y, q, target) -> np.ndarray:
-    """alpha = angle(Q2 P2 T) (Fig. 5) per cell [rad] (NaN when P2 is on Q2 or T)."""
-    ux, uy = q[0] - p2x, q[1] - p2y
+    """alpha = angle(Q2 P2 T) (Fig. 5) per cell [rad] (NaN when P2 is on Q2 or T); ``q`` (2,) or per cell (n, 2)."""
+    q = np.asarray(q, float)
+    ux, uy = q[..., 0] - p2x, q[..., 1] - p2y
     vx, vy = target[0] - p2x, target[1] - p2y
     nu, nv = np.hypot(ux, uy), np.hypot(vx, vy)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -626,14 +641,15 @@ def search(sit: FallSituation, sole_local: np.ndarray, cfg: SearchConfig | None 
         if sit.single_support and sit.planned_landing is not None:
             plan = np.asarray(sit.planned_landing, float).reshape(1, 3)
             steps.append((StepCase.CONTINUE_STEP, plan, piv, Q[k], G[k], _sole_xy(sit, swing),
-                          None if V is None else V[k]))
+                          None if V is None else V[k], sit.swing_com_gain.get(swing)))
             order.append(StepCase.CONTINUE_STEP)
         zone = sit.zones.get(swing)
         if zone is None:
             continue
         cells = zone_cells(zone, cfg, sit.obstacles, _sole_xy(sit, swing))
         total_cells += len(cells)
-        steps.append((step_case, cells, piv, Q[k], G[k], _sole_xy(sit, swing), None if V is None else V[k]))
+        steps.append((step_case, cells, piv, Q[k], G[k], _sole_xy(sit, swing), None if V is None else V[k],
+                      sit.swing_com_gain.get(swing)))
         order.append(step_case)
     for (case, *_), r in zip(steps, _cells_batch(steps, target, sole_local, cfg)):
         if r is not None:
@@ -673,14 +689,15 @@ def _single(case: StepCase, poly, q2, target, g_td, cfg: SearchConfig, v_td=None
 
 
 def _cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, target, g_td, sole_local,
-           cfg: SearchConfig, start=None) -> CaseResult | None:
-    """The best landing cell of one case (:func:`_cells_batch` of one); ``start``: the swing sole's x, y now."""
-    return _cells_batch([(case, cells, pivot, q2, g_td, start)], target, sole_local, cfg)[0]
+           cfg: SearchConfig, start=None, com_gain=None) -> CaseResult | None:
+    """The best landing cell of one case (:func:`_cells_batch` of one); ``start``: the swing sole's x, y now;
+    ``com_gain``: :func:`shifted_q2`'s."""
+    return _cells_batch([(case, cells, pivot, q2, g_td, start, None, com_gain)], target, sole_local, cfg)[0]
 
 
 def _cells_batch(groups: list, target, sole_local, cfg: SearchConfig) -> list[CaseResult | None]:
     """The best landing cell of each case ``(case, cells (n, 3), pivot (K, 2), Q2, G at touchdown[, swing sole
-    x, y now])``.
+    x, y now[, CoM velocity at touchdown[, the swing's CoM gain (:func:`shifted_q2`)]]])``.
 
     All cases' cells go through one :func:`_hull_core` call (numpy's per-call overhead is paid once);
     a one-corner pivot is padded to two equal corners (the same hull, the same pieces' distances).
@@ -694,24 +711,24 @@ def _cells_batch(groups: list, target, sole_local, cfg: SearchConfig) -> list[Ca
     cells, piv, qs, bounds = [], [], [], []
     start = 0
     for k in live:
-        _case, c, pv, q2, _g, *_ = groups[k]
+        _case, c, pv, q2, _g, *rest = groups[k]
         pv = np.asarray(pv, float).reshape(-1, 2)
         pv = np.vstack([pv, np.repeat(pv[-1:], npiv - len(pv), axis=0)])
         cells.append(c)
         piv.append(np.broadcast_to(pv[:, None, :], (npiv, len(c), 2)))
-        qs.append(np.broadcast_to(np.asarray(q2, float)[:2], (len(c), 2)))
+        qs.append(shifted_q2(q2, c, rest[0] if rest else None, rest[2] if len(rest) > 2 else None))
         bounds.append((start, start + len(c)))
         start += len(c)
     if len(live) == 1:
         g = groups[live[0]]
-        C, P, Qc = cells[0], np.asarray(g[2], float).reshape(-1, 2), np.asarray(g[3], float)[:2]
+        C, P, Qc = cells[0], np.asarray(g[2], float).reshape(-1, 2), np.ascontiguousarray(qs[0])
     else:
         C, P, Qc = np.vstack(cells), np.concatenate(piv, axis=1), np.vstack(qs)
     h = _hull_core(C, sole_local, P, Qc)
     for k, (lo, hi) in zip(live, bounds):
         case, c, pv, q2, g_td, *rest = groups[k]
         pivot = np.asarray(pv, float).reshape(-1, 2)
-        q2 = np.asarray(q2, float)[:2]
+        q2 = Qc[lo:hi] if Qc.ndim == 2 else np.broadcast_to(np.asarray(q2, float)[:2], (hi - lo, 2))
         margin = h.margin[lo:hi]
         inside = margin > 0
         length = _step_lengths(c, rest[0] if rest else None)
@@ -727,8 +744,8 @@ def _cells_batch(groups: list, target, sole_local, cfg: SearchConfig) -> list[Ca
             i = int(np.argmax(np.where(np.isfinite(alpha), alpha, -1.0)))
             p2, alpha_i = np.array([p2x[i], p2y[i]]), float(alpha[i])
         poly = support_polygon(np.vstack([sole_corners_at(c[i:i + 1], sole_local)[0], pivot]).tolist())
-        out[k] = CaseResult(case, p2.copy(), q2.copy(), alpha_i, bool(inside[i]), float(margin[i]), c[i].copy(), poly,
-                            g_td, len(c), cfg.capture_margin, float(length[i]), cfg.capture_depth)
+        out[k] = CaseResult(case, p2.copy(), np.array(q2[i], float), alpha_i, bool(inside[i]), float(margin[i]),
+                            c[i].copy(), poly, g_td, len(c), cfg.capture_margin, float(length[i]), cfg.capture_depth)
     return out
 
 
@@ -741,7 +758,7 @@ def _step_lengths(cells: np.ndarray, start) -> np.ndarray:
 
 
 def ranked_cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, target, g_td, sole_local,
-                 cfg: SearchConfig, limit: int = 50, start=None, v_td=None) -> list[CaseResult]:
+                 cfg: SearchConfig, limit: int = 50, start=None, v_td=None, com_gain=None) -> list[CaseResult]:
     """One step case's landing cells as candidates, best first (the order :func:`_cells_batch` picks the best by:
     captures by depth, then shallow insides, then falls by alpha2), the first ``limit``.
 
@@ -751,7 +768,7 @@ def ranked_cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, targe
         return []
     target = np.asarray(target, float)[:2]
     pivot = np.asarray(pivot, float).reshape(-1, 2)
-    q2 = np.asarray(q2, float)[:2]
+    q2 = np.ascontiguousarray(shifted_q2(q2, cells, start, com_gain))
     h = _hull_core(cells, sole_local, pivot, q2)
     margin = h.margin
     inside = margin > 0
@@ -764,7 +781,7 @@ def ranked_cells(case: StepCase, cells: np.ndarray, pivot: np.ndarray, q2, targe
     for i in np.argsort(-key, kind="stable")[:limit]:
         poly = support_polygon(np.vstack([sole_corners_at(cells[i:i + 1], sole_local)[0], pivot]).tolist())
         a = math.nan if inside[i] else float(alpha[i])
-        out.append(CaseResult(case, np.array([p2x[i], p2y[i]]), q2.copy(), a, bool(inside[i]), float(margin[i]),
+        out.append(CaseResult(case, np.array([p2x[i], p2y[i]]), q2[i].copy(), a, bool(inside[i]), float(margin[i]),
                               cells[i].copy(), poly, g_td, len(cells), cfg.capture_margin, float(length[i]),
                               cfg.capture_depth))
     return out

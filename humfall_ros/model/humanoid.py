@@ -177,6 +177,21 @@ class HumanoidModel:
         return pin.computeFrameJacobian(self.model, self.data, q, self.frame_ids[name],
                                         pin.ReferenceFrame.LOCAL_WORLD_ALIGNED).copy()
 
+    def swing_com_gain(self, q, side: str) -> np.ndarray:
+        """How far the whole-body CoM moves horizontally per horizontal move of ``side``'s sole, the leg's joints alone
+        moving (the rest of the body, its orientation and the sole's held), at ``q`` (2 x 2) [m/m].
+
+        ``J_com[:2, leg] @ J_sole[:, leg]^-1[:, :2]`` (LOCAL_WORLD_ALIGNED; the leg's six joints make its sole
+        Jacobian square). Paper 1's pendulum (eq. 1-2) moves a rigid body: the swing leg's own mass, carried to the
+        landing, is what it leaves out (standing: 0.09 I)."""
+        pin.computeJointJacobians(self.model, self.data, q)
+        pin.updateFramePlacements(self.model, self.data)
+        cols = [6 + i for i in self.leg_joint_indices(side)]
+        J_com = pin.jacobianCenterOfMass(self.model, self.data, q, False)[:2, cols]
+        J_sole = pin.getFrameJacobian(self.model, self.data, self.frame_ids[self.sole_frame[side]],
+                                      pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[:, cols]
+        return J_com @ np.linalg.pinv(J_sole, rcond=1e-6)[:, :2]
+
     def sole_corners(self, side: str) -> np.ndarray:
         """World positions (4 x 3, counter-clockwise) of a foot's sole corners after forward()."""
         return np.array([self.frame_position(f) for f in self.corner_frames[side]])
