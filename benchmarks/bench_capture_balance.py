@@ -21,6 +21,10 @@ line is much less deep inside the hull (0.3 m step, d = 6 cm: 2.7 cm), the more 
 
     python benchmarks/bench_capture_balance.py [--steps 0.3,0.45,0.6] [--depths 0.15,0.1,0.06,0.03,0]
                                                [--kp 0.3 --kd 0.1 --max-offset 0.12] [--duration 2]
+                                               [--hip-flex 0.3 [--hip-rise 0.15 --hip-hold 0.6 --hip-release 1]]
+
+``--hip-flex``: the hip strategy on top (``control.standing.hip_flexion_profile``; both hips flexed from the
+touchdown; the safe-fall controller's ``balance_hip_*``).
 
 Prints one JSON object: per case the CoM speed at the start, whether it stopped, and per step length the
 smallest depth that stopped.
@@ -40,7 +44,7 @@ import pybullet as pb
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from humfall_ros import params  # noqa: E402
-from humfall_ros.control.standing import StandingBalance  # noqa: E402
+from humfall_ros.control.standing import StandingBalance, hip_flexion_profile  # noqa: E402
 from humfall_ros.dynamics.pendulum import GRAVITY  # noqa: E402
 from humfall_ros.model.humanoid import point_in_polygon_margin, support_polygon  # noqa: E402
 from humfall_ros.model.ik import ComTask, FrameTask, OrientationTask, PostureTask, WholeBodyIK  # noqa: E402
@@ -87,7 +91,8 @@ def scripted_state(world: SimWorld, step: float, depth: float, com_drop: float =
             float(xi_margin))
 
 
-def run_case(step: float, depth: float, kp: float, kd: float, max_offset: float, duration: float) -> dict:
+def run_case(step: float, depth: float, kp: float, kd: float, max_offset: float, duration: float,
+             hip: tuple = (0.0, 0.15, 0.6, 1.0)) -> dict:
     world = SimWorld()
     try:
         m, c = world.model, world.client
@@ -99,8 +104,12 @@ def run_case(step: float, depth: float, kp: float, kd: float, max_offset: float,
         world._readings = {}
         balance = StandingBalance(m, dict(zip(m.joint_names, q[7:])), kp=kp, kd=kd, max_offset=max_offset)
         balance.reference = np.zeros(2)   # the CoM over the feet's middle
+        nominal = balance.nominal.copy()
+        hips = [m.joint_index(f"{sd}_hip_pitch") for sd in ("l", "r")]
         touched = False
-        for _ in range(int(round(duration * world.control_rate))):
+        for k in range(int(round(duration * world.control_rate))):
+            balance.nominal = nominal.copy()
+            balance.nominal[hips] -= hip_flexion_profile(k / world.control_rate, *hip)
             qq, vv = world.pinocchio_state()
             pin.centerOfMass(m.model, m.data, qq, vv)
             world.set_joint_targets(balance.command(m.data.com[0], m.data.vcom[0], feet_center=feet_mid))
@@ -127,16 +136,23 @@ def main() -> int:
     ap.add_argument("--kd", type=float, default=d["balance_kd"])
     ap.add_argument("--max-offset", type=float, default=d["balance_max_offset"])
     ap.add_argument("--duration", type=float, default=2.0)
+    ap.add_argument("--hip-flex", type=float, default=d["balance_hip_flex_rad"], help="hip strategy [rad] (0: off)")
+    ap.add_argument("--hip-rise", type=float, default=d["balance_hip_rise_s"])
+    ap.add_argument("--hip-hold", type=float, default=d["balance_hip_hold_s"])
+    ap.add_argument("--hip-release", type=float, default=d["balance_hip_release_s"])
     a = ap.parse_args()
+    hip = (a.hip_flex, a.hip_rise, a.hip_hold, a.hip_release)
     steps = [float(x) for x in a.steps.split(",")]
     depths = sorted((float(x) for x in a.depths.split(",")), reverse=True)
-    cases = [run_case(s, dep, a.kp, a.kd, a.max_offset, a.duration) for s in steps for dep in depths]
+    cases = [run_case(s, dep, a.kp, a.kd, a.max_offset, a.duration, hip) for s in steps for dep in depths]
     smallest, smallest_margin = {}, {}
     for s in steps:
         ok = [c for c in cases if c["step_m"] == s and c["stopped"]]
         smallest[str(s)] = min(c["depth_m"] for c in ok) if ok else None
         smallest_margin[str(s)] = min(c["xi_margin_m"] for c in ok) if ok else None
-    print(json.dumps({"gains": {"kp": a.kp, "kd": a.kd, "max_offset": a.max_offset}, "duration_s": a.duration,
+    print(json.dumps({"gains": {"kp": a.kp, "kd": a.kd, "max_offset": a.max_offset},
+                      "hip_strategy": dict(zip(("flex_rad", "rise_s", "hold_s", "release_s"), hip)),
+                      "duration_s": a.duration,
                       "cases": cases, "smallest_depth_that_stopped_m": smallest,
                       "smallest_xi_margin_that_stopped_m": smallest_margin}, indent=1))
     return 0

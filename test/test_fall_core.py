@@ -632,3 +632,56 @@ def test_falls_rank_by_the_configured_alpha2(ranking):
     assert best.alpha2 == pytest.approx(paper.max(), abs=1e-9)
     with pytest.raises(ValueError, match="fall_ranking"):
         ss.SearchConfig(fall_ranking="sideways")
+
+
+def test_hip_flexion_profile_rises_holds_and_releases():
+    from humfall_ros.control.standing import hip_flexion_profile
+
+    args = (0.3, 0.15, 0.6, 1.0)
+    assert hip_flexion_profile(-0.01, *args) == 0.0 and hip_flexion_profile(0.0, *args) == 0.0
+    assert hip_flexion_profile(0.075, *args) == pytest.approx(0.15)       # half way up a half cosine
+    assert hip_flexion_profile(0.15, *args) == pytest.approx(0.3) == hip_flexion_profile(0.74, *args)
+    assert hip_flexion_profile(0.75 + 0.5, *args) == pytest.approx(0.15)
+    assert hip_flexion_profile(1.76, *args) == 0.0 and hip_flexion_profile(0.5, 0.0, 0.15, 0.6, 1.0) == 0.0
+    ts = np.linspace(0.0, 2.0, 401)
+    f = np.array([hip_flexion_profile(t, *args) for t in ts])
+    assert np.all(f >= 0.0) and np.all(f <= 0.3 + 1e-12) and np.max(np.abs(np.diff(f))) < 0.3 * 0.005 * 3.2 / 0.15
+
+
+@pytest.mark.parametrize("target", ["middle", "spine"])
+def test_capture_balance_settle_target_and_hip_strategy(target):
+    """After a captured step the balance holds the CoM at the soles' middle, or (``settle_target: spine``) at the
+    point of the segment between the soles' centres nearest the capture point; the hip strategy
+    (``balance_hip_flex_rad``) flexes both hips by its profile on top and changes no other joint."""
+    base = {**params.defaults("safe_fall_controller"), "settle_s": 0.0, "settle_target": target}
+    cmds = {}
+    for flex in (0.0, 0.3):
+        c = SafeFallController(config=SafeFallConfig.from_params({**base, "balance_hip_flex_rad": flex}))
+        c.step(_controller_obs(0.62, {"obstacles": TARGET, "imu": IMU, "fall_event": _event(0.62)}))
+        c.phase, c.touchdown_at, c.target = "landed", 1.0, np.array([1.2, 0.0])
+        c.hold = c.last_command.copy()
+        q = standing_q()
+        poly = support_polygon(np.vstack([M.sole_corners(s)[:, :2] for s in "lr"]))
+        feet = (M.frame_position("l_foot") + M.frame_position("r_foot")) / 2
+        com = M.com(q)
+        # the capture point ahead and to the left: (com + [0.1, 0.05]) + [0.0, 0.02]
+        s = state(com + [0.1, 0.05, 0.0], [0.0, 0.2 / math.sqrt(9.81 / com[2]) * 0.1, 0.0], poly, feet_center=feet)
+        out = []
+        for t in (1.0, 1.0 + 0.15 + 0.3):
+            out.append(c.step(Observation(int(round(t * 1e9)), q[7:].copy(), np.zeros(M.njoints), s, "safe_fall",
+                                          {"obstacles": TARGET, "imu": IMU})).positions)
+        cmds[flex] = out
+        centres = [M.sole_corners(sd)[:, :2].mean(axis=0) for sd in "lr"]
+        if target == "middle":
+            want = np.vstack([M.sole_corners(sd)[:, :2] for sd in "lr"]).mean(axis=0)
+        else:   # the soles side by side: the segment runs along y, at the capture point's y
+            cp = np.asarray(s.capture_point)[:2]
+            assert centres[1][1] < cp[1] < centres[0][1]
+            want = np.array([centres[0][0] + (centres[1][0] - centres[0][0]) * (cp[1] - centres[0][1])
+                             / (centres[1][1] - centres[0][1]), cp[1]])
+        assert np.allclose(c.balancer.reference + feet[:2], want, atol=1e-9)
+    hips = [M.joint_index(f"{sd}_hip_pitch") for sd in "lr"]
+    others = [i for i in range(M.njoints) if i not in hips]
+    assert np.allclose(cmds[0.3][0], cmds[0.0][0])                        # the profile starts at 0
+    assert np.allclose(cmds[0.3][1][hips], cmds[0.0][1][hips] - 0.3)      # held, flexed (pitch < 0)
+    assert np.allclose(cmds[0.3][1][others], cmds[0.0][1][others])

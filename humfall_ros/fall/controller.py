@@ -41,6 +41,7 @@ import numpy as np
 
 from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
+from humfall_ros.control.standing import StandingBalance, hip_flexion_profile
 from humfall_ros.dynamics.toppling import FallOutcome, time_to_lean
 from humfall_ros.fall import step_search as ss
 from humfall_ros.fall.ftb import FtbState, features_of
@@ -120,7 +121,12 @@ class SafeFallConfig:
     balance_kp: float = 0.3
     balance_kd: float = 0.1
     balance_max_offset: float = 0.12
+    balance_hip_flex_rad: float = 0.0
+    balance_hip_rise_s: float = 0.15
+    balance_hip_hold_s: float = 0.6
+    balance_hip_release_s: float = 1.0
     settle_s: float = 0.5
+    settle_target: str = "middle"
     handback: bool = True
     handback_delay_s: float = 0.02
     defer_push_residual_mps: float = 1.0
@@ -283,6 +289,7 @@ class SafeFallController:
         self.config = config or SafeFallConfig()
         self.stepper = StepController(self.m, self.config.step)
         self._sole_local = self.m.sole_corners_local["l"][:, :2].copy()
+        self._hip_pitch = [self.m.joint_index(f"{sd}_hip_pitch") for sd in SIDES]
         if self.config.shaping_direction not in SHAPING_DIRECTIONS:
             raise ValueError(f"shaping_direction must be one of {', '.join(SHAPING_DIRECTIONS)}, "
                              f"got {self.config.shaping_direction!r}")
@@ -803,8 +810,6 @@ class SafeFallController:
         c = self.config
         s = obs.state
         if self.balancer is None:
-            from humfall_ros.control.standing import StandingBalance
-
             self.balance_from = self.hold.copy()
             self.balance_start = obs.time
             self.settle = self.hold.copy()
@@ -814,6 +819,8 @@ class SafeFallController:
                 q = configuration_from_sensors(self.m, obs.joint_position, quat, s.com)
                 self.m.forward(q)
                 mid = np.vstack([self.m.sole_corners(sd)[:, :2] for sd in SIDES]).mean(axis=0)
+                if c.settle_target == "spine":
+                    mid = self._spine_point(np.asarray(s.capture_point, float)[:2])
                 ref = mid - np.asarray(s.feet_center, float)[:2]
                 if c.settle_s > 0:
                     self.settle = self._settle_posture(q, mid)
@@ -823,9 +830,26 @@ class SafeFallController:
         a = 1.0 if c.settle_s <= 0 else min(1.0, (obs.time - self.balance_start) / c.settle_s)
         w = 0.5 - 0.5 * math.cos(math.pi * a)
         self.balancer.nominal = (1.0 - w) * self.balance_from + w * self.settle
+        if c.balance_hip_flex_rad > 0.0:
+            # the hip strategy (ours): both hips flex from the balance's start (hip pitch < 0 flexes)
+            flex = hip_flexion_profile(obs.time - self.balance_start, c.balance_hip_flex_rad, c.balance_hip_rise_s,
+                                       c.balance_hip_hold_s, c.balance_hip_release_s)
+            self.balancer.nominal[self._hip_pitch] -= flex
         pos = self.balancer.command(s.com, s.com_velocity, s.support_polygon, s.feet_center)
         self.last_command = pos
         return JointTargets(pos)
+
+    def _spine_point(self, point) -> np.ndarray:
+        """The point of the segment between the two soles' centres nearest ``point`` (after ``forward``) [m], (2,).
+
+        The CoM goes on towards the capture point after a step; the soles' middle is on that segment, but where
+        the CoM comes to rest the hull is the front sole's width around the segment, not around the middle: with
+        the CoM held over the middle sideways it left the hull over its diagonal side (500 N deferred: stopped in x
+        0.5 m on, toppled to the right)."""
+        a, b = (self.m.sole_corners(sd)[:, :2].mean(axis=0) for sd in SIDES)
+        e = b - a
+        t = float(np.clip(np.dot(np.asarray(point, float)[:2] - a, e) / max(float(e @ e), 1e-12), 0.0, 1.0))
+        return a + t * e
 
     def _soles_hull(self, obs: Observation):
         """The hull of both soles (touching or not) in the measured configuration [m], (k, 2), or None (no IMU).
