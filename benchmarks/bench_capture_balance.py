@@ -5,9 +5,11 @@ capture point near the front toe, and the robot does not stop. This maps where i
 
 * the left sole ``L`` ahead of the right, both flat (the shared IK: right sole hard, left sole, the CoM half way
   between the soles and 3 cm below standing, the trunk upright);
-* the CoM moving forward at the speed that puts the capture point xi = x + v / omega (paper 1 eq. 1-2) ``d``
-  inside the left toe, the legs' joint velocities chosen so that both soles are still (the body rotates over the
-  feet; no sliding start);
+* the CoM moving along x (world) at the speed that puts the capture point xi = x + v / omega (paper 1 eq. 1-2)
+  ``d`` inside the left toe, the base translating without rotation and the legs' joint velocities chosen so that
+  both soles are still (``SimWorld.set_state``). Before session 39 the base's velocity was given along its own x
+  axis (yawed 2-20 deg by the IK) and to PyBullet as if in the world frame: the soles started sliding at 0.08-0.58
+  m/s (0.3-0.6 m steps, d 6 cm), and the map of sessions 38-39 measured that;
 * then the ankle balance of ``control/standing.py`` (the safe-fall controller's capture balance, its gains from
   ``config/safe_fall_controller.yaml`` unless given) about the scripted posture, the CoM held over the feet's
   middle, for ``--duration`` s on ground truth.
@@ -39,7 +41,6 @@ import sys
 
 import numpy as np
 import pinocchio as pin
-import pybullet as pb
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
@@ -79,14 +80,20 @@ def scripted_state(world: SimWorld, step: float, depth: float, com_drop: float =
     # the base moving forward, each leg's joints keeping its sole still; scaled to the CoM speed wanted
     pin.computeJointJacobians(m.model, m.data, q)
     pin.updateFramePlacements(m.model, m.data)
-    qd = np.zeros(m.model.nv)
-    qd[0] = 1.0
-    for side in ("l", "r"):
-        J = pin.getFrameJacobian(m.model, m.data, m.frame_ids[m.sole_frame[side]], pin.LOCAL_WORLD_ALIGNED)
-        cols = [6 + i for i in m.leg_joint_indices(side)]
-        qd[cols] = np.linalg.solve(J[:, cols], -J[:, :6] @ qd[:6])
-    pin.centerOfMass(m.model, m.data, q, qd)
-    qd *= v_com / float(m.data.vcom[0][0])
+    # the base translating (no rotation), each leg's joints keeping its sole still; the base's velocity (pinocchio:
+    # in the base frame, which the IK leaves yawed and pitched) chosen so the CoM moves along world x only
+    basis = []
+    for k in range(3):
+        qd = np.zeros(m.model.nv)
+        qd[k] = 1.0
+        for side in ("l", "r"):
+            J = pin.getFrameJacobian(m.model, m.data, m.frame_ids[m.sole_frame[side]], pin.LOCAL_WORLD_ALIGNED)
+            cols = [6 + i for i in m.leg_joint_indices(side)]
+            qd[cols] = np.linalg.solve(J[:, cols], -J[:, :6] @ qd[:6])
+        pin.centerOfMass(m.model, m.data, q, qd)
+        basis.append((qd, m.data.vcom[0].copy()))
+    u = np.linalg.solve(np.column_stack([b[1] for b in basis]), [v_com, 0.0, 0.0])
+    qd = sum(uk * b[0] for uk, b in zip(u, basis))
     return (q, qd, v_com, toe_x, float(com[0]), bool(res.converged), 0.5 * (right.translation + left.translation),
             float(xi_margin))
 
@@ -95,13 +102,9 @@ def run_case(step: float, depth: float, kp: float, kd: float, max_offset: float,
              hip: tuple = (0.0, 0.15, 0.6, 1.0)) -> dict:
     world = SimWorld()
     try:
-        m, c = world.model, world.client
+        m = world.model
         q, qd, v_com, toe_x, com_x, ik_ok, feet_mid, xi_margin = scripted_state(world, step, depth)
-        pb.resetBasePositionAndOrientation(world.robot, q[:3], q[3:7], physicsClientId=c)
-        pb.resetBaseVelocity(world.robot, qd[:3], qd[3:6], physicsClientId=c)
-        for i, name in enumerate(m.joint_names):
-            pb.resetJointState(world.robot, world.joint_ids[name], q[7 + i], qd[6 + i], physicsClientId=c)
-        world._readings = {}
+        world.set_state(q, qd)
         balance = StandingBalance(m, dict(zip(m.joint_names, q[7:])), kp=kp, kd=kd, max_offset=max_offset)
         balance.reference = np.zeros(2)   # the CoM over the feet's middle
         nominal = balance.nominal.copy()

@@ -190,3 +190,34 @@ def test_scenario_carries_the_servo_time_constant_to_the_world():
         scenario.load("standing_quiet", ["sim.servo_time_constant=0"])
     with pytest.raises(scenario.ScenarioError, match="at least one physics step"):
         scenario.load("standing_quiet", ["sim.servo_time_constant=0.0005"])     # in range, but < 1 ms at 1 kHz
+
+
+def test_set_state_puts_the_robot_in_a_pinocchio_state_with_its_base_twist_in_the_base_frame():
+    """``SimWorld.set_state``: a turned, moving state read back by ``pinocchio_state`` (the base's twist in the base
+    frame, as pinocchio has it); the servo targets on it; a bad state refused, the world as it was."""
+    import pinocchio as pin
+
+    w = SimWorld()
+    try:
+        m = w.model
+        q0, _ = w.pinocchio_state()
+        q = q0.copy()
+        q[:3] += [0.1, -0.05, 0.02]
+        q[3:7] = pin.Quaternion(pin.rpy.rpyToMatrix(0.05, -0.1, 0.6)).coeffs()   # xyzw
+        q[7:] += np.linspace(-0.05, 0.05, m.njoints)
+        v = np.linspace(-0.4, 0.5, m.model.nv)
+        w.set_state(q, v)
+        q1, v1 = w.pinocchio_state()
+        assert np.allclose(q1[:3], q[:3], atol=1e-9) and np.allclose(q1[7:], q[7:], atol=1e-9)
+        assert abs(abs(float(np.dot(q1[3:7], q[3:7]))) - 1.0) < 1e-9
+        assert np.allclose(v1, v, atol=1e-9)
+        assert np.allclose(w.targets, np.clip(q[7:], m.limits.lower, m.limits.upper))
+        with pytest.raises(ValueError, match="finite"):
+            w.set_state(q[:-1], v)
+        bad = v.copy()
+        bad[3] = math.nan
+        with pytest.raises(ValueError, match="finite"):
+            w.set_state(q, bad)
+        assert np.allclose(w.pinocchio_state()[1], v, atol=1e-9)
+    finally:
+        w.close()

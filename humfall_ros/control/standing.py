@@ -21,9 +21,9 @@ def hip_flexion_profile(t: float, amplitude: float, rise: float, hold: float, re
     ``rise`` s, stay ``hold`` s, come back over ``release`` s, each ramp a half cosine (0 outside).
 
     Flexing at the hips turns the trunk forward; its angular momentum is taken from the ground by a backward
-    force that slows the CoM at once, beyond what the CoP at the toe can: the ankle balance alone stopped the
-    robot only from a capture point 2.1-3.1 cm inside the soles' hull, with 0.3 rad held 0.6 s from 0-1.1 cm
-    (``benchmarks/bench_capture_balance.py --hip-flex``)."""
+    force that slows the CoM at once, beyond what the CoP at the toe can: on scripted touchdowns the ankle balance
+    alone stopped the robot from a capture point 1.9-3.5 cm inside the soles' hull, with 0.3 rad held 0.6 s from
+    -0.4-0.5 cm (``benchmarks/bench_capture_balance.py --hip-flex``)."""
     if amplitude == 0.0 or t < 0.0:
         return 0.0
     if t < rise:

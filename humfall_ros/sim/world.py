@@ -140,6 +140,30 @@ class SimWorld:
         self._readings: dict = {}
         self.set_obstacles(self.obstacles if obstacles is None else obstacles)
 
+    def set_state(self, q, v) -> None:
+        """Put the robot in the pinocchio state (q, v) (the model's free-flyer convention: base position, quaternion
+        xyzw, joints; base twist in the base frame, joint rates), the servo targets on it (positions and rates),
+        time and pushes unchanged. For scripted states (``benchmarks/bench_capture_balance.py``): the readings of
+        the step before are dropped, and the IMU's next acceleration is taken from this state on."""
+        q = np.asarray(q, float).reshape(-1)
+        v = np.asarray(v, float).reshape(-1)
+        m = self.model
+        if q.shape != (m.model.nq,) or v.shape != (m.model.nv,) or not (np.all(np.isfinite(q))
+                                                                      and np.all(np.isfinite(v))):
+            raise ValueError(f"a state needs finite q ({m.model.nq},) and v ({m.model.nv},)")
+        c = self.client
+        quat = q[3:7] / np.linalg.norm(q[3:7])
+        R = quat_matrix(quat)
+        # the waist's inertial origin is its URDF origin, so pybullet's base frame is pinocchio's root frame
+        pb.resetBasePositionAndOrientation(self.robot, q[:3].tolist(), quat.tolist(), physicsClientId=c)
+        pb.resetBaseVelocity(self.robot, (R @ v[:3]).tolist(), (R @ v[3:6]).tolist(), physicsClientId=c)
+        for i, name in enumerate(m.joint_names):
+            pb.resetJointState(self.robot, self.joint_ids[name], float(q[7 + i]), float(v[6 + i]),
+                               physicsClientId=c)
+        self.set_joint_targets(q[7:], v[6:])
+        self._readings = {}
+        self._prev_imu_velocity = None
+
     def standing_base_height(self, q_joints) -> float:
         """Base height that puts the lowest sole corner on the ground (pinocchio FK)."""
         q = self.model.configuration([0, 0, 0], [0, 0, 0, 1], q_joints)
