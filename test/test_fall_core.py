@@ -685,3 +685,37 @@ def test_capture_balance_settle_target_and_hip_strategy(target):
     assert np.allclose(cmds[0.3][0], cmds[0.0][0])                        # the profile starts at 0
     assert np.allclose(cmds[0.3][1][hips], cmds[0.0][1][hips] - 0.3)      # held, flexed (pitch < 0)
     assert np.allclose(cmds[0.3][1][others], cmds[0.0][1][others])
+
+
+def test_hip_strategy_shrinks_with_the_capture_points_margin_in_the_soles_hull():
+    """``balance_hip_margin_m``: the hip strategy's flexion is scaled by 1 - margin / balance_hip_margin_m (clipped
+    to [0, 1]), the margin being the capture point's inside both soles' hull when the balance starts."""
+    # (no inertia shaping: the capture point 20 cm ahead reads as falling about the soles, and shaping would take
+    # over from the balance)
+    base = {**params.defaults("safe_fall_controller"), "settle_s": 0.0, "inertia_shaping": False}
+    q = standing_q()
+    poly = support_polygon(np.vstack([M.sole_corners(s)[:, :2] for s in "lr"]))
+    feet = (M.frame_position("l_foot") + M.frame_position("r_foot")) / 2
+    com = M.com(q)
+    hips = [M.joint_index(f"{sd}_hip_pitch") for sd in "lr"]
+    seen = []
+    for dx in (0.0, 0.06, 0.2):   # the capture point 0 / 6 / 20 cm ahead of the CoM
+        s = state(com, [dx / math.sqrt(com[2] / 9.81), 0.0, 0.0], poly, feet_center=feet)
+        margin = point_in_polygon_margin(np.asarray(s.capture_point)[:2], poly)
+        got = {}
+        for flex, scale in ((0.0, 0.1), (0.3, 0.1)):
+            c = SafeFallController(config=SafeFallConfig.from_params({**base, "balance_hip_flex_rad": flex,
+                                                                      "balance_hip_margin_m": scale}))
+            c.step(_controller_obs(0.62, {"obstacles": TARGET, "imu": IMU, "fall_event": _event(0.62)}))
+            c.phase, c.touchdown_at, c.target, c.falling_since = "landed", 1.0, np.array([1.2, 0.0]), None
+            c.hold = c.last_command.copy()
+            for t in (1.0, 1.45):
+                cmd = c.step(Observation(int(round(t * 1e9)), q[7:].copy(), np.zeros(M.njoints), s, "safe_fall",
+                                         {"obstacles": TARGET, "imu": IMU})).positions
+            assert c.phase == "landed"
+            assert c.balance_margin == pytest.approx(margin, abs=1e-9)
+            got[flex] = cmd
+        want = 0.3 * min(1.0, max(0.0, 1.0 - margin / 0.1))
+        seen.append(want)
+        assert np.allclose(got[0.0][hips] - got[0.3][hips], want, atol=1e-9)
+    assert seen[0] == 0.0 and 0.0 < seen[1] < 0.3 and seen[2] == 0.3   # deep / shallow / outside

@@ -55,7 +55,8 @@ from humfall_ros.control.step_control import (
     predicted_stance_placement,
 )
 from humfall_ros.fall.stepping_zone import stepping_zone
-from humfall_ros.model.humanoid import SIDES, HumanoidModel, imu_quaternion, load_model, support_polygon
+from humfall_ros.model.humanoid import (SIDES, HumanoidModel, imu_quaternion, load_model, point_in_polygon_margin,
+                                       support_polygon)
 
 
 # joints inertia shaping may move, by name fragment: all of them (the paper), the pitch chain, or its upper body
@@ -125,6 +126,7 @@ class SafeFallConfig:
     balance_hip_rise_s: float = 0.15
     balance_hip_hold_s: float = 0.6
     balance_hip_release_s: float = 1.0
+    balance_hip_margin_m: float = 0.0
     settle_s: float = 0.5
     settle_target: str = "middle"
     handback: bool = True
@@ -810,6 +812,7 @@ class SafeFallController:
         c = self.config
         s = obs.state
         if self.balancer is None:
+            self.balance_margin = math.nan   # the capture point's margin in the soles' hull at the start [m]
             self.balance_from = self.hold.copy()
             self.balance_start = obs.time
             self.settle = self.hold.copy()
@@ -818,7 +821,10 @@ class SafeFallController:
             if quat is not None:
                 q = configuration_from_sensors(self.m, obs.joint_position, quat, s.com)
                 self.m.forward(q)
-                mid = np.vstack([self.m.sole_corners(sd)[:, :2] for sd in SIDES]).mean(axis=0)
+                corners = np.vstack([self.m.sole_corners(sd)[:, :2] for sd in SIDES])
+                mid = corners.mean(axis=0)
+                self.balance_margin = point_in_polygon_margin(np.asarray(s.capture_point, float)[:2],
+                                                              support_polygon(corners))
                 if c.settle_target == "spine":
                     mid = self._spine_point(np.asarray(s.capture_point, float)[:2])
                 ref = mid - np.asarray(s.feet_center, float)[:2]
@@ -831,8 +837,13 @@ class SafeFallController:
         w = 0.5 - 0.5 * math.cos(math.pi * a)
         self.balancer.nominal = (1.0 - w) * self.balance_from + w * self.settle
         if c.balance_hip_flex_rad > 0.0:
-            # the hip strategy (ours): both hips flex from the balance's start (hip pitch < 0 flexes)
-            flex = hip_flexion_profile(obs.time - self.balance_start, c.balance_hip_flex_rad, c.balance_hip_rise_s,
+            # the hip strategy (ours): both hips flex from the balance's start (hip pitch < 0 flexes), by less the
+            # deeper the capture point was inside the soles' hull then (balance_hip_margin_m)
+            amp = c.balance_hip_flex_rad
+            if c.balance_hip_margin_m > 0.0:
+                depth = self.balance_margin if math.isfinite(self.balance_margin) else 0.0
+                amp *= float(np.clip(1.0 - depth / c.balance_hip_margin_m, 0.0, 1.0))
+            flex = hip_flexion_profile(obs.time - self.balance_start, amp, c.balance_hip_rise_s,
                                        c.balance_hip_hold_s, c.balance_hip_release_s)
             self.balancer.nominal[self._hip_pitch] -= flex
         pos = self.balancer.command(s.com, s.com_velocity, s.support_polygon, s.feet_center)
