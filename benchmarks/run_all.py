@@ -12,8 +12,11 @@ BENCHES = ["bench_suite.py", "bench_recorder.py", "bench_multicontact.py",
            "bench_multicontact.py --initial-mode RF --wall 0",
            "bench_multicontact_library.py", "bench_multicontact_exec_tick.py",
            "bench_walking.py", "bench_fall.py", "bench_estop.py",
-           # the ankle balance after a touchdown, as a function of the step and the capture point's depth (session 38)
-           "bench_capture_balance.py"]
+           # the ankle balance after a touchdown, as a function of the step and the capture point's depth (session 38;
+           # its margin in the soles' hull since session 39), and with the hip strategy
+           "bench_capture_balance.py", "bench_capture_balance.py --hip-flex 0.3",
+           # paper 1's Q2 against the capture point at the touchdown, decided during and after the push (session 39)
+           "bench_q2_prediction.py", "bench_q2_prediction.py --set params.safe_fall_controller.defer_scope=any"]
 # bench_contract.py (vs a base commit) and bench_campaign.py (long) run on their own
 
 
