@@ -466,3 +466,81 @@ def test_task_space_swing_takes_a_posture_error_out_over_ticks_not_at_the_speed_
         ExecutorConfig(swing_posture_gain=0.0)
     with pytest.raises(ValueError, match="swing_attitude_gain"):
         ExecutorConfig(swing_attitude_gain=float("nan"))
+
+
+def test_lateral_roll_moves_the_com_sideways_towards_the_soles_segment():
+    """``lateral_roll``: after a 0.5 m step (left sole behind at (0, 0.09), right ahead at (0.5, -0.09)) the
+    segment between them is diagonal; a CoM 5 cm to the left of its middle, across it, gets a - roll in proportion
+    to that offset's sideways part, bounded; the speed's part across the segment damps; a CoM past the front sole
+    is held to that sole's centre; soles on top of each other give None."""
+    from humfall_ros.multicontact.executor import lateral_roll
+
+    left, right = np.array([0.0, 0.09]), np.array([0.5, -0.09])
+    n = np.array([0.18, 0.5]) / np.hypot(0.18, 0.5)       # the normal of (0.5, -0.18), to the left
+    com = np.append((left + right) / 2 + 0.05 * n, 0.7)    # 5 cm off the segment's middle, across it
+    err = 0.05 * n[1]                                      # its sideways part
+    assert lateral_roll(com, np.zeros(3), left, right, 1.5, 0.2, 0.2) == pytest.approx(-1.5 * err)
+    assert lateral_roll(com, np.zeros(3), left, right, 10.0, 0.2, 0.2) == pytest.approx(-0.2)
+    v = np.array([0.3, 0.2, 0.0])
+    want = -(1.5 * err + 0.2 * float(v[:2] @ n) * n[1])
+    assert lateral_roll(com, v, left, right, 1.5, 0.2, 0.2) == pytest.approx(want)
+    assert lateral_roll(np.array([0.7, -0.05, 0.7]), np.zeros(3), left, right, 1.0, 0.0, 0.2) == pytest.approx(-0.04)
+    assert lateral_roll(com, v, left, left, 1.5, 0.2, 0.2) is None
+
+
+def test_lateral_balance_rolls_the_legs_after_a_foot_landing_on_both_feet_only(models):
+    """The executor applies ``lateral_roll`` to both ankle rolls (+d) and hip rolls (-d) in a feet-only segment
+    after a foot landing, on the sensed configuration's soles: with the left leg forward and the robot rolled 0.1 rad
+    (IMU), its CoM is off the soles' segment, and gets a - roll; before the landing, without an IMU reading, with a
+    hand down, or with a zero gain: the rolls as held."""
+    from scipy.spatial.transform import Rotation
+
+    from humfall_ros.control.step_control import configuration_from_sensors
+    from humfall_ros.multicontact.executor import lateral_roll
+
+    pm, hm = models
+    q0 = np.zeros(pm.n)
+    q0[3:] = 0.1
+    release = _segment(pm, q0, q0, 0.1, "remove", "RF", ("LF", "RF"), ("LF",))
+    landing = _segment(pm, q0, q0, 0.2, "add", "RF", ("LF",), ("LF", "RF"))
+    rest = _segment(pm, q0, q0, 1.0, mode=("LF", "RF"), target=("LF", "RF"))
+    hand = _segment(pm, q0, q0, 1.0, mode=("LF", "LH", "RF"), target=("LF", "LH", "RF"))
+    joints = np.full(len(hm.joint_names), 0.05)
+    joints[hm.joint_names.index("l_hip_pitch")], joints[hm.joint_names.index("r_hip_pitch")] = -0.3, 0.3
+    rolled = _imu_reading(hm, Rotation.from_euler("x", -0.1).as_matrix(), joints)
+    ankles = [hm.joint_names.index(f"{s}_ankle_roll") for s in "lr"]
+    hips = [hm.joint_names.index(f"{s}_hip_roll") for s in "lr"]
+    com, vel = np.array([0.05, 0.0, 0.75]), np.array([0.0, 0.05, 0.0])
+
+    def command(cfg, t, reading=rolled, segs=(release, landing, rest)):
+        ex = MulticontactExecutor(list(segs), pm.joint_names, hm.joint_names, cfg, model=hm)
+        out = None
+        for tt in np.arange(0.0, t + 1e-9, 0.002):   # the right foot loaded from 0.25 s: the landing ends then
+            o = _obs(hm, tt, left=True, right=tt > 0.25, q=joints)
+            o.state.com[:], o.state.com_velocity[:] = com, vel
+            if reading is not None:
+                o.inputs["imu"] = reading
+            out = ex.step(o)
+        return out, ex
+
+    cfg = ExecutorConfig(swing_control="joints", lateral_gain=1.5, lateral_damping=0.2, lateral_max=0.2)
+    held, ex0 = command(ExecutorConfig(swing_control="joints", lateral_gain=0.0), 0.5)
+    out, ex = command(cfg, 0.5)
+    assert ex.segment_index == 2 and ex0.lateral_ticks == 0
+    q = configuration_from_sensors(hm, joints, rolled[0], com)
+    hm.forward(q)
+    left, right = (hm.sole_corners(s)[:, :2].mean(axis=0) for s in "lr")
+    assert left[0] - right[0] > 0.3                     # the left sole ahead: the segment is diagonal
+    d = lateral_roll(com, vel, left, right, 1.5, 0.2, 0.2)
+    assert d < -0.01
+    np.testing.assert_allclose(out.positions[ankles] - held.positions[ankles], d, atol=1e-9)
+    np.testing.assert_allclose(out.positions[hips] - held.positions[hips], -d, atol=1e-9)
+    others = [i for i in range(len(hm.joint_names)) if i not in ankles + hips]
+    np.testing.assert_allclose(out.positions[others], held.positions[others])
+    assert ex.lateral_ticks >= 1 and ex.lateral_offset_max == pytest.approx(abs(d))
+    early, ex1 = command(cfg, 0.05)
+    assert ex1.segment_index == 0 and ex1.lateral_ticks == 0
+    blind, ex2 = command(cfg, 0.5, reading=None)
+    np.testing.assert_allclose(blind.positions, held.positions)
+    _, ex3 = command(cfg, 0.5, segs=(release, landing, hand))
+    assert ex3.segment_index == 2 and ex3.lateral_ticks == 0

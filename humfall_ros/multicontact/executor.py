@@ -76,6 +76,12 @@ class ExecutorConfig:
             URDF's hip limits. Runs that ended at rest saw errors <= 0.13 rad (session 24); a robot that
             has already fallen (errors of 1 rad and more) would otherwise have its hips driven to their
             stops, also after the plan's end, where the feedback keeps acting on the final posture.
+        lateral_gain, lateral_damping, lateral_max: the lateral balance (ours; :meth:`MulticontactExecutor._lateral`):
+            in a segment whose mode is both feet and nothing else, once the plan has landed a foot, both ankle
+            rolls get d = -clip(lateral_gain e + lateral_damping e', lateral_max) and both hip rolls -d, e the
+            CoM's sideways offset from the segment between the soles' centres [rad/m, rad s/m, rad]; 0 gain: the
+            rolls held as ``hold`` says. A planar plan keeps the CoM between the feet; after a 0.5 m step that is
+            outside the hull's diagonal side, and every executed step plan toppled sideways over it (session 39).
         swing_control: how a protective step's swing leg is driven. ``"joints"``: it tracks the plan's joints
             like every other joint (sessions 5-25). ``"task"`` (ours, default since session 26): from the
             release of a foot that the plan lands again, both legs follow the shared IK of paper 1's step controller
@@ -116,6 +122,9 @@ class ExecutorConfig:
     swing_attitude_weight: float = 100.0
     swing_attitude_gain: float = 0.2
     swing_posture_gain: float = 0.05
+    lateral_gain: float = 1.5
+    lateral_damping: float = 0.2
+    lateral_max: float = 0.2
 
     def __post_init__(self):
         # every field is a declared parameter of config/multicontact_executor.yaml: its type, range and choices are
@@ -180,6 +189,12 @@ class MulticontactExecutor:
             self.stepper = StepController(own, StepControlConfig(clearance=self.cfg.swing_clearance,
                                                                  posture_gain=self.cfg.swing_posture_gain))
             self._legs = np.array(model.leg_joint_indices("l") + model.leg_joint_indices("r"))
+        self._lateral_model = None
+        if self.cfg.lateral_gain > 0 and model is not None:
+            self._lateral_model = copy.copy(model)     # its own data: the sensed configuration's kinematics
+            self._lateral_model.data = model.model.createData()
+            self._rolls = (np.array([model.joint_index(f"{sd}_ankle_roll") for sd in "lr"]),
+                           np.array([model.joint_index(f"{sd}_hip_roll") for sd in "lr"]))
         self.reset()
 
     def _arm_copy(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -208,6 +223,8 @@ class MulticontactExecutor:
         self.switches: list[tuple[int, float, str]] = []   # (segment entered, plan time, why)
         self.pitch_error_max = 0.0      # largest |base pitch - plan's| seen [rad]
         self.pitch_feedback_ticks = 0   # ticks with the feedback applied
+        self.lateral_ticks = 0          # ticks with the lateral balance applied
+        self.lateral_offset_max = 0.0   # largest |roll offset| it gave [rad]
         self._swings: list[tuple[str, int, int]] = []   # (foot, first segment, landing segment) of task swings
         self._swing_started: set[int] = set()           # landing segments whose task swing has started
         self._legs_last: np.ndarray | None = None       # the last IK leg command of a task swing
@@ -453,9 +470,57 @@ class MulticontactExecutor:
                 if w < 1.0:
                     pos[self._legs] = (1 - w) * self._blend[1] + w * pos[self._legs]
                     vel[self._legs] *= w
+        if self._lateral_model is not None and self._after_foot_landing(seg):
+            d = self._lateral(observation)
+            if d is not None:
+                ankles, hips = self._rolls
+                pos[ankles] += d
+                pos[hips] -= d
+                self.lateral_ticks += 1
+                self.lateral_offset_max = max(self.lateral_offset_max, abs(d))
         self._last_time = observation.time
         return JointTargets(positions=pos, velocities=vel)
 
+    def _after_foot_landing(self, seg: Segment) -> bool:
+        """Is ``seg`` (the current one) on both feet and nothing else, with a foot landed earlier in the plan?"""
+        if set(seg.mode) != set(FEET):
+            return False
+        return any(is_foot_landing(s.change, s.extremity) for s in self.segments[:self._seg])
+
+    def _lateral(self, observation: Observation) -> float | None:
+        """The lateral balance's roll offset [rad] (``ExecutorConfig.lateral_gain``, :func:`lateral_roll`) from the
+        estimator's CoM and velocity and the soles of the sensed configuration (``configuration_from_sensors``), or
+        None (no usable IMU reading or state)."""
+        quat = imu_quaternion(observation.inputs.get("imu"))
+        s = observation.state
+        com, vel = np.asarray(s.com, float), np.asarray(s.com_velocity, float)
+        if quat is None or not (np.all(np.isfinite(com)) and np.all(np.isfinite(vel))):
+            return None
+        m = self._lateral_model
+        m.forward(configuration_from_sensors(m, observation.joint_position, quat, com))
+        left, right = (m.sole_corners(sd)[:, :2].mean(axis=0) for sd in "lr")
+        c = self.cfg
+        return lateral_roll(com, vel, left, right, c.lateral_gain, c.lateral_damping, c.lateral_max)
+
+
+def lateral_roll(com, com_velocity, left, right, gain: float, damping: float, bound: float) -> float | None:
+    """The ankle roll offset [rad] that moves the CoM sideways towards the segment between the soles' centres
+    ``left``, ``right`` (x, y) [m] (ours; the hip rolls get its negative): -clip(gain e + damping e', bound).
+
+    p is the segment's point nearest the CoM and n its unit normal; e = (CoM - p)_y, e' = (v . n) n_y: the sideways
+    (y) parts, the ones the rolls move. A + y error needs a - roll (``control.standing``). None: the soles on top of
+    each other."""
+    a, b = np.asarray(left, float)[:2], np.asarray(right, float)[:2]
+    com, vel = np.asarray(com, float), np.asarray(com_velocity, float)
+    e = b - a
+    length = float(np.linalg.norm(e))
+    if length < 1e-6:
+        return None
+    t = float(np.clip(np.dot(com[:2] - a, e) / length ** 2, 0.0, 1.0))
+    n = np.array([-e[1], e[0]]) / length
+    err = float(com[1] - (a[1] + t * e[1]))
+    rate = float(np.dot(vel[:2], n) * n[1])
+    return float(np.clip(-(gain * err + damping * rate), -bound, bound))
 
 def base_pitch_from_imu(model, data, joint_position, imu) -> float | None:
     """The base's pitch about the world y axis [rad] from an IMU reading and the joints, as the planar

@@ -58,7 +58,7 @@ class RunConfig:
         time_budget: the planner's wall-clock budget [s].
         hold, both_hands, velocity_feedforward, blend_time, base_pitch_gain, base_pitch_correction_max,
             swing_control, swing_over_release, swing_clearance, landing_blend_time, swing_attitude_weight,
-            swing_attitude_gain, swing_posture_gain: as in
+            swing_attitude_gain, swing_posture_gain, lateral_gain, lateral_damping, lateral_max: as in
             ``ExecutorConfig``.
         plan_latency: the plan is made from the state at the push's end but the executor takes over
             this much later [s] (the standing balance in between): what a planner that needs that
@@ -89,6 +89,9 @@ class RunConfig:
     swing_attitude_weight: float = ExecutorConfig.swing_attitude_weight
     swing_attitude_gain: float = ExecutorConfig.swing_attitude_gain
     swing_posture_gain: float = ExecutorConfig.swing_posture_gain
+    lateral_gain: float = ExecutorConfig.lateral_gain
+    lateral_damping: float = ExecutorConfig.lateral_damping
+    lateral_max: float = ExecutorConfig.lateral_max
     plan_latency: float = 0.0
     speed_limit: str = "motor"
 
@@ -358,6 +361,7 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
         "executor_failed": executor.failed,
         "executor_reason": executor.reason, "ke_max": float(ke.max()) if len(ke) else float("nan"),
         "base_pitch_error_max": executor.pitch_error_max, "base_pitch_feedback_ticks": executor.pitch_feedback_ticks,
+        "lateral_ticks": executor.lateral_ticks, "lateral_offset_max_rad": executor.lateral_offset_max,
         "task_swings": executor.task_swings,
     }
     if executor.take_over_time is None:
