@@ -719,3 +719,42 @@ def test_hip_strategy_shrinks_with_the_capture_points_margin_in_the_soles_hull()
         seen.append(want)
         assert np.allclose(got[0.0][hips] - got[0.3][hips], want, atol=1e-9)
     assert seen[0] == 0.0 and 0.0 < seen[1] < 0.3 and seen[2] == 0.3   # deep / shallow / outside
+
+
+def test_capture_balance_lateral_roll_option():
+    """``balance_lateral_gain`` (off by default): the multi-contact executor's lateral balance on top of the capture
+    balance: both ankle rolls get ``lateral_roll`` of the sensed soles' centres, the hip rolls its negative, nothing
+    else changes."""
+    from humfall_ros.control.standing import lateral_roll
+
+    base = {**params.defaults("safe_fall_controller"), "settle_s": 0.0, "inertia_shaping": False}
+    q = standing_q()
+    poly = support_polygon(np.vstack([M.sole_corners(s)[:, :2] for s in "lr"]))
+    feet = (M.frame_position("l_foot") + M.frame_position("r_foot")) / 2
+    com = M.com(q)
+    s = state(com, [0.0, 0.1, 0.0], poly, feet_center=feet)
+    # the robot rolled 0.2 rad (the IMU): its CoM sideways of both soles, past the end of their segment
+    from scipy.spatial.transform import Rotation
+
+    imu = (Rotation.from_euler("x", 0.2).as_quat(), np.zeros(3))
+    out = {}
+    for gain in (0.0, 1.5):
+        c = SafeFallController(config=SafeFallConfig.from_params({**base, "balance_lateral_gain": gain}))
+        c.step(_controller_obs(0.62, {"obstacles": TARGET, "imu": IMU, "fall_event": _event(0.62)}))
+        c.phase, c.touchdown_at, c.target, c.falling_since = "landed", 1.0, np.array([1.2, 0.0]), None
+        c.hold = c.last_command.copy()
+        out[gain] = c.step(Observation(int(round(1.0 * 1e9)), q[7:].copy(), np.zeros(M.njoints), s, "safe_fall",
+                                       {"obstacles": TARGET, "imu": imu})).positions
+    from humfall_ros.control.step_control import configuration_from_sensors
+
+    M.forward(configuration_from_sensors(M, q[7:], imu[0], com))
+    left, right = (M.sole_corners(sd)[:, :2].mean(axis=0) for sd in "lr")
+    assert min(abs(com[1] - left[1]), abs(com[1] - right[1])) > 0.03 and (com[1] - left[1]) * (com[1] - right[1]) > 0
+    d = lateral_roll(com, s.com_velocity, left, right, 1.5, 0.2, 0.2)
+    assert abs(d) > 0.01
+    ankles = [M.joint_index(f"{sd}_ankle_roll") for sd in "lr"]
+    hips = [M.joint_index(f"{sd}_hip_roll") for sd in "lr"]
+    others = [i for i in range(M.njoints) if i not in ankles + hips]
+    np.testing.assert_allclose(out[1.5][ankles] - out[0.0][ankles], d, atol=1e-9)
+    np.testing.assert_allclose(out[1.5][hips] - out[0.0][hips], -d, atol=1e-9)
+    np.testing.assert_allclose(out[1.5][others], out[0.0][others])

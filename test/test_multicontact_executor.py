@@ -473,7 +473,7 @@ def test_lateral_roll_moves_the_com_sideways_towards_the_soles_segment():
     segment between them is diagonal; a CoM 5 cm to the left of its middle, across it, gets a - roll in proportion
     to that offset's sideways part, bounded; the speed's part across the segment damps; a CoM past the front sole
     is held to that sole's centre; soles on top of each other give None."""
-    from humfall_ros.multicontact.executor import lateral_roll
+    from humfall_ros.control.standing import lateral_roll
 
     left, right = np.array([0.0, 0.09]), np.array([0.5, -0.09])
     n = np.array([0.18, 0.5]) / np.hypot(0.18, 0.5)       # the normal of (0.5, -0.18), to the left
@@ -496,7 +496,7 @@ def test_lateral_balance_rolls_the_legs_after_a_foot_landing_on_both_feet_only(m
     from scipy.spatial.transform import Rotation
 
     from humfall_ros.control.step_control import configuration_from_sensors
-    from humfall_ros.multicontact.executor import lateral_roll
+    from humfall_ros.control.standing import lateral_roll
 
     pm, hm = models
     q0 = np.zeros(pm.n)

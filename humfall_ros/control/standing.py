@@ -37,6 +37,26 @@ def hip_flexion_profile(t: float, amplitude: float, rise: float, hold: float, re
     return float(amplitude * (0.5 - 0.5 * np.cos(np.pi * a)))
 
 
+def lateral_roll(com, com_velocity, left, right, gain: float, damping: float, bound: float) -> float | None:
+    """The ankle roll offset [rad] that moves the CoM sideways towards the segment between the soles' centres
+    ``left``, ``right`` (x, y) [m] (ours; the hip rolls get its negative): -clip(gain e + damping e', bound).
+
+    p is the segment's point nearest the CoM and n its unit normal; e = (CoM - p)_y, e' = (v . n) n_y: the sideways
+    (y) parts, the ones the rolls move. A + y error needs a - roll (``StandingBalance``). None: the soles on top of
+    each other."""
+    a, b = np.asarray(left, float)[:2], np.asarray(right, float)[:2]
+    com, vel = np.asarray(com, float), np.asarray(com_velocity, float)
+    e = b - a
+    length = float(np.linalg.norm(e))
+    if length < 1e-6:
+        return None
+    t = float(np.clip(np.dot(com[:2] - a, e) / length ** 2, 0.0, 1.0))
+    n = np.array([-e[1], e[0]]) / length
+    err = float(com[1] - (a[1] + t * e[1]))
+    rate = float(np.dot(vel[:2], n) * n[1])
+    return float(np.clip(-(gain * err + damping * rate), -bound, bound))
+
+
 class StandingBalance:
     def __init__(self, model: HumanoidModel, posture: dict, kp: float = 0.3, kd: float = 0.05,
                  max_offset: float = 0.12):

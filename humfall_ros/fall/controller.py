@@ -41,7 +41,7 @@ import numpy as np
 
 from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
-from humfall_ros.control.standing import StandingBalance, hip_flexion_profile
+from humfall_ros.control.standing import StandingBalance, hip_flexion_profile, lateral_roll
 from humfall_ros.dynamics.toppling import FallOutcome, time_to_lean
 from humfall_ros.fall import step_search as ss
 from humfall_ros.fall.ftb import FtbState, features_of
@@ -127,6 +127,9 @@ class SafeFallConfig:
     balance_hip_hold_s: float = 0.6
     balance_hip_release_s: float = 1.0
     balance_hip_margin_m: float = 0.0
+    balance_lateral_gain: float = 0.0
+    balance_lateral_damping: float = 0.2
+    balance_lateral_max: float = 0.2
     settle_s: float = 0.5
     settle_target: str = "middle"
     handback: bool = True
@@ -292,6 +295,8 @@ class SafeFallController:
         self.stepper = StepController(self.m, self.config.step)
         self._sole_local = self.m.sole_corners_local["l"][:, :2].copy()
         self._hip_pitch = [self.m.joint_index(f"{sd}_hip_pitch") for sd in SIDES]
+        self._ankle_roll = [self.m.joint_index(f"{sd}_ankle_roll") for sd in SIDES]
+        self._hip_roll = [self.m.joint_index(f"{sd}_hip_roll") for sd in SIDES]
         if self.config.shaping_direction not in SHAPING_DIRECTIONS:
             raise ValueError(f"shaping_direction must be one of {', '.join(SHAPING_DIRECTIONS)}, "
                              f"got {self.config.shaping_direction!r}")
@@ -847,6 +852,20 @@ class SafeFallController:
                                        c.balance_hip_hold_s, c.balance_hip_release_s)
             self.balancer.nominal[self._hip_pitch] -= flex
         pos = self.balancer.command(s.com, s.com_velocity, s.support_polygon, s.feet_center)
+        if c.balance_lateral_gain > 0.0:
+            # the multi-contact executor's lateral balance (ours, control.standing.lateral_roll): the ankle rolls, and
+            # the hip rolls opposite, move the CoM sideways to the segment between the soles' centres
+            quat = imu_quaternion(obs.inputs.get("imu"))
+            if quat is not None:
+                self.m.forward(configuration_from_sensors(self.m, obs.joint_position, quat, s.com))
+                left, right = (self.m.sole_corners(sd)[:, :2].mean(axis=0) for sd in SIDES)
+                d = lateral_roll(s.com, s.com_velocity, left, right, c.balance_lateral_gain,
+                                 c.balance_lateral_damping, c.balance_lateral_max)
+                if d is not None:
+                    pos = pos.copy()
+                    pos[self._ankle_roll] += d
+                    pos[self._hip_roll] -= d
+                    pos = np.clip(pos, self.m.limits.lower, self.m.limits.upper)
         self.last_command = pos
         return JointTargets(pos)
 

@@ -45,6 +45,7 @@ from scipy.spatial.transform import Rotation
 
 from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
+from humfall_ros.control.standing import lateral_roll
 from humfall_ros.control.step_control import StepControlConfig, StepController, configuration_from_sensors
 from humfall_ros.model.ik import OrientationTask
 from humfall_ros.model.humanoid import base_rotation_from_imu, imu_quaternion
@@ -502,25 +503,6 @@ class MulticontactExecutor:
         c = self.cfg
         return lateral_roll(com, vel, left, right, c.lateral_gain, c.lateral_damping, c.lateral_max)
 
-
-def lateral_roll(com, com_velocity, left, right, gain: float, damping: float, bound: float) -> float | None:
-    """The ankle roll offset [rad] that moves the CoM sideways towards the segment between the soles' centres
-    ``left``, ``right`` (x, y) [m] (ours; the hip rolls get its negative): -clip(gain e + damping e', bound).
-
-    p is the segment's point nearest the CoM and n its unit normal; e = (CoM - p)_y, e' = (v . n) n_y: the sideways
-    (y) parts, the ones the rolls move. A + y error needs a - roll (``control.standing``). None: the soles on top of
-    each other."""
-    a, b = np.asarray(left, float)[:2], np.asarray(right, float)[:2]
-    com, vel = np.asarray(com, float), np.asarray(com_velocity, float)
-    e = b - a
-    length = float(np.linalg.norm(e))
-    if length < 1e-6:
-        return None
-    t = float(np.clip(np.dot(com[:2] - a, e) / length ** 2, 0.0, 1.0))
-    n = np.array([-e[1], e[0]]) / length
-    err = float(com[1] - (a[1] + t * e[1]))
-    rate = float(np.dot(vel[:2], n) * n[1])
-    return float(np.clip(-(gain * err + damping * rate), -bound, bound))
 
 def base_pitch_from_imu(model, data, joint_position, imu) -> float | None:
     """The base's pitch about the world y axis [rad] from an IMU reading and the joints, as the planar
