@@ -41,11 +41,11 @@ import numpy as np
 
 from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
-from humfall_ros.control.standing import StandingBalance, hip_flexion_profile, lateral_roll
+from humfall_ros.control.standing import StandingBalance, hip_flexion_profile, lateral_roll_sensed
 from humfall_ros.dynamics.toppling import FallOutcome, time_to_lean
 from humfall_ros.fall import step_search as ss
 from humfall_ros.fall.ftb import FtbState, features_of
-from humfall_ros.fall.geometry import polygon_margin_xy
+from humfall_ros.fall.geometry import nearest_on_segments, polygon_margin_xy
 from humfall_ros.fall.push_residual import PushResidual
 from humfall_ros.fall.inertia_shaping import SHAPING_DIRECTIONS, ClearBox, ShapingConfig, shaping_velocities
 from humfall_ros.control.step_control import (
@@ -855,17 +855,13 @@ class SafeFallController:
         if c.balance_lateral_gain > 0.0:
             # the multi-contact executor's lateral balance (ours, control.standing.lateral_roll): the ankle rolls, and
             # the hip rolls opposite, move the CoM sideways to the segment between the soles' centres
-            quat = imu_quaternion(obs.inputs.get("imu"))
-            if quat is not None:
-                self.m.forward(configuration_from_sensors(self.m, obs.joint_position, quat, s.com))
-                left, right = (self.m.sole_corners(sd)[:, :2].mean(axis=0) for sd in SIDES)
-                d = lateral_roll(s.com, s.com_velocity, left, right, c.balance_lateral_gain,
-                                 c.balance_lateral_damping, c.balance_lateral_max)
-                if d is not None:
-                    pos = pos.copy()
-                    pos[self._ankle_roll] += d
-                    pos[self._hip_roll] -= d
-                    pos = np.clip(pos, self.m.limits.lower, self.m.limits.upper)
+            d = lateral_roll_sensed(self.m, obs, c.balance_lateral_gain, c.balance_lateral_damping,
+                                    c.balance_lateral_max)
+            if d is not None:
+                pos = pos.copy()
+                pos[self._ankle_roll] += d
+                pos[self._hip_roll] -= d
+                pos = np.clip(pos, self.m.limits.lower, self.m.limits.upper)
         self.last_command = pos
         return JointTargets(pos)
 
@@ -877,9 +873,7 @@ class SafeFallController:
         the CoM held over the middle sideways it left the hull over its diagonal side (500 N deferred: stopped in x
         0.5 m on, toppled to the right)."""
         a, b = (self.m.sole_corners(sd)[:, :2].mean(axis=0) for sd in SIDES)
-        e = b - a
-        t = float(np.clip(np.dot(np.asarray(point, float)[:2] - a, e) / max(float(e @ e), 1e-12), 0.0, 1.0))
-        return a + t * e
+        return nearest_on_segments(point, a[None], b[None])[0][0]
 
     def _soles_hull(self, obs: Observation):
         """The hull of both soles (touching or not) in the measured configuration [m], (k, 2), or None (no IMU).

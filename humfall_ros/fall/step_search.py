@@ -728,7 +728,7 @@ def _cells_batch(groups: list, target, sole_local, cfg: SearchConfig) -> list[Ca
     for k, (lo, hi) in zip(live, bounds):
         case, c, pv, q2, g_td, *rest = groups[k]
         pivot = np.asarray(pv, float).reshape(-1, 2)
-        q2 = Qc[lo:hi] if Qc.ndim == 2 else np.broadcast_to(np.asarray(q2, float)[:2], (hi - lo, 2))
+        q2 = Qc[lo:hi]   # Q2 per cell (shifted_q2)
         margin = h.margin[lo:hi]
         inside = margin > 0
         length = _step_lengths(c, rest[0] if rest else None)

@@ -45,7 +45,7 @@ from scipy.spatial.transform import Rotation
 
 from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
-from humfall_ros.control.standing import lateral_roll
+from humfall_ros.control.standing import lateral_roll_sensed
 from humfall_ros.control.step_control import StepControlConfig, StepController, configuration_from_sensors
 from humfall_ros.model.ik import OrientationTask
 from humfall_ros.model.humanoid import base_rotation_from_imu, imu_quaternion
@@ -489,19 +489,10 @@ class MulticontactExecutor:
         return any(is_foot_landing(s.change, s.extremity) for s in self.segments[:self._seg])
 
     def _lateral(self, observation: Observation) -> float | None:
-        """The lateral balance's roll offset [rad] (``ExecutorConfig.lateral_gain``, :func:`lateral_roll`) from the
-        estimator's CoM and velocity and the soles of the sensed configuration (``configuration_from_sensors``), or
-        None (no usable IMU reading or state)."""
-        quat = imu_quaternion(observation.inputs.get("imu"))
-        s = observation.state
-        com, vel = np.asarray(s.com, float), np.asarray(s.com_velocity, float)
-        if quat is None or not (np.all(np.isfinite(com)) and np.all(np.isfinite(vel))):
-            return None
-        m = self._lateral_model
-        m.forward(configuration_from_sensors(m, observation.joint_position, quat, com))
-        left, right = (m.sole_corners(sd)[:, :2].mean(axis=0) for sd in "lr")
+        """The lateral balance's roll offset [rad] (``ExecutorConfig.lateral_gain``,
+        ``control.standing.lateral_roll_sensed``), or None (no usable IMU reading or state)."""
         c = self.cfg
-        return lateral_roll(com, vel, left, right, c.lateral_gain, c.lateral_damping, c.lateral_max)
+        return lateral_roll_sensed(self._lateral_model, observation, c.lateral_gain, c.lateral_damping, c.lateral_max)
 
 
 def base_pitch_from_imu(model, data, joint_position, imu) -> float | None:
