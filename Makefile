@@ -83,13 +83,15 @@ bench: setup
 # capture-cost weight (2000 J/m^2;
 # 6000 since session 36: each file records it, the merge keeps it and the re-plans, densify and probes included, solve
 # with it), so this target reproduces it; a library built with the new defaults is measured, not shipped
-# (docs/multicontact.md "Session 34", "Session 35", "Session 36").
+# (docs/multicontact.md "Session 34", "Session 35", "Session 36"). Since session 40 the pins and the defaults both
+# keep plans off one foot at their end (single_foot_terminal false, single_foot_t_max 0.4 s: docs/multicontact.md
+# "Session 40"); the library was rebuilt with them.
 LIBRARY_OUT ?= config/multicontact_library/standing_pushes.json.gz
 LIBRARY_PARTS := build/library/forward.json.gz build/library/forward_bounded_release.json.gz \
 	build/library/backward.json.gz build/library/walls.json.gz \
 	build/library/walls_between_a.json.gz build/library/walls_between_b.json.gz
 BUILD_LIBRARY := OMP_NUM_THREADS=1 $(PY) -m humfall_ros.multicontact.build_library
-LIBRARY_PINS := release_alternatives=[0],release_t_min=0.1,step_capture_weight=2000,max_iter=600,expect_infeasible=false,step_t_min=0
+LIBRARY_PINS := release_alternatives=[0],release_t_min=0.1,step_capture_weight=2000,max_iter=600,expect_infeasible=false,step_t_min=0,single_foot_terminal=false,single_foot_t_max=0.4
 LIBRARY_TREE := --set '$(LIBRARY_PINS)'
 
 build/library/forward.json.gz: | $(VENV)/.deps-stamp

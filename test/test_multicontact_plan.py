@@ -12,7 +12,7 @@ import pytest
 
 from humfall_ros.multicontact import contacts as C
 from humfall_ros.multicontact.collocation import Segment
-from humfall_ros.multicontact.modes import Environment
+from humfall_ros.multicontact.modes import Environment, one_foot_alone, parse_mode
 from humfall_ros.multicontact.planner import DEPARTURE, NO_STEP_OPTIONS, FallPlanner
 from humfall_ros.multicontact.resim import dense_check, forward_resim, plan_check
 
@@ -455,12 +455,18 @@ def test_planner_answers_from_the_shipped_library_and_searches_beyond_it():
     # bounds the library was built with (a release from 0.1 s to T_max: the defaults until session 34, pinned by
     # the Makefile's LIBRARY_TREE since session 35 made releases start at 0.05 s; foot landings from Table I's
     # T_min, pinned since session 37 made them start at step_t_min)
+    # Since session 40 the library is built (and planned) with single_foot_t_max 0.4 s: every transition out of
+    # one foot alone (a step's swing) is bounded by it, and no entry ends on one foot (single_foot_terminal false)
     cfg = dataclasses.replace(planner.opt.cfg, release_t_min=0.1, step_t_min=0.0)
+    swing_t_max = planner.cfg.single_foot_t_max
+    assert swing_t_max == pytest.approx(0.4) and not planner.cfg.single_foot_terminal
     for e in planner.library.entries:
         source = e.kinetic_energy if e.derived_from is None else e.derived_from
+        assert not one_foot_alone(parse_mode(e.contact_sequence[-1])), e.contact_sequence
         for s in e.segments:
             bounded = source >= 47.5 and e.direction > 0 and e.wall_distance == 0 and s.change == "remove"
-            planned = (cfg.t_min_of(s.change, s.extremity), cfg.t_max_of(s.change))
+            t_max = swing_t_max if one_foot_alone(tuple(s.mode)) else cfg.t_max_of(s.change)
+            planned = (cfg.t_min_of(s.change, s.extremity), t_max)
             assert s.t_bounds == ((0.1, 0.1) if bounded else planned)
     # probed offline (make library: build_library --probe): half way to each neighbour, both sides
     assert all(len(e.probes) == 2 for e in planner.library.entries)

@@ -16,7 +16,7 @@ from humfall_ros.multicontact.initial_state import nominal_configuration, veloci
 from humfall_ros.multicontact.landing import LandingLimits
 from humfall_ros.multicontact.model import load_model
 from humfall_ros.multicontact.modes import Environment, mode_label
-from humfall_ros.multicontact.planner import FallPlanner
+from humfall_ros.multicontact.planner import FallPlanner, library_path
 
 from test_multicontact_landing import _FakeOpt
 
@@ -382,7 +382,10 @@ def test_40J_search_expands_the_short_release_before_the_hand_and_lands_a_step_w
     durations = [float(n.edge.time[-1]) for n in releases]
     assert durations[0] > bound + 1e-3 and durations[1] <= bound + 1e-6, durations   # eq. 9's, then the bounded one
     release = releases[1]
-    assert release.status in ("expanded", "terminal") and release.self_motion is not None
+    # a node on one foot alone is stopped (a self-motion tried) only where a plan may end there: not with the
+    # defaults since session 40 (single_foot_terminal false), where it is a swing expanded at once
+    assert release.status in ("expanded", "terminal")
+    assert (release.self_motion is not None) == planner.cfg.single_foot_terminal
     # the hand landing is not expanded before the release (whether it is over the limits or just at the hand's
     # touchdown-speed bound depends on where the NLP stops: session 19's machine met the bound, 1.5000000143 m/s)
     assert hand.self_motion is None and hand.landing is not None
@@ -621,15 +624,27 @@ def test_a_transition_t_max_override_bounds_one_solve_and_is_refused_below_its_t
         opt.opt_transition_motion(q0, v0, ("RF",), ("RF", "LH"), env, t_max=opt.cfg.t_min - 0.01)
 
 
-def test_a_library_without_single_foot_ends_drops_the_entries_that_end_on_one_foot():
+def test_a_library_without_single_foot_ends_drops_the_entries_that_end_on_one_foot(tmp_path):
+    """The planner's defaults since session 40 (``single_foot_terminal`` false) drop library entries whose plan ends
+    on one foot alone and keep the ones that only pass through it (steps); the paper's setting keeps them all.
+    The shipped library has no such end since session 40 (built with the option), so a library is made here with
+    entries cut after the step's release (the plan then ends on the stance foot)."""
+    from humfall_ros.multicontact.library import LibraryEntry, PlanLibrary
     from humfall_ros.multicontact.modes import one_foot_alone, parse_mode
-    full = FallPlanner.from_params(library_file="multicontact_library/standing_pushes.json.gz").library
-    planner = FallPlanner.from_params(library_file="multicontact_library/standing_pushes.json.gz",
-                                      single_foot_terminal=False)
-    assert FallPlanner.from_params().cfg.single_foot_terminal is True
-    kept = planner.library.entries
-    assert kept and not any(one_foot_alone(parse_mode(e.contact_sequence[-1])) for e in kept)
-    ends_on_one_foot = sum(one_foot_alone(parse_mode(e.contact_sequence[-1])) for e in full.entries)
-    assert ends_on_one_foot > 0 and len(kept) == len(full.entries) - ends_on_one_foot
+    shipped = PlanLibrary.load(library_path("multicontact_library/standing_pushes.json.gz"))
+    assert FallPlanner.from_params().cfg.single_foot_terminal is False
+    assert not any(one_foot_alone(parse_mode(e.contact_sequence[-1])) for e in shipped.entries)
+    steps = [e for e in shipped.entries if e.wall_distance == 0 and len(e.contact_sequence) == 3
+             and one_foot_alone(parse_mode(e.contact_sequence[1]))][:3]
+    assert steps
+    cut = [LibraryEntry(e.kinetic_energy + 0.1, e.direction, e.wall_distance, e.contact_sequence[:2],
+                        e.segments[:1]) for e in steps]
+    path = tmp_path / "lib.json.gz"
+    PlanLibrary(shipped.entries + cut, shipped.built_with).save(path)
+    full = FallPlanner.from_params(library_file=str(path), single_foot_terminal=True).library
+    kept = FallPlanner.from_params(library_file=str(path)).library.entries
+    assert len(full.entries) == len(shipped.entries) + len(cut)
+    assert len(kept) == len(shipped.entries) and not any(one_foot_alone(parse_mode(e.contact_sequence[-1]))
+                                                         for e in kept)
     # entries that pass through one foot (steps) are kept
     assert any(one_foot_alone(parse_mode(m)) for e in kept for m in e.contact_sequence[1:-1])

@@ -91,13 +91,14 @@ class PlannerConfig:
     # ``single_foot_modes``; library entries that do are not used): plans a 3-D robot can follow without the
     # lateral weight shift the planar model has no coordinate for. True: Fig. 2's whole mode graph (the paper)
     single_foot_modes: bool = True
-    # false (ours, session 38): a plan may pass through one foot alone (a step's swing) but never ends there
-    # (tree.search ``single_foot_terminal``): a planar stop on one foot leaves a 3-D robot's centre of mass
-    # between the feet, over nothing. True: any mode may end a plan (the paper)
-    single_foot_terminal: bool = True
-    # > 0 (ours, session 38; s): T_max of every transition out of a node on one foot alone other than the root
-    # (tree.search ``single_foot_t_max``): one foot alone for a swing, not a stance. 0: t_max (the paper)
-    single_foot_t_max: float = 0.0
+    # departure (session 38; the default since session 40): a plan may pass through one foot alone (a step's
+    # swing) but never ends there (tree.search ``single_foot_terminal``): a planar stop on one foot leaves a 3-D
+    # robot's centre of mass between the feet, over nothing. True: any mode may end a plan (the paper)
+    single_foot_terminal: bool = False
+    # departure (session 38; the default since session 40; s): T_max of every transition out of a node on one foot
+    # alone other than the root (tree.search ``single_foot_t_max``): one foot alone for a swing, not a stance.
+    # 0: t_max (the paper)
+    single_foot_t_max: float = 0.4
     stance: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
