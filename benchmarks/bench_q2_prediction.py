@@ -51,7 +51,7 @@ def one_push(force: float, overrides: list[str], duration: float) -> dict:
                 out["case"] = d.case
                 out["landing"] = np.round(d.landing, 3).tolist()
                 out["q2_decision"] = np.asarray(d.q2, float)[:2]
-                swing = safe._swing_of(safe.chosen.case) if safe.chosen.landing is not None else None
+                swing = safe.swing_of(safe.chosen.case) if safe.chosen.landing is not None else None
                 out["swing"] = swing
                 if swing is not None and safe.q_decision is not None:
                     gain = m.swing_com_gain(safe.q_decision, swing)

@@ -41,11 +41,11 @@ import numpy as np
 
 from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
-from humfall_ros.control.standing import StandingBalance, hip_flexion_profile, lateral_roll_sensed
 from humfall_ros.dynamics.toppling import FallOutcome, time_to_lean
 from humfall_ros.fall import step_search as ss
+from humfall_ros.fall.capture_balance import CaptureBalance
 from humfall_ros.fall.ftb import FtbState, features_of
-from humfall_ros.fall.geometry import nearest_on_segments, polygon_margin_xy
+from humfall_ros.fall.geometry import polygon_margin_xy
 from humfall_ros.fall.push_residual import PushResidual
 from humfall_ros.fall.inertia_shaping import SHAPING_DIRECTIONS, ClearBox, ShapingConfig, shaping_velocities
 from humfall_ros.control.step_control import (
@@ -55,8 +55,7 @@ from humfall_ros.control.step_control import (
     predicted_stance_placement,
 )
 from humfall_ros.fall.stepping_zone import stepping_zone
-from humfall_ros.model.humanoid import (SIDES, HumanoidModel, imu_quaternion, load_model, point_in_polygon_margin,
-                                       support_polygon)
+from humfall_ros.model.humanoid import (SIDES, HumanoidModel, imu_quaternion, load_model, support_polygon)
 
 
 # joints inertia shaping may move, by name fragment: all of them (the paper), the pitch chain, or its upper body
@@ -294,9 +293,6 @@ class SafeFallController:
         self.config = config or SafeFallConfig()
         self.stepper = StepController(self.m, self.config.step)
         self._sole_local = self.m.sole_corners_local["l"][:, :2].copy()
-        self._hip_pitch = [self.m.joint_index(f"{sd}_hip_pitch") for sd in SIDES]
-        self._ankle_roll = [self.m.joint_index(f"{sd}_ankle_roll") for sd in SIDES]
-        self._hip_roll = [self.m.joint_index(f"{sd}_hip_roll") for sd in SIDES]
         if self.config.shaping_direction not in SHAPING_DIRECTIONS:
             raise ValueError(f"shaping_direction must be one of {', '.join(SHAPING_DIRECTIONS)}, "
                              f"got {self.config.shaping_direction!r}")
@@ -321,7 +317,7 @@ class SafeFallController:
         self.shaping_config = self.config.shaping
         self.gait = None
         self.single_support: str | None = None
-        self.balancer = None
+        self.balancer: CaptureBalance | None = None   # from the touchdown of a captured step
         self.swing_com_gain: dict = {}      # set at each decision (swing_com_shift)
         self.shape_allowed = self.config.inertia_shaping   # set at touchdown (a target, not a lift)
         self._swept_noted = False
@@ -406,7 +402,7 @@ class SafeFallController:
         """True on the tick the controller lets go (the module docstring's step 4); the take-over is then over."""
         c = self.config
         balancing = self.phase == "hold" or (self.phase == "landed" and self.balancer is not None
-                                             and obs.time - self.balance_start >= c.settle_s - 1e-9)
+                                             and self.balancer.settled(obs.time))
         st = obs.inputs.get("ftb/status")
         balanced = fall_event_of(obs) is None and (st is None or getattr(st, "state", None) is FtbState.BALANCED)
         if not (c.handback and balancing and balanced):
@@ -591,7 +587,7 @@ class SafeFallController:
             if cr.landing is None:
                 chosen = cr
                 break
-            swing = self._swing_of(cr.case)
+            swing = self.swing_of(cr.case)
             piv, G_td, Q_td = lift_pred[swing]
             stance = "r" if swing == "l" else "l"
             pv = piv.mean(axis=0)
@@ -638,7 +634,7 @@ class SafeFallController:
             chosen = ranked[-1]
         self.chosen = chosen
         case = chosen.case
-        swing = self._swing_of(case)
+        swing = self.swing_of(case)
         self.swing_side = swing
         if swing is not None:
             if chosen.landing is not None:
@@ -682,7 +678,7 @@ class SafeFallController:
         return float(ss._alpha_edge(p2[:1], p2[1:2], chosen.q2, chosen.com_touchdown, velocity, target,
                                     np.asarray(chosen.polygon, float)[None], self.config.fall_heading_horizon_s)[0])
 
-    def _swing_of(self, case: ss.StepCase) -> str | None:
+    def swing_of(self, case: ss.StepCase) -> str | None:
         """The sole a case moves: its own for lift / step, the non-stance one for continue (single support)."""
         if case is ss.StepCase.CONTINUE_STEP:
             return None if self.single_support is None else ("r" if self.single_support == "l" else "l")
@@ -809,71 +805,17 @@ class SafeFallController:
         self._decide(obs, None)
 
     def _balance(self, obs: Observation) -> JointTargets:
-        """After a captured step: the standing balance (ankle strategy, ``control.standing.StandingBalance``) about
-        the landed posture, the CoM held over the middle of the two soles (ours; the paper stops at the step).
-
-        Holding the landed posture stiffly let the robot rock from sole to sole with a growing amplitude
-        (walking_push: captured in x, toppled sideways 1.2 s after touchdown)."""
-        c = self.config
-        s = obs.state
+        """After a captured step: the capture balance (``fall.capture_balance``: settle posture + ankle strategy,
+        ours; the paper stops at the step), started on its first tick."""
         if self.balancer is None:
-            self.balance_margin = math.nan   # the capture point's margin in the soles' hull at the start [m]
-            self.balance_from = self.hold.copy()
-            self.balance_start = obs.time
-            self.settle = self.hold.copy()
-            quat = imu_quaternion(obs.inputs.get("imu"))
-            ref = None
-            if quat is not None:
-                q = configuration_from_sensors(self.m, obs.joint_position, quat, s.com)
-                self.m.forward(q)
-                corners = np.vstack([self.m.sole_corners(sd)[:, :2] for sd in SIDES])
-                mid = corners.mean(axis=0)
-                self.balance_margin = point_in_polygon_margin(np.asarray(s.capture_point, float)[:2],
-                                                              support_polygon(corners))
-                if c.settle_target == "spine":
-                    mid = self._spine_point(np.asarray(s.capture_point, float)[:2])
-                ref = mid - np.asarray(s.feet_center, float)[:2]
-                if c.settle_s > 0:
-                    self.settle = self._settle_posture(q, mid)
-            self.balancer = StandingBalance(self.m, dict(zip(self.m.joint_names, self.settle)), c.balance_kp,
-                                            c.balance_kd, c.balance_max_offset)
-            self.balancer.reference = ref
-        a = 1.0 if c.settle_s <= 0 else min(1.0, (obs.time - self.balance_start) / c.settle_s)
-        w = 0.5 - 0.5 * math.cos(math.pi * a)
-        self.balancer.nominal = (1.0 - w) * self.balance_from + w * self.settle
-        if c.balance_hip_flex_rad > 0.0:
-            # the hip strategy (ours): both hips flex from the balance's start (hip pitch < 0 flexes), by less the
-            # deeper the capture point was inside the soles' hull then (balance_hip_margin_m)
-            amp = c.balance_hip_flex_rad
-            if c.balance_hip_margin_m > 0.0:
-                depth = self.balance_margin if math.isfinite(self.balance_margin) else 0.0
-                amp *= float(np.clip(1.0 - depth / c.balance_hip_margin_m, 0.0, 1.0))
-            flex = hip_flexion_profile(obs.time - self.balance_start, amp, c.balance_hip_rise_s,
-                                       c.balance_hip_hold_s, c.balance_hip_release_s)
-            self.balancer.nominal[self._hip_pitch] -= flex
-        pos = self.balancer.command(s.com, s.com_velocity, s.support_polygon, s.feet_center)
-        if c.balance_lateral_gain > 0.0:
-            # the multi-contact executor's lateral balance (ours, control.standing.lateral_roll): the ankle rolls, and
-            # the hip rolls opposite, move the CoM sideways to the segment between the soles' centres
-            d = lateral_roll_sensed(self.m, obs, c.balance_lateral_gain, c.balance_lateral_damping,
-                                    c.balance_lateral_max)
-            if d is not None:
-                pos = pos.copy()
-                pos[self._ankle_roll] += d
-                pos[self._hip_roll] -= d
-                pos = np.clip(pos, self.m.limits.lower, self.m.limits.upper)
-        self.last_command = pos
-        return JointTargets(pos)
+            self.balancer = CaptureBalance(self.m, self.config, self.stepper, self.hold)
+        self.last_command = self.balancer.command(obs)
+        return JointTargets(self.last_command)
 
-    def _spine_point(self, point) -> np.ndarray:
-        """The point of the segment between the two soles' centres nearest ``point`` (after ``forward``) [m], (2,).
-
-        The CoM goes on towards the capture point after a step; the soles' middle is on that segment, but where
-        the CoM comes to rest the hull is the front sole's width around the segment, not around the middle: with
-        the CoM held over the middle sideways it left the hull over its diagonal side (500 N deferred: stopped in x
-        0.5 m on, toppled to the right)."""
-        a, b = (self.m.sole_corners(sd)[:, :2].mean(axis=0) for sd in SIDES)
-        return nearest_on_segments(point, a[None], b[None])[0][0]
+    @property
+    def balance_margin(self) -> float:
+        """The capture point's margin inside both soles' hull when the capture balance started [m] (NaN: none)."""
+        return math.nan if self.balancer is None else self.balancer.margin
 
     def _soles_hull(self, obs: Observation):
         """The hull of both soles (touching or not) in the measured configuration [m], (k, 2), or None (no IMU).
@@ -887,32 +829,6 @@ class SafeFallController:
         q = configuration_from_sensors(self.m, obs.joint_position, quat, obs.state.com)
         self.m.forward(q)
         return support_polygon(np.vstack([self.m.sole_corners(sd)[:, :2] for sd in SIDES]).tolist())
-
-    def _settle_posture(self, q: np.ndarray, mid: np.ndarray) -> np.ndarray:
-        """Joints that put both soles flat on the ground where they are (x, y, yaw) and the CoM over their middle
-        at its present height, the trunk upright (the shared IK, ``model.ik``). The step leaves the robot on
-        sole edges (the swing target was pressed into the ground, the stance sole rolled): measured, it then
-        rocked from one sole corner to the other until it fell."""
-        from humfall_ros.model.ik import ComTask, FrameTask, OrientationTask, PostureTask
-
-        m = self.m
-        m.forward(q)
-        tasks = []
-        yaws = []
-        for sd in SIDES:
-            M = m.frame_placement(m.sole_frame[sd])
-            yaw = math.atan2(M.rotation[1, 0], M.rotation[0, 0])
-            yaws.append(yaw)
-            flat = StepController.landing_placement(M.translation[0], M.translation[1], yaw, 0.0)
-            tasks.append(FrameTask(m.sole_frame[sd], flat, weight=100.0))
-        com = m.com(q)
-        heading = math.atan2(sum(math.sin(y) for y in yaws), sum(math.cos(y) for y in yaws))
-        tasks += [ComTask(np.array([mid[0], mid[1], com[2]]), weight=10.0),
-                  OrientationTask(m.imu_frame, StepController.landing_placement(0, 0, heading).rotation, weight=1.0),
-                  PostureTask(np.asarray(q, float)[7:], weight=1e-3)]
-        r = self.stepper.ik.solve_to_convergence(q, tasks, dt=0.05, max_iterations=100, tolerance=1e-3)
-        self.settle_converged = bool(getattr(r, "converged", False))
-        return np.clip(np.asarray(r.q, float)[7:], m.limits.lower, m.limits.upper)
 
     def _replan(self, obs: Observation, q: np.ndarray) -> None:
         """Re-decide the landing of the chosen swing side from this tick's state (ours, not the paper's).
