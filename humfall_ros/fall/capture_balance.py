@@ -15,8 +15,8 @@ edges, and without the settle posture it rocked from one sole corner to the othe
 """
 from __future__ import annotations
 
+import dataclasses
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,8 +26,26 @@ from humfall_ros.control.step_control import StepController, configuration_from_
 from humfall_ros.fall.geometry import nearest_on_segments
 from humfall_ros.model.humanoid import SIDES, HumanoidModel, imu_quaternion, point_in_polygon_margin, support_polygon
 
-if TYPE_CHECKING:   # (the controller's config; imported for the annotations only: no cycle at run time)
-    from humfall_ros.fall.controller import SafeFallConfig
+
+@dataclasses.dataclass(frozen=True)
+class CaptureBalanceConfig:
+    """The capture balance's settings: ``SafeFallConfig.balance`` builds them from the node's declared parameters
+    (each described there, with its default: ``settle_s``, ``settle_target``, ``balance_kp`` ...
+    ``balance_lateral_max``)."""
+
+    settle_s: float
+    settle_target: str
+    kp: float
+    kd: float
+    max_offset: float
+    hip_flex_rad: float
+    hip_rise_s: float
+    hip_hold_s: float
+    hip_release_s: float
+    hip_margin_m: float
+    lateral_gain: float
+    lateral_damping: float
+    lateral_max: float
 
 
 class CaptureBalance:
@@ -38,7 +56,8 @@ class CaptureBalance:
     its IK converged; ``balancer``: the ankle strategy (``StandingBalance``; its ``reference`` is the CoM's, relative
     to the feet's centre)."""
 
-    def __init__(self, model: HumanoidModel, config: SafeFallConfig, stepper: StepController, hold: np.ndarray):
+    def __init__(self, model: HumanoidModel, config: CaptureBalanceConfig, stepper: StepController,
+                 hold: np.ndarray):
         self.m, self.config, self.stepper = model, config, stepper
         self.balance_from = np.asarray(hold, float).copy()
         self.settle = self.balance_from.copy()
@@ -74,8 +93,8 @@ class CaptureBalance:
             ref = mid - np.asarray(s.feet_center, float)[:2]
             if c.settle_s > 0:
                 self.settle = self.settle_posture(q, mid)
-        self.balancer = StandingBalance(self.m, dict(zip(self.m.joint_names, self.settle)), c.balance_kp,
-                                        c.balance_kd, c.balance_max_offset)
+        self.balancer = StandingBalance(self.m, dict(zip(self.m.joint_names, self.settle)), c.kp, c.kd,
+                                        c.max_offset)
         self.balancer.reference = ref
 
     def command(self, obs: Observation) -> np.ndarray:
@@ -86,22 +105,22 @@ class CaptureBalance:
         a = 1.0 if c.settle_s <= 0 else min(1.0, (obs.time - self.start) / c.settle_s)
         w = 0.5 - 0.5 * math.cos(math.pi * a)
         self.balancer.nominal = (1.0 - w) * self.balance_from + w * self.settle
-        if c.balance_hip_flex_rad > 0.0:
+        if c.hip_flex_rad > 0.0:
             # the hip strategy: both hips flex from the balance's start (hip pitch < 0 flexes), by less the deeper
-            # the capture point was inside the soles' hull then (balance_hip_margin_m)
-            amp = c.balance_hip_flex_rad
-            if c.balance_hip_margin_m > 0.0:
+            # the capture point was inside the soles' hull then (hip_margin_m)
+            amp = c.hip_flex_rad
+            if c.hip_margin_m > 0.0:
                 depth = self.margin if math.isfinite(self.margin) else 0.0
-                amp *= float(np.clip(1.0 - depth / c.balance_hip_margin_m, 0.0, 1.0))
-            flex = hip_flexion_profile(obs.time - self.start, amp, c.balance_hip_rise_s, c.balance_hip_hold_s,
-                                       c.balance_hip_release_s)
+                amp *= float(np.clip(1.0 - depth / c.hip_margin_m, 0.0, 1.0))
+            flex = hip_flexion_profile(obs.time - self.start, amp, c.hip_rise_s, c.hip_hold_s,
+                                       c.hip_release_s)
             self.balancer.nominal[self._hip_pitch] -= flex
         pos = self.balancer.command(s.com, s.com_velocity, s.support_polygon, s.feet_center)
-        if c.balance_lateral_gain > 0.0:
+        if c.lateral_gain > 0.0:
             # the ankle rolls, and the hip rolls opposite, move the CoM sideways to the segment between the soles'
             # centres
-            d = lateral_roll_sensed(self.m, obs, c.balance_lateral_gain, c.balance_lateral_damping,
-                                    c.balance_lateral_max)
+            d = lateral_roll_sensed(self.m, obs, c.lateral_gain, c.lateral_damping,
+                                    c.lateral_max)
             if d is not None:
                 pos = pos.copy()
                 pos[self._ankle_roll] += d
@@ -146,4 +165,4 @@ class CaptureBalance:
         return np.clip(np.asarray(r.q, float)[7:], m.limits.lower, m.limits.upper)
 
 
-__all__ = ["CaptureBalance"]
+__all__ = ["CaptureBalance", "CaptureBalanceConfig"]

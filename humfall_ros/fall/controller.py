@@ -43,7 +43,7 @@ from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.dynamics.toppling import FallOutcome, time_to_lean
 from humfall_ros.fall import step_search as ss
-from humfall_ros.fall.capture_balance import CaptureBalance
+from humfall_ros.fall.capture_balance import CaptureBalance, CaptureBalanceConfig
 from humfall_ros.fall.ftb import FtbState, features_of
 from humfall_ros.fall.geometry import polygon_margin_xy
 from humfall_ros.fall.push_residual import PushResidual
@@ -158,6 +158,16 @@ class SafeFallConfig:
         return StepControlConfig(clearance=self.swing_clearance, press_depth=self.press_depth,
                                  swing_gain=self.swing_gain, velocity_fraction=self.ik_velocity_fraction,
                                  stance_leg_weight=self.stance_leg_weight)
+
+    @property
+    def balance(self) -> CaptureBalanceConfig:
+        return CaptureBalanceConfig(settle_s=self.settle_s, settle_target=self.settle_target, kp=self.balance_kp,
+                                    kd=self.balance_kd, max_offset=self.balance_max_offset,
+                                    hip_flex_rad=self.balance_hip_flex_rad, hip_rise_s=self.balance_hip_rise_s,
+                                    hip_hold_s=self.balance_hip_hold_s, hip_release_s=self.balance_hip_release_s,
+                                    hip_margin_m=self.balance_hip_margin_m, lateral_gain=self.balance_lateral_gain,
+                                    lateral_damping=self.balance_lateral_damping,
+                                    lateral_max=self.balance_lateral_max)
 
     @property
     def shaping(self) -> ShapingConfig:
@@ -808,7 +818,7 @@ class SafeFallController:
         """After a captured step: the capture balance (``fall.capture_balance``: settle posture + ankle strategy,
         ours; the paper stops at the step), started on its first tick."""
         if self.balancer is None:
-            self.balancer = CaptureBalance(self.m, self.config, self.stepper, self.hold)
+            self.balancer = CaptureBalance(self.m, self.config.balance, self.stepper, self.hold)
         self.last_command = self.balancer.command(obs)
         return JointTargets(self.last_command)
 
