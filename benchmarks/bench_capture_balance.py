@@ -77,18 +77,17 @@ def scripted_state(world: SimWorld, step: float, depth: float, com_drop: float =
     v_com = math.sqrt(GRAVITY / com[2]) * (toe_x - depth - com[0])
     hull = support_polygon(np.vstack([m.sole_corners(sd)[:, :2] for sd in ("l", "r")]))
     xi_margin = point_in_polygon_margin([toe_x - depth, com[1]], hull)
-    # the base moving forward, each leg's joints keeping its sole still; scaled to the CoM speed wanted
-    pin.computeJointJacobians(m.model, m.data, q)
-    pin.updateFramePlacements(m.model, m.data)
     # the base translating (no rotation), each leg's joints keeping its sole still; the base's velocity (pinocchio:
     # in the base frame, which the IK leaves yawed and pitched) chosen so the CoM moves along world x only
+    pin.computeJointJacobians(m.model, m.data, q)
+    pin.updateFramePlacements(m.model, m.data)
+    soles = [(pin.getFrameJacobian(m.model, m.data, m.frame_ids[m.sole_frame[side]], pin.LOCAL_WORLD_ALIGNED),
+              [6 + i for i in m.leg_joint_indices(side)]) for side in ("l", "r")]
     basis = []
     for k in range(3):
         qd = np.zeros(m.model.nv)
         qd[k] = 1.0
-        for side in ("l", "r"):
-            J = pin.getFrameJacobian(m.model, m.data, m.frame_ids[m.sole_frame[side]], pin.LOCAL_WORLD_ALIGNED)
-            cols = [6 + i for i in m.leg_joint_indices(side)]
+        for J, cols in soles:
             qd[cols] = np.linalg.solve(J[:, cols], -J[:, :6] @ qd[:6])
         pin.centerOfMass(m.model, m.data, q, qd)
         basis.append((qd, m.data.vcom[0].copy()))

@@ -55,7 +55,7 @@ from humfall_ros.control.step_control import (
     predicted_stance_placement,
 )
 from humfall_ros.fall.stepping_zone import stepping_zone
-from humfall_ros.model.humanoid import (SIDES, HumanoidModel, imu_quaternion, load_model, support_polygon)
+from humfall_ros.model.humanoid import SIDES, HumanoidModel, imu_quaternion, load_model, support_polygon
 
 
 # joints inertia shaping may move, by name fragment: all of them (the paper), the pitch chain, or its upper body
