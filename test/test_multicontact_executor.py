@@ -544,3 +544,44 @@ def test_lateral_balance_rolls_the_legs_after_a_foot_landing_on_both_feet_only(m
     np.testing.assert_allclose(blind.positions, held.positions)
     _, ex3 = command(cfg, 0.5, segs=(release, landing, hand))
     assert ex3.segment_index == 2 and ex3.lateral_ticks == 0
+
+
+def _step_plan(pm, then_hand: bool = False) -> list[Segment]:
+    """A protective step (the right foot released and landed again), its stop on both feet, and optionally a left
+    hand landed after it."""
+    q0 = np.zeros(pm.n)
+    q1 = q0.copy()
+    q1[3:] = 0.1
+    segs = [_segment(pm, q0, q0, 0.05, "remove", "RF", ("LF", "RF"), ("LF",)),
+            _segment(pm, q0, q1, 0.3, "add", "RF", ("LF",), ("LF", "RF"))]
+    if then_hand:
+        segs.append(_segment(pm, q1, q1, 0.3, "add", "LH", ("LF", "RF"), ("LF", "RF", "LH")))
+        return segs + [_segment(pm, q1, q1, 0.4, mode=("LF", "RF", "LH"), target=("LF", "RF", "LH"))]
+    return segs + [_segment(pm, q1, q1, 0.4, mode=("LF", "RF"), target=("LF", "RF"))]
+
+
+@pytest.mark.parametrize("then_hand,on,takes_over", [(False, True, True), (False, False, False), (True, True, False)])
+def test_the_stop_balance_replaces_the_stop_after_the_last_step_only(models, then_hand, on, takes_over):
+    """``stop_balance``: from the touchdown that ends the plan's last foot landing the capture balance commands the
+    robot (its targets, no velocity feed-forward), not the plan's stop; not when the option is off, nor in a plan
+    that adds a hand after the step (that is tracked as planned)."""
+    pm, hm = models
+    ex = MulticontactExecutor(_step_plan(pm, then_hand), pm.joint_names, hm.joint_names,
+                              ExecutorConfig(stop_balance=on), model=hm)
+    q = np.zeros(len(hm.joint_names))
+    for t in (0.0, 0.1, 0.2):
+        ex.step(_obs(hm, t, left=True, right=False, q=q))
+    assert ex.stop_balance is None
+    cmd = ex.step(_obs(hm, 0.3, left=True, right=True, q=q))        # the right foot touches down
+    assert ex.switches[-1][2] == "touchdown"
+    assert (ex.stop_balance is not None) == takes_over
+    if takes_over:
+        assert ex.stop_balance_time == pytest.approx(0.3) and np.allclose(cmd.velocities, 0.0)
+        later = ex.step(_obs(hm, 0.5, left=True, right=True, q=q))
+        np.testing.assert_allclose(later.positions, ex.stop_balance.command(_obs(hm, 0.5, left=True, right=True,
+                                                                                   q=q)))
+    else:
+        # the arms track the plan's next segment (the legs come from the landing blend of the task-space swing)
+        arms = [i for i, j in enumerate(pm.joint_names) if "shoulder" in j or "elbow" in j]
+        idx = [hm.joint_names.index(pm.joint_names[i]) for i in arms]
+        np.testing.assert_allclose(cmd.positions[idx], MulticontactExecutor.sample(ex.segments[2], 0.0)[0][arms])

@@ -31,6 +31,14 @@ base pitch estimated from the IMU and the joints (``base_pitch_from_imu``, no gr
 theta_plan the plan's root pitch (the planar state's third coordinate, eq. 7's spline) at the same
 plan time. The hip pitch axis is the base's pitch axis (y), so with the thighs held an offset of +d
 pitches the pelvis by -d: a gain of 1 takes the whole error out at the hips.
+
+**Stop balance** (ours, ``ExecutorConfig.stop_balance``, the default since session 41): after the plan's last foot
+landing the plan's stop is not tracked; from the touchdown the safe fall's capture balance
+(``fall.capture_balance``: a settle posture with both soles flat and the CoM over the point of the soles' segment
+nearest the capture point, the ankle strategy, a hip strategy and the lateral balance) stops the robot, and once
+it has stopped a second settle posture moves the CoM to the soles' middle. The planar stop brakes with contact
+forces and whole-body momentum the position servos do not reproduce: tracked, it left the executed CoM ~10 cm ahead
+of the plan's and the robot turned over the front foot (docs/multicontact.md "Session 40", "Session 41").
 """
 from __future__ import annotations
 
@@ -47,6 +55,7 @@ from humfall_ros import params
 from humfall_ros.control.contract import JointTargets, Observation
 from humfall_ros.control.standing import lateral_roll_sensed
 from humfall_ros.control.step_control import StepControlConfig, StepController, configuration_from_sensors
+from humfall_ros.fall.capture_balance import CaptureBalance, CaptureBalanceConfig
 from humfall_ros.model.ik import OrientationTask
 from humfall_ros.model.humanoid import base_rotation_from_imu, imu_quaternion
 from humfall_ros.multicontact.collocation import Segment, hermite_eval
@@ -105,6 +114,22 @@ class ExecutorConfig:
             projection to the two-foot mode) and the base 0.03 rad ahead of the plan's pitch, and the IK drove the
             stance leg's joints at their speed limits in the first tick, which threw the robot off the ground for
             ~0.1 s at the lift-off (docs/multicontact.md "Session 27").
+        stop_balance: the stop after the plan's last foot landing is the safe fall's capture balance
+            (:class:`humfall_ros.fall.capture_balance.CaptureBalance`; :meth:`MulticontactExecutor._stop_balance_due`),
+            not the plan's stop (session 41). Needs ``model`` (and the task-space swing's IK, ``swing_control``
+            "task"); hand plans, and plans that add a hand after their last step, are tracked to their end.
+        stop_settle_s, stop_settle_target, stop_balance_kp, stop_balance_kd, stop_balance_max_offset: the capture
+            balance's settle blend [s], where it holds the CoM ("spine": the point of the segment between the
+            soles' centres nearest the capture point at the touchdown; "middle": the soles' middle) and its ankle
+            strategy [rad/m, rad s/m, rad] (``CaptureBalanceConfig``; its lateral balance is this executor's
+            ``lateral_*``).
+        stop_hip_flex_rad, stop_hip_rise_s, stop_hip_hold_s, stop_hip_release_s: its hip strategy: both hips flex
+            by this much from the touchdown (rise, hold, release) [rad, s]; 0: the ankle strategy alone.
+        stop_shift_s, stop_shift_speed: once the hip strategy is over and the CoM is slower than
+            ``stop_shift_speed`` [m/s], a second capture balance moves the CoM to the soles' middle over
+            ``stop_shift_s`` [s]: the first holds it over the front sole, where the rear sole cannot reach the ground
+            with the legs straight (measured: the rear foot 1-3 cm up, the robot at rest on the front foot alone);
+            0: no shift.
     """
 
     landing_wait: float = 0.2
@@ -126,6 +151,18 @@ class ExecutorConfig:
     lateral_gain: float = 1.5
     lateral_damping: float = 0.2
     lateral_max: float = 0.2
+    stop_balance: bool = True
+    stop_settle_s: float = 1.0
+    stop_settle_target: str = "spine"
+    stop_balance_kp: float = 0.3
+    stop_balance_kd: float = 0.1
+    stop_balance_max_offset: float = 0.12
+    stop_hip_flex_rad: float = 0.3
+    stop_hip_rise_s: float = 0.15
+    stop_hip_hold_s: float = 0.6
+    stop_hip_release_s: float = 1.0
+    stop_shift_s: float = 1.0
+    stop_shift_speed: float = 0.05
 
     def __post_init__(self):
         # every field is a declared parameter of config/multicontact_executor.yaml: its type, range and choices are
@@ -234,6 +271,11 @@ class MulticontactExecutor:
         self._yaw0: float | None = None
         # per task swing: foot, landing target, start, duration, largest base pitch and heading errors
         self.task_swings: list[dict] = []
+        self.stop_balance: CaptureBalance | None = None   # the stop's capture balance (stop_balance), once started
+        self.stop_balance_time: float | None = None       # plan time it started [s]
+        self.stop_shift: CaptureBalance | None = None     # the shift of the CoM to the soles' middle after it
+        self.stop_shift_time: float | None = None         # plan time that started [s]
+        self._last_command: np.ndarray | None = None      # the joint targets of the last tick
 
     @property
     def take_over_time(self) -> float | None:
@@ -430,6 +472,8 @@ class MulticontactExecutor:
             self._seg_start = tp
             self.switches.append((self._seg, tp, why))
         seg = self.segments[self._seg]
+        if self.stop_balance is not None or self._stop_balance_due(seg):
+            return self._stop_balance_command(observation, tp)
         plan_q, plan_dq = self.planar(seg, tp - self._seg_start)
         q, dq = plan_q[3:], plan_dq[3:]
         if tp - self._seg_start > float(seg.time[-1]):
@@ -480,7 +524,50 @@ class MulticontactExecutor:
                 self.lateral_ticks += 1
                 self.lateral_offset_max = max(self.lateral_offset_max, abs(d))
         self._last_time = observation.time
+        self._last_command = pos
         return JointTargets(positions=pos, velocities=vel)
+
+    def _stop_balance_due(self, seg: Segment) -> bool:
+        """Does the stop's capture balance take over now (``ExecutorConfig.stop_balance``)? In a segment on both
+        feet alone after a foot landing, when the rest of the plan adds no contact (the plan's stop after its last
+        step)."""
+        if not self.cfg.stop_balance or self.stepper is None or not self._after_foot_landing(seg):
+            return False
+        return not any(s.change == "add" for s in self.segments[self._seg:])
+
+    def _stop_balance_over(self, time: float) -> bool:
+        """Has the stop's balance blended its settle posture in, and its hip strategy (if any) come back?"""
+        b = self.stop_balance
+        c = b.config
+        hip = c.hip_rise_s + c.hip_hold_s + c.hip_release_s if c.hip_flex_rad > 0 else 0.0
+        return b.settled(time) and time - b.start >= hip - 1e-9
+
+    def _stop_balance_command(self, observation: Observation, tp: float) -> JointTargets:
+        """The capture balance's joint targets (no velocity feed-forward); its first call starts it, from the
+        last command this executor sent."""
+        c = self.cfg
+        if self.stop_balance is None:
+            cfg = CaptureBalanceConfig(settle_s=c.stop_settle_s, settle_target=c.stop_settle_target,
+                                       kp=c.stop_balance_kp, kd=c.stop_balance_kd, max_offset=c.stop_balance_max_offset,
+                                       hip_flex_rad=c.stop_hip_flex_rad, hip_rise_s=c.stop_hip_rise_s,
+                                       hip_hold_s=c.stop_hip_hold_s, hip_release_s=c.stop_hip_release_s,
+                                       hip_margin_m=0.0, lateral_gain=c.lateral_gain,
+                                       lateral_damping=c.lateral_damping, lateral_max=c.lateral_max)
+            start = self._last_command if self._last_command is not None else self._servo_targets(observation)
+            self.stop_balance = CaptureBalance(self.model, cfg, self.stepper, start)
+            self.stop_balance_time = tp
+        elif (c.stop_shift_s > 0 and self.stop_shift is None and self._stop_balance_over(observation.time)
+              and float(np.linalg.norm(np.asarray(observation.state.com_velocity, float)[:2])) < c.stop_shift_speed):
+            # stopped over the front sole: a second settle posture moves the CoM to the soles' middle, which puts the
+            # rear sole down (the first cannot reach the ground with it)
+            cfg = dataclasses.replace(self.stop_balance.config, settle_s=c.stop_shift_s, settle_target="middle",
+                                      hip_flex_rad=0.0)
+            self.stop_shift = CaptureBalance(self.model, cfg, self.stepper, self._last_command)
+            self.stop_shift_time = tp
+        self._last_time = observation.time
+        pos = (self.stop_shift or self.stop_balance).command(observation)
+        self._last_command = pos
+        return JointTargets(positions=pos, velocities=np.zeros(self.n_joints))
 
     def _after_foot_landing(self, seg: Segment) -> bool:
         """Is ``seg`` (the current one) on both feet and nothing else, with a foot landed earlier in the plan?"""

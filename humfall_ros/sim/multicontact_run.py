@@ -52,14 +52,15 @@ LIMBS = ("LF", "RF", "LH", "RH")
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
     """Attributes:
-        settle: time simulated after the plan's end [s].
+        settle: time simulated after the plan's end [s] (5 s since session 41: the stop balance's hip strategy and
+            its shift to the soles' middle take ~3 s from the touchdown).
         contact_force_min: a limb or link touches when its tick-mean contact force exceeds this [N].
         final_window: the final mode and KE are judged over this last stretch of the run [s].
         time_budget: the planner's wall-clock budget [s].
         hold, both_hands, velocity_feedforward, blend_time, base_pitch_gain, base_pitch_correction_max,
             swing_control, swing_over_release, swing_clearance, landing_blend_time, swing_attitude_weight,
-            swing_attitude_gain, swing_posture_gain, lateral_gain, lateral_damping, lateral_max: as in
-            ``ExecutorConfig``.
+            swing_attitude_gain, swing_posture_gain, lateral_gain, lateral_damping, lateral_max, stop_balance,
+            stop_settle_s ... stop_shift_speed: as in ``ExecutorConfig``.
         plan_latency: the plan is made from the state at the push's end but the executor takes over
             this much later [s] (the standing balance in between): what a planner that needs that
             long would do without pausing the simulator. 0: paused (the plan's state is the take-over's).
@@ -72,7 +73,7 @@ class RunConfig:
             limit but the clipped velocity targets (the servos then drive joints 3-5 x past their limits).
     """
 
-    settle: float = 3.0
+    settle: float = 5.0
     contact_force_min: float = 5.0
     final_window: float = 0.1
     time_budget: float = 120.0
@@ -92,6 +93,18 @@ class RunConfig:
     lateral_gain: float = ExecutorConfig.lateral_gain
     lateral_damping: float = ExecutorConfig.lateral_damping
     lateral_max: float = ExecutorConfig.lateral_max
+    stop_balance: bool = ExecutorConfig.stop_balance
+    stop_settle_s: float = ExecutorConfig.stop_settle_s
+    stop_settle_target: str = ExecutorConfig.stop_settle_target
+    stop_balance_kp: float = ExecutorConfig.stop_balance_kp
+    stop_balance_kd: float = ExecutorConfig.stop_balance_kd
+    stop_balance_max_offset: float = ExecutorConfig.stop_balance_max_offset
+    stop_hip_flex_rad: float = ExecutorConfig.stop_hip_flex_rad
+    stop_hip_rise_s: float = ExecutorConfig.stop_hip_rise_s
+    stop_hip_hold_s: float = ExecutorConfig.stop_hip_hold_s
+    stop_hip_release_s: float = ExecutorConfig.stop_hip_release_s
+    stop_shift_s: float = ExecutorConfig.stop_shift_s
+    stop_shift_speed: float = ExecutorConfig.stop_shift_speed
     plan_latency: float = 0.0
     speed_limit: str = "motor"
 
@@ -362,6 +375,10 @@ def _report(sc, pm, executor, probe: _Probe, info: dict, cfg: RunConfig, active:
         "executor_reason": executor.reason, "ke_max": float(ke.max()) if len(ke) else float("nan"),
         "base_pitch_error_max": executor.pitch_error_max, "base_pitch_feedback_ticks": executor.pitch_feedback_ticks,
         "lateral_ticks": executor.lateral_ticks, "lateral_offset_max_rad": executor.lateral_offset_max,
+        "stop_balance": None if executor.stop_balance is None else {
+            "plan_time_s": executor.stop_balance_time, "capture_point_margin_m": executor.stop_balance.margin,
+            "settle_converged": executor.stop_balance.settle_converged,
+            "shift_plan_time_s": executor.stop_shift_time},
         "task_swings": executor.task_swings,
     }
     if executor.take_over_time is None:
