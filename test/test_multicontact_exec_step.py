@@ -81,7 +81,9 @@ def test_tracking_the_joints_drags_the_swing_foot(runs):
     _, r = runs["joints"]
     ev = _landing(r)
     assert ev["swing_clearance_m"] < 0.01, ev
-    assert ev["executed_time"] < 0.1 and ev["executed_x"] < ev["planned_x"] - 0.3, ev
+    # back on the ground well before the plan's landing, and far short of it (the report matches the plan's landing
+    # to the lasting touchdown nearest its time since session 41; the dragged foot touched at 0.31 s, 0.56 m short)
+    assert ev["executed_time"] < ev["planned_time"] - 0.1 and ev["executed_x"] < ev["planned_x"] - 0.3, ev
 
 
 def test_the_stance_foot_stays_loaded_through_the_swing(runs):

@@ -585,3 +585,18 @@ def test_the_stop_balance_replaces_the_stop_after_the_last_step_only(models, the
         arms = [i for i, j in enumerate(pm.joint_names) if "shoulder" in j or "elbow" in j]
         idx = [hm.joint_names.index(pm.joint_names[i]) for i in arms]
         np.testing.assert_allclose(cmd.positions[idx], MulticontactExecutor.sample(ex.segments[2], 0.0)[0][arms])
+
+
+def test_the_run_matches_a_planned_contact_event_to_the_lasting_change_nearest_its_time():
+    """``multicontact_run``: executed contact changes that last the debounce, and the one nearest the plan's time."""
+    from humfall_ros.sim.multicontact_run import _lasting_changes, _matching_change
+    m = np.array([0, 0, 1, 1, 0, 0, 0, 1, 1, 1, 1, 0, 1], bool)
+    assert list(_lasting_changes(m, 0, 1)) == [2, 7, 12]          # no debounce: every change (one at the end)
+    assert list(_lasting_changes(m, 0, 3)) == [7, 12]             # the 2-tick chatter at 2 is not a change
+    assert list(_lasting_changes(m, 8, 3)) == [8, 12]             # true at the start counts
+    assert list(_lasting_changes(m, 0, 5)) == [12]                # a change at the end lasts to the end
+    assert len(_lasting_changes(np.zeros(4, bool), 0, 2)) == 0
+    t = np.arange(len(m)) * 0.1
+    assert _matching_change(m, 0, 1, t, 0.25) == 2 and _matching_change(m, 0, 1, t, 0.6) == 7
+    assert _matching_change(m, 0, 1, t, 1.1) == 12 and _matching_change(m, 0, 3, t, 0.25) == 7
+    assert _matching_change(np.zeros(4, bool), 0, 2, t, 0.1) is None
