@@ -87,3 +87,31 @@ def test_a_protective_step_over_ros_matches_the_in_process_loop(in_ros_domain, t
     # air until then (tracked joint by joint it stays loaded and the switch comes at the window's first tick, 0.288 s)
     seg, when, why = ex.switches[-1]
     assert why == "touchdown" and when > sum(float(s.time[-1]) for s in stored.segments[:2]) - 0.05, ex.switches
+
+
+def test_a_60J_step_stopped_by_the_stop_balance_over_ros_matches_the_in_process_loop(in_ros_domain, tmp_path):
+    """The shipped 60 J plan made with ``step_capture_margin`` 0.25 (one step) over ROS to its end: after the step's
+    touchdown the executor's stop balance (the default) stops the robot and brings the CoM back over both feet. The
+    joint states equal the in-process loop's bit for bit through the whole run, the balance and its shift started,
+    and nothing but the feet touched the ground: the robot ends standing."""
+    name = "multicontact_push_60J_step_margin25"
+    stored = StoredPlan.load(plan_path(name))
+    f = stored.meta["push_force"]
+    ov = ["duration=5.6", f"push.0.force=[{f[0]}, {f[1]}, {f[2]}]", f"controllers.0.params.plan_file={name}"]
+    status, r = launch.up("multicontact_push", None, ov, runs_dir=str(tmp_path / "runs"), quiet=True)
+    assert status == 0, r
+    sc = scenario.load("multicontact_push", ov)
+    p = {**params.defaults("multicontact_executor"), "plan_file": name}
+    assert p["stop_balance"]
+    hm = load_humanoid()
+    ex = make_controller(p, hm)
+    mine = run_scenario(sc, controllers=[locomotion_controller(sc, hm), ex], priorities={"multicontact": 40})
+    ros = _rows(r, len(mine.joint_positions))
+    assert np.array_equal(ros, mine.joint_positions)
+    assert ex.stop_balance is not None and ex.stop_shift is not None
+    assert ex.stop_shift_time > ex.stop_balance_time + 1.0
+    for m in (mine.metrics, r["metrics"]):
+        assert m["landing_time_s"] is None                  # no link but the feet ever touched
+        # standing at the end, in the lunge the 0.7 m step leaves (measured 0.59 m; 0.74 m standing quiet; a fallen
+        # robot's CoM is below 0.35 m)
+        assert m["landing_com"][2] > 0.5
