@@ -169,6 +169,17 @@ class ExecutorConfig:
         # the declaration's (one place; in-process users such as multicontact_run build this dataclass directly)
         params.check_overrides("multicontact_executor", dataclasses.asdict(self), "ExecutorConfig.")
 
+    @property
+    def stop_balance_config(self) -> CaptureBalanceConfig:
+        """The stop balance's capture balance (its lateral balance is this executor's ``lateral_*``)."""
+        return CaptureBalanceConfig(settle_s=self.stop_settle_s, settle_target=self.stop_settle_target,
+                                    kp=self.stop_balance_kp, kd=self.stop_balance_kd,
+                                    max_offset=self.stop_balance_max_offset, hip_flex_rad=self.stop_hip_flex_rad,
+                                    hip_rise_s=self.stop_hip_rise_s, hip_hold_s=self.stop_hip_hold_s,
+                                    hip_release_s=self.stop_hip_release_s, hip_margin_m=0.0,
+                                    lateral_gain=self.lateral_gain, lateral_damping=self.lateral_damping,
+                                    lateral_max=self.lateral_max)
+
     @staticmethod
     def from_params(d: dict) -> ExecutorConfig:
         """From ExecutorConfig field names (e.g. the node's declared values); unknown keys are refused."""
@@ -547,14 +558,8 @@ class MulticontactExecutor:
         last command this executor sent."""
         c = self.cfg
         if self.stop_balance is None:
-            cfg = CaptureBalanceConfig(settle_s=c.stop_settle_s, settle_target=c.stop_settle_target,
-                                       kp=c.stop_balance_kp, kd=c.stop_balance_kd, max_offset=c.stop_balance_max_offset,
-                                       hip_flex_rad=c.stop_hip_flex_rad, hip_rise_s=c.stop_hip_rise_s,
-                                       hip_hold_s=c.stop_hip_hold_s, hip_release_s=c.stop_hip_release_s,
-                                       hip_margin_m=0.0, lateral_gain=c.lateral_gain,
-                                       lateral_damping=c.lateral_damping, lateral_max=c.lateral_max)
             start = self._last_command if self._last_command is not None else self._servo_targets(observation)
-            self.stop_balance = CaptureBalance(self.model, cfg, self.stepper, start)
+            self.stop_balance = CaptureBalance(self.model, c.stop_balance_config, self.stepper, start)
             self.stop_balance_time = tp
         elif (c.stop_shift_s > 0 and self.stop_shift is None and self._stop_balance_over(observation.time)
               and float(np.linalg.norm(np.asarray(observation.state.com_velocity, float)[:2])) < c.stop_shift_speed):
