@@ -301,16 +301,60 @@ def xyz(v) -> SimpleNamespace:
     return SimpleNamespace(x=float(v[0]), y=float(v[1]), z=float(v[2]) if len(v) > 2 else 0.0)
 
 
+def encode(pub, msg) -> bytes:
+    """``msg`` (a message of ``pub``'s type, or a :func:`cdr.blank` namespace filled like one) as the CDR bytes
+    ``pub`` publishes raw (:mod:`humfall_ros.recording.cdr`)."""
+    return msg if isinstance(msg, bytes) else cdr.encoder(pub.msg_type)(msg)
+
+
 def publish_encoded(pub, msg) -> bytes:
-    """Publish ``msg`` (a message of ``pub``'s type, or a :func:`cdr.blank` namespace filled like one)
-    encoded by :mod:`humfall_ros.recording.cdr`; returns the bytes (publish them again as they are).
+    """Publish ``msg`` encoded by :func:`encode`; returns the bytes (publish them again as they are).
 
     For the per-tick topics: rclpy's publish of a message object converts it through the generated
     classes first (CentroidalState 77 us, WalkingState 97 us a publish on this machine; encoded here and
     published raw, about a third of that)."""
-    data = msg if isinstance(msg, bytes) else cdr.encoder(pub.msg_type)(msg)
+    data = encode(pub, msg)
     pub.publish(data)
     return data
+
+
+# How long a node's first per-tick answer waits for its known readers to match (wall s; then it goes out anyway,
+# e.g. to a reader with an incompatible QoS that never matches).
+FIRST_ANSWER_HOLD_S = 2.0
+
+
+class FirstAnswerHold:
+    """Holds a lockstep node's first answer until every reader its graph knows of is matched.
+
+    The graph can list a reader (the recorder, which subscribes to a topic once it sees its writer) some
+    milliseconds before the writer has matched it; a volatile writer's sample published in that window never
+    reaches it, and the bag would start one tick late (a CI run: no tick-0 command). The bridge resends a tick
+    it has no answer to every ``retransmit_period``; the held answer goes out on one of those resends, once the
+    readers are matched or after ``hold_s``. Once released, it never holds again (one bool a tick)."""
+
+    def __init__(self, node: Node, hold_s: float = FIRST_ANSWER_HOLD_S):
+        self.node = node
+        self.hold_s = hold_s
+        self.released = False
+        self.since: float | None = None
+
+    def ready(self, pubs) -> bool:
+        """True once every publisher in ``pubs`` has matched all the readers the graph lists for its topic (or
+        the hold is over); from then on always True."""
+        if self.released:
+            return True
+        now = time.monotonic()
+        if self.since is None:
+            self.since = now
+        unmatched = [p.topic_name for p in pubs
+                     if p.get_subscription_count() < self.node.count_subscribers(p.topic_name)]
+        if unmatched and now - self.since <= self.hold_s:
+            return False
+        if unmatched:
+            self.node.get_logger().warning(f"first answer sent after {self.hold_s} s with readers of {unmatched} "
+                                           "still unmatched")
+        self.released = True
+        return True
 
 
 def decoding(node: Node, msg_type, topic: str, callback: Callable) -> Callable[[bytes], None]:

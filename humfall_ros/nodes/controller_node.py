@@ -28,9 +28,10 @@ from humfall_ros.nodes.common import (
     NO_PUB_EVENTS,
     QOS_LATCHED,
     QOS_TICK_WRITER,
+    FirstAnswerHold,
     HotLoop,
     Params,
-    publish_encoded,
+    encode,
     ros_stamp,
     stamp_key,
 )
@@ -101,7 +102,7 @@ IMU = Input("imu", Imu, "imu", imu_from_msg, per_tick=True)  # for controllers t
 
 
 def joint_command(names=(), positions=(), velocities=None) -> SimpleNamespace:
-    """A JointState's fields as a namespace, for ``publish_encoded`` (empty: a release)."""
+    """A JointState's fields as a namespace, for ``encode`` (empty: a release)."""
     return SimpleNamespace(header=SimpleNamespace(stamp=None, frame_id=""), name=names, position=positions,
                            velocity=() if velocities is None else velocities, effort=())
 
@@ -151,6 +152,7 @@ class ControllerNode(Node):
         self.last_cmd: SimpleNamespace | None = None  # the last command (a JointState's fields) ...
         self.last_cmd_data = b""  # ... and its bytes as published
         self.tick_outputs: list[tuple[Any, bytes]] = []  # (publisher, bytes) of the last tick, see publish_tick
+        self.first_answer = FirstAnswerHold(self)  # so that the bag (the recorder) gets tick 0's command too
         self.engaged = False
         self.failures = 0
         self.get_logger().info(f"controller {type(self.controller).__name__} as source {self.source!r}; "
@@ -166,6 +168,8 @@ class ControllerNode(Node):
     def _offer(self, kind: str, msg) -> None:
         action = self.gate.offer(kind, stamp_key(msg.header.stamp), msg)
         if action is Action.RETRANSMIT:
+            if not self.first_answer.ready([self.pub, *(pub for pub, _ in self.tick_outputs)]):
+                return  # still held (see _on_batch)
             if self.last_cmd is not None:
                 self.pub.publish(self.last_cmd_data)  # the bridge resent the tick: answer it again
             for pub, out in self.tick_outputs:  # and the tick's other outputs (a reader may have missed them)
@@ -215,8 +219,11 @@ class ControllerNode(Node):
             cmd = joint_command(self.last_cmd.name, self.last_cmd.position) \
                 if self.engaged and self.last_cmd is not None else joint_command()
         cmd.header.stamp = stamp
-        # first: in lockstep the bridge waits for it, not for the outputs below
-        self.last_cmd_data = publish_encoded(self.pub, cmd)
+        self.last_cmd_data = encode(self.pub, cmd)
+        # first: in lockstep the bridge waits for it, not for the outputs below. The first answer waits for the
+        # command's readers to match (the bridge resends the tick meanwhile; the resend publishes it)
+        if self.first_answer.ready([self.pub]):
+            self.pub.publish(self.last_cmd_data)
         self.last_cmd = cmd
         self.engaged = bool(cmd.name)
         if stepped is not None:
@@ -245,8 +252,11 @@ class ControllerNode(Node):
     def publish_tick(self, pub, msg) -> None:
         """Publish a per-tick output of this tick (walking/state, estop/status): sent again with the command
         when the tick is retransmitted, since a reader that matched late (start-up) would otherwise wait for it
-        for ever in lockstep."""
-        self.tick_outputs.append((pub, publish_encoded(pub, msg)))
+        for ever in lockstep. Held with the first command (see FirstAnswerHold)."""
+        data = encode(pub, msg)
+        self.tick_outputs.append((pub, data))
+        if self.first_answer.released:
+            pub.publish(data)
 
     def after_step(self, observation: Observation, targets: JointTargets | None) -> None:
         """Hook for subclasses: publish the controller's own per-tick state (e.g. walking/state) with

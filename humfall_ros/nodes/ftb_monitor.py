@@ -28,7 +28,8 @@ from std_srvs.srv import Trigger
 from humfall_ros.control.contract import Observation
 from humfall_ros.control.tick_gate import Action, TickGate
 from humfall_ros.fall import ftb as core
-from humfall_ros.nodes.common import (NO_PUB_EVENTS, QOS_LATCHED, QOS_TICK_WRITER, HotLoop, Params, publish_encoded,
+from humfall_ros.nodes.common import (NO_PUB_EVENTS, QOS_LATCHED, QOS_TICK_WRITER, FirstAnswerHold, HotLoop, Params,
+                                     encode,
                                      ros_stamp, run_node, stamp_key)
 from humfall_ros.nodes.controller_node import centroidal_from_msg
 from rclpy.node import Node
@@ -169,13 +170,14 @@ class FtbMonitorNode(Node):
         self.msg.header.frame_id = "odom"
         self.last: bytes | None = None  # the last status as published (encoded: rclpy's conversion of FtbStatus was
         # the node's largest per-tick cost)
+        self.first_answer = FirstAnswerHold(self)  # so that the bag gets tick 0's status too
         self.failures = 0
         self.get_logger().info(f"FTB mode {self.config.mode.value}; tick inputs {sorted(kinds)}")
 
     def _offer(self, kind: str, msg) -> None:
         action = self.gate.offer(kind, stamp_key(msg.header.stamp), msg)
         if action is Action.RETRANSMIT:
-            if self.last is not None:
+            if self.last is not None and self.first_answer.ready([self.pub_status]):
                 self.pub_status.publish(self.last)
             return
         if action is Action.RESET:
@@ -216,7 +218,9 @@ class FtbMonitorNode(Node):
             self.pub_event.publish(cleared_msg(st.cleared, tick.stamp_ns, st.reason))  # latched: the event is over
             self.get_logger().info(f"fall event of {st.cleared.time:.3f} s cleared at {tick.stamp_ns * 1e-9:.3f} s: "
                                    f"{st.reason}")
-        self.last = publish_encoded(self.pub_status, self.msg)
+        self.last = encode(self.pub_status, self.msg)
+        if self.first_answer.ready([self.pub_status]):  # the first waits for its readers (the recorder) to match
+            self.pub_status.publish(self.last)
 
     def _on_reset(self, request, response):
         before = self.monitor.state.value

@@ -484,11 +484,15 @@ class SimBridge(Node):
         """Hold time at zero until the listed nodes listen to every per-tick topic (so the bag starts at t=0)."""
         deadline = time.monotonic() + self.wait_timeout
         per_tick = [self.pub_clock, self.pub_js, self.pub_imu, *self.pub_wrench.values(), self.pub_odom]
+        # the lockstep sources' commands even before their writers show: a controller still importing when we
+        # look would otherwise not be waited for, and the recorder (which subscribes to what is published)
+        # missed its tick-0 command (a CI run)
+        commands = {self.command_subs[s].topic_name for s in self.lockstep_sources if s in self.command_subs}
         while rclpy.ok() and self.wait_for_nodes:
             missing = set()
             # every topic someone publishes now (ours and the controllers'), e.g. for the recorder
-            for topic, _ in self.get_topic_names_and_types():
-                if not self.get_publishers_info_by_topic(topic):
+            for topic in {t for t, _ in self.get_topic_names_and_types()} | commands:
+                if topic not in commands and not self.get_publishers_info_by_topic(topic):
                     continue
                 present = {i.node_name for i in self.get_subscriptions_info_by_topic(topic)}
                 missing |= {f"{n} on {topic}" for n in self.wait_for_nodes if n not in present}

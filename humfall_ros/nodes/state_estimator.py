@@ -24,9 +24,10 @@ from humfall_ros.model.humanoid import SIDES, load_model
 from humfall_ros.nodes.common import (
     NO_PUB_EVENTS,
     QOS_TICK_WRITER,
+    FirstAnswerHold,
     HotLoop,
     Params,
-    publish_encoded,
+    encode,
     run_node,
     stamp_key,
     xyz,
@@ -63,7 +64,8 @@ class StateEstimator(Node):
                                              com_velocity_band=P.declare("com_velocity_band"))
         self.viz_period = 1.0 / viz_rate if viz_rate > 0 else float("inf")
         self.last_viz = -float("inf")
-        self.last_msg: CentroidalState | None = None
+        self.last_msg: bytes | None = None  # the last answer as published
+        self.first_answer = FirstAnswerHold(self)  # so that the bag gets tick 0's centroidal state too
         # refilled each tick as a namespace and encoded by publish_encoded (rclpy's checking setters and its
         # conversion at publish were ~0.15 ms a tick)
         self.msg = cdr.blank(CentroidalState)
@@ -100,7 +102,7 @@ class StateEstimator(Node):
         action = self.gate.offer(kind, stamp_key(msg.header.stamp), msg)
         if action is Action.RETRANSMIT:
             # a retransmitted tick: answer it again so lockstep can move on
-            if self.last_msg is not None:
+            if self.last_msg is not None and self.first_answer.ready([self.pub]):
                 self.pub.publish(self.last_msg)  # the bytes of the last answer
             return
         if action is Action.RESET:
@@ -176,7 +178,9 @@ class StateEstimator(Node):
         fill_xyz(msg.right_cop, e.foot_cop["r"])
         fill_xyz(msg.com_velocity_fused, e.com_velocity_fused)
         fill_xyz(msg.capture_point_fused, e.capture_point_fused)
-        self.last_msg = publish_encoded(self.pub, msg)
+        self.last_msg = encode(self.pub, msg)
+        if self.first_answer.ready([self.pub]):  # the first waits for its readers (the recorder) to match
+            self.pub.publish(self.last_msg)
         if t - self.last_viz >= self.viz_period - 1e-9:
             self.last_viz = t
             self._publish_viz(msg)
