@@ -1,6 +1,6 @@
 """Multi-contact plans executed on the 3-D robot in PyBullet (issue 14). Prints one JSON object.
 
-    python benchmarks/bench_multicontact_exec.py [--kes 20,40,60] [--objective departure|paper]
+    python benchmarks/bench_multicontact_exec.py [--kes 20,40,60] [--objective paper|departure] [--planar-defaults]
                                                  [--budget 120] [--save-plans DIR] [--plots DIR]
                                                  [--calibrate 300,400,500] [--set name=value,...]
                                                  [--replay DIR] [--pitch-gain 1.0] [--run name=value,...]
@@ -16,12 +16,14 @@ extremities, planned vs executed contact times and positions, peak contact force
 ``--pitch-gain`` is the executor's base pitch feedback on the stance hips (``ExecutorConfig.base_pitch_gain``,
 default 1; 0: open loop, the executor before session 24).
 
-``--objective departure`` (default) plans with the post-impact objective and frontier key, landings unlimited,
-no touchdown-speed constraint (``humfall_ros.multicontact.planner.DEPARTURE``): with the paper's objective
-the step options of session 11 are the defaults (docs/multicontact.md). ``--objective paper`` uses the declaration as
-it is. ``--save-plans DIR`` writes each executed plan as ``multicontact_push_<KE>J.json``
-(``StoredPlan``; the executor node's ``plan_file``). ``--calibrate F,...`` only prints the push -> KE
-table for those forces.
+The plans are made for the 3-D robot: the planner's declaration with ``FOR_EXECUTION``
+(``humfall_ros.multicontact.planner``: a foot landing's capture point 0.25 m inside the toe; session 42, before: the
+declaration alone). ``--planar-defaults`` plans with the declaration alone (the KE sweep's planner: 0.12 m).
+``--objective paper`` (default since session 42; before: departure) is the paper's pre-impact objective;
+``--objective departure`` plans with the post-impact objective and frontier key, landings unlimited, no
+touchdown-speed constraint (``DEPARTURE``, which sets its own step options). ``--save-plans DIR`` writes each
+executed plan as ``multicontact_push_<KE>J.json`` (``StoredPlan``; the executor node's ``plan_file``).
+``--calibrate F,...`` only prints the push -> KE table for those forces.
 
 ``--walking-push F,...`` (session 28) executes instead from single support: ``walking_push`` (1.0 km/h, the push at
 the start of a right swing) with F N forward and its obstacle removed; the executor takes over at the push's end in
@@ -31,6 +33,7 @@ gait's lateral weight shift stays; ``planar`` would put every hip and ankle roll
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -42,8 +45,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 
 from humfall_ros import params  # noqa: E402
 from humfall_ros import scenario as scenario_mod  # noqa: E402
-from humfall_ros.multicontact.executor import StoredPlan  # noqa: E402
-from humfall_ros.multicontact.planner import DEPARTURE, FallPlanner  # noqa: E402
+from humfall_ros.multicontact.executor import ExecutorConfig, StoredPlan  # noqa: E402
+from humfall_ros.multicontact.planner import DEPARTURE, FOR_EXECUTION, FallPlanner  # noqa: E402
 from humfall_ros.sim import multicontact_run as mr  # noqa: E402
 
 SCENARIO = "multicontact_push"
@@ -160,7 +163,9 @@ def walking_case(planner, run_cfg, force: float, a) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--kes", default="20,40,60")
-    ap.add_argument("--objective", choices=("departure", "paper"), default="departure")
+    ap.add_argument("--objective", choices=("paper", "departure"), default="paper")
+    ap.add_argument("--planar-defaults", action="store_true",
+                    help="plan with the planner's declaration alone, without FOR_EXECUTION (the KE sweep's planner)")
     ap.add_argument("--budget", type=float, default=120.0)
     ap.add_argument("--save-plans", default="")
     ap.add_argument("--plots", default="")
@@ -173,7 +178,7 @@ def main() -> int:
     ap.add_argument("--speed-limit", choices=mr.SPEED_LIMITS, default="motor",
                     help="RunConfig.speed_limit (solver: SimWorld's clamp, what ROS runs; not momentum-conserving)")
     ap.add_argument("--blend", type=float, default=0.0, help="ExecutorConfig.blend_time [s]")
-    ap.add_argument("--pitch-gain", type=float, default=mr.RunConfig.base_pitch_gain,
+    ap.add_argument("--pitch-gain", type=float, default=ExecutorConfig.base_pitch_gain,
                     help="ExecutorConfig.base_pitch_gain (0: open loop, the executor before session 24)")
     ap.add_argument("--latency", type=float, default=0.0, help="RunConfig.plan_latency [s]")
     ap.add_argument("--one-hand", action="store_true", help="ExecutorConfig.both_hands off")
@@ -194,7 +199,7 @@ def main() -> int:
         out["load_average_end"] = os.getloadavg()
         print(json.dumps(out, indent=1))
         return 0
-    overrides = dict(DEPARTURE) if a.objective == "departure" else {}
+    overrides = {**({} if a.planar_defaults else FOR_EXECUTION), **(DEPARTURE if a.objective == "departure" else {})}
     for kv in filter(None, a.set.split(",")):
         k, v = kv.split("=", 1)
         overrides[k] = json.loads(v) if v[:1] in "[{0123456789-tf" and v not in ("true", "false") else v
@@ -203,11 +208,11 @@ def main() -> int:
     out["objective"] = a.objective
     out["planner_overrides"] = overrides
     planner = None if a.replay else FallPlanner.from_params(**overrides)
-    run_cfg = mr.RunConfig(time_budget=a.budget, hold=a.hold, both_hands=not a.one_hand, plan_latency=a.latency,
-                           velocity_feedforward=not a.no_velocity_feedforward,
-                           speed_limit=a.speed_limit, blend_time=a.blend,
-                           base_pitch_gain=a.pitch_gain, **params.parse_overrides(a.run))
-    out["run_config"] = run_cfg.__dict__
+    run_cfg = mr.RunConfig.of(**{"time_budget": a.budget, "hold": a.hold, "both_hands": not a.one_hand,
+                                 "plan_latency": a.latency, "velocity_feedforward": not a.no_velocity_feedforward,
+                                 "speed_limit": a.speed_limit, "blend_time": a.blend, "base_pitch_gain": a.pitch_gain,
+                                 **params.parse_overrides(a.run)})
+    out["run_config"] = dataclasses.asdict(run_cfg)
     if a.walking_push:
         out["scenario"] = WALKING_SCENARIO
         out["cases"] = [walking_case(planner, run_cfg, float(f), a) for f in a.walking_push.split(",")]

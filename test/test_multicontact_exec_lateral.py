@@ -22,7 +22,7 @@ def _run(**run) -> dict:
     sc = scenario.load("multicontact_push", [f"push.0.force=[{force[0]}, {force[1]}, {force[2]}]"])
     sc["controllers"] = []
     return execute(sc, segments=plan.segments, start_time=plan.take_over_time,
-                   cfg=RunConfig(settle=2.5, stop_balance=False, **run))
+                   cfg=RunConfig.of(settle=2.5, stop_balance=False, **run))
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +39,7 @@ def test_the_stored_plan_is_a_step_ending_on_both_feet(runs):
 
 def test_with_the_lateral_balance_the_step_plan_ends_at_rest_on_both_feet(runs):
     r = runs["lateral"]
-    assert r["lateral_ticks"] > 500 and 0.0 < r["lateral_offset_max_rad"] <= RunConfig().lateral_max + 1e-12
+    assert r["lateral_ticks"] > 500 and 0.0 < r["lateral_offset_max_rad"] <= RunConfig().executor.lateral_max + 1e-12
     assert r["final_mode"] == "LF/RF" and r["final_mode_matches_plan"]
     assert r["final_ke"] < 0.5 and not r["other_links_touching"]
     assert r["success"]

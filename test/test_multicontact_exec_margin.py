@@ -29,7 +29,7 @@ def _run(name: str) -> tuple[StoredPlan, dict]:
     sc = scenario.load("multicontact_push", [f"push.0.force=[{force[0]}, {force[1]}, {force[2]}]"])
     sc["controllers"] = []
     return plan, execute(sc, segments=plan.segments, start_time=plan.take_over_time,
-                         cfg=RunConfig(settle=2.0, stop_balance=False))
+                         cfg=RunConfig.of(settle=2.0, stop_balance=False))
 
 
 @pytest.fixture(scope="module")

@@ -22,7 +22,7 @@ def _run(**run) -> tuple[StoredPlan, dict]:
     sc = scenario.load("multicontact_push", [f"push.0.force=[{force[0]}, {force[1]}, {force[2]}]"])
     sc["controllers"] = []
     return plan, execute(sc, segments=plan.segments, start_time=plan.take_over_time,
-                         cfg=RunConfig(settle=0.5, **run))
+                         cfg=RunConfig.of(settle=0.5, **run))
 
 
 @pytest.fixture(scope="module")

@@ -30,7 +30,7 @@ def _run(ke: int, **run) -> dict:
     force = plan.meta["push_force"]
     sc = scenario.load("multicontact_push", [f"push.0.force=[{force[0]}, {force[1]}, {force[2]}]"])
     sc["controllers"] = []
-    return execute(sc, segments=plan.segments, start_time=plan.take_over_time, cfg=RunConfig(**run))
+    return execute(sc, segments=plan.segments, start_time=plan.take_over_time, cfg=RunConfig.of(**run))
 
 
 @pytest.fixture(scope="module")
@@ -66,3 +66,27 @@ def test_tracking_the_plans_stop_instead_the_robot_falls_over_the_front_foot(run
     r = runs[(ke, False)]
     assert r["stop_balance"] is None
     assert not r["success"] and r["final_trunk_tilt_deg"] > 60.0 and r["other_links_touching"]
+
+
+@pytest.mark.parametrize("name", ["multicontact_push_20J_step_margin25", "multicontact_push_40J_step_margin25"])
+def test_the_shipped_plans_for_the_3d_robot_end_upright_at_rest(name):
+    """The plans made for execution (paper objective, ``planner.FOR_EXECUTION``; session 42), the 40 J one the
+    scenario's default: one step each, at rest on both feet with nothing else touching."""
+    from humfall_ros.multicontact.planner import FOR_EXECUTION
+
+    plan = StoredPlan.load(plan_path(name))
+    assert plan.meta["objective"] == "paper" and plan.meta["planner_overrides"] == FOR_EXECUTION
+    force = plan.meta["push_force"]
+    sc = scenario.load("multicontact_push", [f"push.0.force=[{force[0]}, {force[1]}, {force[2]}]"])
+    sc["controllers"] = []
+    r = execute(sc, segments=plan.segments, start_time=plan.take_over_time, cfg=RunConfig())
+    assert [(e["extremity"], e["change"]) for e in r["contact_events"]] == [("RF", "remove"), ("RF", "add")]
+    assert r["stop_balance"] is not None and r["final_mode"] == "LF/RF" and r["final_ke"] < 0.5
+    assert not r["other_links_touching"] and r["final_trunk_tilt_deg"] < 5.0 and r["success"]
+
+
+def test_the_scenario_executes_a_plan_made_for_the_3d_robot_by_default():
+    sc = scenario.load("multicontact_push")
+    (c,) = sc["controllers"]
+    plan = StoredPlan.load(plan_path(c["params"]["plan_file"]))
+    assert plan.meta["objective"] == "paper" and plan.meta["push_force"][0] == sc["push"][0]["force"][0]

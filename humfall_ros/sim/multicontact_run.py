@@ -57,10 +57,8 @@ class RunConfig:
         contact_force_min: a limb or link touches when its tick-mean contact force exceeds this [N].
         final_window: the final mode and KE are judged over this last stretch of the run [s].
         time_budget: the planner's wall-clock budget [s].
-        hold, both_hands, velocity_feedforward, blend_time, base_pitch_gain, base_pitch_correction_max,
-            swing_control, swing_over_release, swing_clearance, landing_blend_time, swing_attitude_weight,
-            swing_attitude_gain, swing_posture_gain, lateral_gain, lateral_damping, lateral_max, stop_balance,
-            stop_settle_s ... stop_shift_speed: as in ``ExecutorConfig``.
+        executor: the executor's options (``ExecutorConfig``; its ``start_time`` is set to the run's take-over).
+            Until session 42 RunConfig repeated its fields; :meth:`of` still takes them flat.
         plan_latency: the plan is made from the state at the push's end but the executor takes over
             this much later [s] (the standing balance in between): what a planner that needs that
             long would do without pausing the simulator. 0: paused (the plan's state is the take-over's).
@@ -81,37 +79,22 @@ class RunConfig:
     contact_force_min: float = 5.0
     final_window: float = 0.1
     time_budget: float = 120.0
-    hold: str = "planar"
-    both_hands: bool = True
-    velocity_feedforward: bool = True
-    blend_time: float = 0.0
-    base_pitch_gain: float = ExecutorConfig.base_pitch_gain
-    base_pitch_correction_max: float = ExecutorConfig.base_pitch_correction_max
-    swing_control: str = ExecutorConfig.swing_control
-    swing_over_release: bool = ExecutorConfig.swing_over_release
-    swing_clearance: float = ExecutorConfig.swing_clearance
-    landing_blend_time: float = ExecutorConfig.landing_blend_time
-    swing_attitude_weight: float = ExecutorConfig.swing_attitude_weight
-    swing_attitude_gain: float = ExecutorConfig.swing_attitude_gain
-    swing_posture_gain: float = ExecutorConfig.swing_posture_gain
-    lateral_gain: float = ExecutorConfig.lateral_gain
-    lateral_damping: float = ExecutorConfig.lateral_damping
-    lateral_max: float = ExecutorConfig.lateral_max
-    stop_balance: bool = ExecutorConfig.stop_balance
-    stop_settle_s: float = ExecutorConfig.stop_settle_s
-    stop_settle_target: str = ExecutorConfig.stop_settle_target
-    stop_balance_kp: float = ExecutorConfig.stop_balance_kp
-    stop_balance_kd: float = ExecutorConfig.stop_balance_kd
-    stop_balance_max_offset: float = ExecutorConfig.stop_balance_max_offset
-    stop_hip_flex_rad: float = ExecutorConfig.stop_hip_flex_rad
-    stop_hip_rise_s: float = ExecutorConfig.stop_hip_rise_s
-    stop_hip_hold_s: float = ExecutorConfig.stop_hip_hold_s
-    stop_hip_release_s: float = ExecutorConfig.stop_hip_release_s
-    stop_shift_s: float = ExecutorConfig.stop_shift_s
-    stop_shift_speed: float = ExecutorConfig.stop_shift_speed
+    executor: ExecutorConfig = dataclasses.field(default_factory=ExecutorConfig)
     plan_latency: float = 0.0
     speed_limit: str = "motor"
     event_debounce: float = 0.03
+
+    @classmethod
+    def of(cls, **options) -> RunConfig:
+        """A run configuration from flat options: this class's fields and ``ExecutorConfig``'s (e.g.
+        ``RunConfig.of(settle=2.0, stop_balance=False)``; the benchmark's ``--run name=value``)."""
+        own = {f.name for f in dataclasses.fields(cls)} - {"executor"}
+        executor = {f.name for f in dataclasses.fields(ExecutorConfig)} - {"start_time"}
+        unknown = set(options) - own - executor
+        if unknown:
+            raise ValueError(f"not a RunConfig or ExecutorConfig option: {sorted(unknown)}")
+        return cls(executor=ExecutorConfig(**{k: v for k, v in options.items() if k in executor}),
+                   **{k: v for k, v in options.items() if k in own})
 
 
 def push_end_time(sc: dict) -> float:
@@ -273,7 +256,7 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
         duration: simulated time [s] (default: take-over + plan duration + ``cfg.settle``).
         initial_mode: the contact mode the measured state is made consistent with and planned from: the feet on
             the ground at the take-over ("LF/RF" standing; "LF" for a push in a walking robot's right swing,
-            session 28, where ``cfg.hold`` "measured" keeps the gait's lateral weight shift).
+            session 28, where ``cfg.executor.hold`` "measured" keeps the gait's lateral weight shift).
     """
     cfg = cfg or RunConfig()
     if (planner is None) == (segments is None):
@@ -319,9 +302,7 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
 
     t_plan = t_start
     t_start = t_start + cfg.plan_latency
-    # RunConfig's executor options carry ExecutorConfig's names
-    shared = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(ExecutorConfig) if hasattr(cfg, f.name)}
-    ex_cfg = ExecutorConfig(start_time=t_start, **shared)
+    ex_cfg = dataclasses.replace(cfg.executor, start_time=t_start)
     hm = _model()
     executor = MulticontactExecutor([], pm.joint_names, _joint_names(), ex_cfg,
                                     plan_source=plan_source if segments is None else stored_source, model=hm)
