@@ -55,7 +55,8 @@ from humfall_ros.control.step_control import (
     predicted_stance_placement,
 )
 from humfall_ros.fall.stepping_zone import stepping_zone
-from humfall_ros.model.humanoid import SIDES, HumanoidModel, imu_quaternion, load_model, support_polygon
+from humfall_ros.model.humanoid import (SIDES, HumanoidModel, imu_quaternion, load_model, point_in_polygon_margin,
+                                       support_polygon)
 
 
 # joints inertia shaping may move, by name fragment: all of them (the paper), the pitch chain, or its upper body
@@ -139,6 +140,8 @@ class SafeFallConfig:
     defer_scope: str = "walking"
     max_extra_steps: int = 0
     restep_after_s: float = 0.1
+    capture_abandon: bool = True
+    capture_abandon_margin_m: float = 0.0
 
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> SafeFallConfig:
@@ -720,11 +723,12 @@ class SafeFallController:
                 shape = c.inertia_shaping and self.target is not None and not is_lift
                 self.shape_allowed = shape
                 # a predicted capture holds (or balances) and shapes only once the robot is seen falling about its
-                # new support
-                if self.chosen.captured and not is_lift and c.capture_balance:
+                # new support; unless the capture point is already too far outside the soles to be stopped
+                given_up = self.chosen.captured and shape and self._capture_given_up(obs)
+                if self.chosen.captured and not is_lift and c.capture_balance and not given_up:
                     self.phase = "landed"
                 else:
-                    self.phase = ("shaping" if not self.chosen.captured else "landed") if shape else "hold"
+                    self.phase = ("shaping" if given_up or not self.chosen.captured else "landed") if shape else "hold"
                 self.hold = self.last_command.copy()
                 self.falling_since = None
             else:
@@ -793,6 +797,24 @@ class SafeFallController:
                 self.last_command = pos
                 return JointTargets(pos, qd)
         return JointTargets(self.hold.copy() if self.hold is not None else np.asarray(obs.joint_position, float))
+
+    def _capture_given_up(self, obs: Observation) -> bool:
+        """At the touchdown of a predicted capture: is the measured capture point's margin inside both soles' hull
+        below ``capture_abandon_margin_m`` (``capture_abandon``; ours, session 42)? The decision's Q2 is 14-33 cm short
+        of the touchdown's capture point when decided during the push (session 39), so a predicted capture may land
+        beyond any balance (the ankle balance needs the capture point 2-3.5 cm inside): the step is then a fall, and
+        inertia shaping starts at the touchdown as after a predicted fall (paper 1 §IV), not once the balance is seen
+        failing, when the fall's direction is already set."""
+        c = self.config
+        hull = self._soles_hull(obs) if c.capture_abandon else None
+        if hull is None:
+            return False
+        margin = point_in_polygon_margin(np.asarray(obs.state.capture_point, float)[:2], hull)
+        if margin >= c.capture_abandon_margin_m:
+            return False
+        self.reasons.append(f"{obs.time:.3f} s: touchdown with the capture point {margin:+.3f} m inside the soles: "
+                            "the capture is given up, inertia shaping from the touchdown")
+        return True
 
     def _restep(self, obs: Observation) -> None:
         """After a predicted capture: once the robot is seen falling about its new support (the 2-D pendulum over
