@@ -145,6 +145,21 @@ def test_invalid_request_answers_without_planning(planner):
     assert not r["success"] and r["reason"].startswith("invalid request:") and r["nlp_count"] == 0
 
 
+def test_a_planner_profile_plans_with_its_overrides_and_an_unknown_one_is_refused():
+    """``planner_profile`` "execution": a planner of the same parameters with ``FOR_EXECUTION`` on top and no
+    library, built once; an unknown name answers with its reason and plans nothing."""
+    from humfall_ros.multicontact.planner import FOR_EXECUTION
+
+    base = FallPlanner.from_params(library_file="multicontact_library/standing_pushes.json.gz", max_iter=123)
+    ex = base.profile("execution")
+    assert ex is base.profile("execution") and base.profile("") is base
+    assert ex.library is None and base.library is not None
+    assert ex.opt.cfg.step_capture_margin == FOR_EXECUTION["step_capture_margin"] != base.opt.cfg.step_capture_margin
+    assert ex.opt.cfg.max_iter == 123   # the rest are the planner's own
+    r = base.plan({"kinetic_energy": 20.0, "planner_profile": "bogus"})
+    assert not r["success"] and "unknown planner_profile 'bogus'" in r["reason"] and r["nlp_count"] == 0
+
+
 def test_seed_durations_first_then_retry_list_on_the_grid():
     from humfall_ros.multicontact.collocation import OptConfig
     order = SEED_ORDER_UNTIL_SESSION_30

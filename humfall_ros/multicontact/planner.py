@@ -43,6 +43,9 @@ DEPARTURE = {"transition_objective": "post_impact", "frontier_order": "post_impa
 # 60 J ends at rest, also with TYPICAL_NOISE (docs/multicontact.md "Session 41"). Not the declared default: the
 # planar sweep then takes 135 s instead of 108 s and lands its steps with more energy (30 J: 30.2 J > the push).
 FOR_EXECUTION = {"step_capture_margin": 0.25}
+# A request's ``planner_profile`` (PlanFall): overrides on top of the planner's own parameters, for one request.
+# "execution": FOR_EXECUTION, without the library (the shipped one is planned with the declared margin).
+PROFILES = {"execution": {**FOR_EXECUTION, "library_file": ""}}
 
 
 @dataclasses.dataclass
@@ -167,6 +170,8 @@ class FallPlanner:
         self.model = model or load_model()
         self.cfg = cfg or PlannerConfig()
         self.opt = TrajectoryOptimizer(self.model, opt_cfg or OptConfig())
+        self.values: dict | None = None   # the parameters it was built from (from_params), for the profiles
+        self._profiles: dict[str, FallPlanner] = {}
         self.library = None
         if self.cfg.library_file:
             path = library_path(self.cfg.library_file)
@@ -191,7 +196,21 @@ class FallPlanner:
             raise ValueError(f"multicontact_planner has no parameters {sorted(unknown)}")
         vals.update(overrides)
         opt, cfg = configs_from_params(vals)
-        return FallPlanner(opt, cfg)
+        planner = FallPlanner(opt, cfg)
+        planner.values = vals
+        return planner
+
+    def profile(self, name: str) -> FallPlanner:
+        """The planner for a request's ``planner_profile``: this one for "", else one built from this planner's
+        parameters (the declaration's when it was not built by :meth:`from_params`) with ``PROFILES[name]`` on
+        top, made on first use and kept (its NLP structures are its own). ValueError for an unknown name."""
+        if not name:
+            return self
+        if name not in PROFILES:
+            raise ValueError(f"unknown planner_profile {name!r} (one of '', {', '.join(map(repr, PROFILES))})")
+        if name not in self._profiles:
+            self._profiles[name] = FallPlanner.from_params(self.values, **PROFILES[name])
+        return self._profiles[name]
 
     def warm_up_checks(self) -> bool:
         """Start the check's worker process (``check_workers``) before the first request needs it; False
@@ -214,8 +233,18 @@ class FallPlanner:
     def plan(self, req: dict) -> dict:
         """A plan for one request: from the library when one is loaded and its re-plan is accepted
         (``result["source"] == "library"``), else by the tree search (``"tree_search"``, with what the
-        library said in ``library_attempt``), within the request's time budget all told."""
+        library said in ``library_attempt``), within the request's time budget all told. A request's
+        ``planner_profile`` (e.g. "execution") is planned by :meth:`profile`'s planner."""
         t0 = time.perf_counter()
+        name = req.get("planner_profile") or ""
+        if name:
+            try:
+                planner = self.profile(name)
+            except ValueError as e:
+                return failure(f"invalid request: {e}", time.perf_counter() - t0)
+            out = planner.plan({**req, "planner_profile": ""})
+            out["total_time_s"] = time.perf_counter() - t0   # with the profile's planner built, the first time
+            return out
         try:
             vr = validate(self.model, req, self.cfg)
         except InvalidRequest as e:

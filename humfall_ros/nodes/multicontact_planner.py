@@ -22,7 +22,7 @@ from rclpy.node import Node
 
 from humfall_ros.multicontact import contacts as C
 from humfall_ros.multicontact.modes import Environment, mode_label
-from humfall_ros.multicontact.planner import FallPlanner, configs_from_params
+from humfall_ros.multicontact.planner import FallPlanner
 from humfall_ros.multicontact.resim import shutdown_check_pool
 from humfall_ros.nodes.common import Params, leave_now, run_node
 
@@ -36,9 +36,8 @@ class MulticontactPlanner(Node):
         values = p.declare_all()   # every parameter of config/multicontact_planner.yaml
         self.queue_size = values["queue_size"]
         warm = values["warm_up"]
-        opt_cfg, plan_cfg = configs_from_params(values)
         try:
-            self.planner = FallPlanner(opt_cfg, plan_cfg)
+            self.planner = FallPlanner.from_params(values)   # keeps the values: a request's planner_profile
         except ValueError as e:   # a library file that cannot be used: say why and stop (exit 2)
             self.get_logger().fatal(str(e))
             raise SystemExit(2) from None
@@ -52,6 +51,7 @@ class MulticontactPlanner(Node):
         if warm:
             threading.Thread(target=self._warm_up, name="nlp-warm-up", daemon=True).start()
         lib = self.planner.library
+        opt_cfg, plan_cfg = self.planner.opt.cfg, self.planner.cfg
         self.get_logger().info(f"plan_fall ready (n={self.planner.model.n}, m={self.planner.model.m}, "
                                f"Nd={opt_cfg.n_knots}, objective={opt_cfg.transition_objective}, "
                                f"queue_size={self.queue_size}, library="
@@ -106,14 +106,16 @@ class MulticontactPlanner(Node):
                 self._running_since = time.perf_counter()
                 req = {"q": list(request.q), "v": list(request.v), "kinetic_energy": request.kinetic_energy,
                        "direction": request.direction, "initial_mode": request.initial_mode,
-                       "wall_distance": request.wall_distance, "time_budget": request.time_budget}
+                       "wall_distance": request.wall_distance, "time_budget": request.time_budget,
+                       "planner_profile": request.planner_profile}
                 try:
                     result = self.planner.plan(req)
                 except Exception as e:  # noqa: BLE001 - the node must keep serving
                     self.get_logger().error(f"planner failed: {e!r}")
                     result = {"success": False, "reason": f"internal error: {e}", "segments": []}
                 self._fill(response, result)
-                self.get_logger().info(f"plan_fall: success={response.success} "
+                profile = f"profile={request.planner_profile} " if request.planner_profile else ""
+                self.get_logger().info(f"plan_fall: success={response.success} {profile}"
                                        f"source={result.get('source', '')} "
                                        f"sequence={list(response.contact_sequence)} "
                                        f"nlps={response.nlp_count} t={response.total_time_s:.1f}s: {response.reason}")

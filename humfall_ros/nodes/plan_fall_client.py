@@ -1,6 +1,7 @@
 """Client of the ``plan_fall`` service, behind ``humfall plan-fall``.
 
-    humfall plan-fall --ke 30 [--wall 0.8] [--direction 1] [--mode LF/RF] [--budget S] [--json] [--plots DIR]
+    humfall plan-fall --ke 30 [--wall 0.8] [--direction 1] [--mode LF/RF] [--budget S] [--profile execution]
+                      [--json] [--plots DIR]
 
 Prints a human summary, or with --json one JSON object (success, reason,
 contact_sequence, node_ke, final_ke, nlp_times_s, total_time_s, landings (per
@@ -30,6 +31,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap.add_argument("--direction", type=float, default=1.0, help="+1 forward push, -1 backward")
     ap.add_argument("--mode", default="LF/RF", help="initial contact mode, e.g. LF/RF")
     ap.add_argument("--budget", type=float, default=0.0, help="planning time budget (s); 0: node default")
+    ap.add_argument("--profile", default="", help="planner_profile: '' (the node's parameters) or 'execution' "
+                    "(a plan for the 3-D robot: multicontact.planner.FOR_EXECUTION, no library)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--plots", default="", help="write the tree, stick-figure and KE plots of the answer into DIR")
     ap.add_argument("--service", default=SERVICE, help="service name")
@@ -137,6 +140,7 @@ def main(argv: list[str] | None = None) -> int:
         req.initial_mode = args.mode
         req.wall_distance = float(args.wall)
         req.time_budget = float(args.budget)
+        req.planner_profile = args.profile
         timeout = args.timeout or ((args.budget + 30.0) if args.budget > 0 else 630.0)
         future = client.call_async(req)
         t0 = time.monotonic()
