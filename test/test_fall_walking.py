@@ -182,3 +182,19 @@ def test_walking_push_capture_does_not_hang_on_the_replan_window(replan_s):
     assert not s["fell"] and s["captured"], s
     assert s["min_target_distance_m"] > 0.3
     assert abs(s["prediction"]["touchdown_error_s"]) <= 0.05
+
+
+def test_a_walking_push_no_step_captures_falls_clear_of_the_target_and_shaping_turns_it_further():
+    """issue 11's walking figure (paper 1: 50 / 120 deg) at 395 N, a push no step captures (session 42;
+    docs/safe_fall.md "Session 42": met on alpha2 at 390 / 395 / 405 / 415 N): both controllers fall with the target
+    clear, stepping's alpha2 >= 50 deg, + shaping >= 120 deg and well over stepping's."""
+    from humfall_ros import scenario
+    from humfall_ros.sim import fall_runs as runs
+
+    got = {k: runs.summary(runs.run(scenario.load("walking_push", ["push.0.force=[395.0, 0.0, 0.0]"]), k))
+           for k in ("stepping", "stepping_inertia")}
+    for k, s in got.items():
+        assert s["fell"] and not s["captured"] and s["min_target_distance_m"] >= 0.05, (k, s)
+    assert got["stepping"]["avoidance_angle_p2_deg"] >= 50.0
+    assert got["stepping_inertia"]["avoidance_angle_p2_deg"] >= 120.0
+    assert got["stepping_inertia"]["avoidance_angle_p2_deg"] >= got["stepping"]["avoidance_angle_p2_deg"] + 20.0
