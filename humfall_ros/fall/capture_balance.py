@@ -77,6 +77,12 @@ class CaptureBalance:
         """Is the settle posture fully blended in at ``time`` [s] (the hand-back may come)?"""
         return self.start is not None and time - self.start >= self.config.settle_s - 1e-9
 
+    def over(self, time: float) -> bool:
+        """Is the settle posture blended in and the hip strategy (if any) back at ``time`` [s]?"""
+        c = self.config
+        hip = c.hip_rise_s + c.hip_hold_s + c.hip_release_s if c.hip_flex_rad > 0 else 0.0
+        return self.settled(time) and time - self.start >= hip - 1e-9
+
     def _begin(self, obs: Observation) -> None:
         c, s = self.config, obs.state
         self.start = obs.time

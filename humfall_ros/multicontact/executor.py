@@ -546,13 +546,6 @@ class MulticontactExecutor:
             return False
         return not any(s.change == "add" for s in self.segments[self._seg:])
 
-    def _stop_balance_over(self, time: float) -> bool:
-        """Has the stop's balance blended its settle posture in, and its hip strategy (if any) come back?"""
-        b = self.stop_balance
-        c = b.config
-        hip = c.hip_rise_s + c.hip_hold_s + c.hip_release_s if c.hip_flex_rad > 0 else 0.0
-        return b.settled(time) and time - b.start >= hip - 1e-9
-
     def _stop_balance_command(self, observation: Observation, tp: float) -> JointTargets:
         """The capture balance's joint targets (no velocity feed-forward); its first call starts it, from the
         last command this executor sent."""
@@ -561,7 +554,7 @@ class MulticontactExecutor:
             start = self._last_command if self._last_command is not None else self._servo_targets(observation)
             self.stop_balance = CaptureBalance(self.model, c.stop_balance_config, self.stepper, start)
             self.stop_balance_time = tp
-        elif (c.stop_shift_s > 0 and self.stop_shift is None and self._stop_balance_over(observation.time)
+        elif (c.stop_shift_s > 0 and self.stop_shift is None and self.stop_balance.over(observation.time)
               and float(np.linalg.norm(np.asarray(observation.state.com_velocity, float)[:2])) < c.stop_shift_speed):
             # stopped over the front sole: a second settle posture moves the CoM to the soles' middle, which puts the
             # rear sole down (the first cannot reach the ground with it)
