@@ -758,3 +758,30 @@ def test_capture_balance_lateral_roll_option():
     np.testing.assert_allclose(out[1.5][ankles] - out[0.0][ankles], d, atol=1e-9)
     np.testing.assert_allclose(out[1.5][hips] - out[0.0][hips], -d, atol=1e-9)
     np.testing.assert_allclose(out[1.5][others], out[0.0][others])
+
+
+def test_sensed_soles_rebuild_the_true_soles_from_joints_imu_and_com():
+    """``step_control.sensed_soles`` (the safe fall's decision, the give-up's hull, the capture balance, the lateral
+    roll): a robot pitched 0.3 rad onto its toes and rolled 0.1 rad, its IMU reading the true orientation and the
+    CoM the true one, gives the true sole corners; no usable IMU gives None."""
+    import pinocchio as pin
+
+    from humfall_ros.control.step_control import sensed_soles
+    from humfall_ros.model.humanoid import SIDES
+
+    joints = M.joint_vector(STANDING_POSTURE)
+    quat = pin.Quaternion(pin.rpy.rpyToMatrix(0.1, 0.3, 0.2)).coeffs()
+    q_true = M.configuration([0.4, -0.2, 0.7], quat, joints)
+    M.forward(q_true)
+    truth = {sd: M.sole_corners(sd)[:, :2].copy() for sd in SIDES}
+    imu = M.frame_placement(M.imu_frame).rotation.copy()
+    com = pin.centerOfMass(M.model, M.data, q_true).copy()
+    M.forward(M.configuration([0, 0, 0], [0, 0, 0, 1], joints))   # the model left elsewhere
+    q, soles = sensed_soles(M, joints, (pin.Quaternion(imu).coeffs(), np.zeros(3)), com)
+    for sd in SIDES:
+        np.testing.assert_allclose(soles[sd], truth[sd], atol=1e-9)
+    np.testing.assert_allclose(q[:3], q_true[:3], atol=1e-9)
+    M.forward(M.configuration(q_true[:3], [0, 0, 0, 1], joints))   # the same robot upright: other soles
+    assert np.max(np.abs(M.sole_corners("l")[:, :2] - truth["l"])) > 0.05
+    assert sensed_soles(M, joints, None, com) is None
+    assert sensed_soles(M, joints, (np.full(4, np.nan), np.zeros(3)), com) is None

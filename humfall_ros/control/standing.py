@@ -13,8 +13,8 @@ from typing import Callable
 import numpy as np
 
 from humfall_ros.control.contract import JointTargets, Observation
-from humfall_ros.control.step_control import configuration_from_sensors
-from humfall_ros.model.humanoid import SIDES, HumanoidModel, imu_quaternion
+from humfall_ros.control.step_control import sensed_soles
+from humfall_ros.model.humanoid import SIDES, HumanoidModel
 
 
 def hip_flexion_profile(t: float, amplitude: float, rise: float, hold: float, release: float) -> float:
@@ -61,15 +61,16 @@ def lateral_roll(com, com_velocity, left, right, gain: float, damping: float, bo
 def lateral_roll_sensed(model: HumanoidModel, observation: Observation, gain: float, damping: float,
                         bound: float) -> float | None:
     """:func:`lateral_roll` of an observation: the estimator's CoM and velocity, and the soles' centres of the
-    sensed configuration (``configuration_from_sensors``: the joints, the IMU, the CoM). None: no usable IMU reading
+    sensed configuration (``step_control.sensed_soles``: the joints, the IMU, the CoM). None: no usable IMU reading
     or state. ``model``'s kinematics are overwritten (give a copy with its own data where that matters)."""
-    quat = imu_quaternion(observation.inputs.get("imu"))
     s = observation.state
     com, vel = np.asarray(s.com, float), np.asarray(s.com_velocity, float)
-    if quat is None or not (np.all(np.isfinite(com)) and np.all(np.isfinite(vel))):
+    if not (np.all(np.isfinite(com)) and np.all(np.isfinite(vel))):
         return None
-    model.forward(configuration_from_sensors(model, observation.joint_position, quat, com))
-    left, right = (model.sole_corners(sd)[:, :2].mean(axis=0) for sd in SIDES)
+    sensed = sensed_soles(model, observation.joint_position, observation.inputs.get("imu"), com)
+    if sensed is None:
+        return None
+    left, right = (sensed[1][sd].mean(axis=0) for sd in SIDES)
     return lateral_roll(com, vel, left, right, gain, damping, bound)
 
 

@@ -28,7 +28,7 @@ import math
 import numpy as np
 import pinocchio as pin
 
-from humfall_ros.model.humanoid import HumanoidModel, base_rotation_from_imu
+from humfall_ros.model.humanoid import SIDES, HumanoidModel, base_rotation_from_imu, imu_quaternion
 from humfall_ros.model.ik import FrameTask, PostureTask, WholeBodyIK
 
 
@@ -47,6 +47,18 @@ def configuration_from_sensors(model: HumanoidModel, joints, imu_quat_xyzw, com_
     c = pin.centerOfMass(m, d, q)
     q[:3] = np.asarray(com_world, float) - c
     return q
+
+
+def sensed_soles(model: HumanoidModel, joints, imu, com_world) -> tuple[np.ndarray, dict] | None:
+    """The sensed configuration (:func:`configuration_from_sensors`) and both soles' ground corners in it,
+    ``(q, {"l": (4, 2), "r": (4, 2)})`` [m] (touching or not); None without a usable IMU reading
+    (``imu``: ``Observation.inputs["imu"]``). ``model``'s kinematics are left at ``q``."""
+    quat = imu_quaternion(imu)
+    if quat is None:
+        return None
+    q = configuration_from_sensors(model, joints, quat, com_world)
+    model.forward(q)
+    return q, {sd: model.sole_corners(sd)[:, :2] for sd in SIDES}
 
 
 def predicted_stance_placement(stance: pin.SE3, pivot, r0, r1) -> pin.SE3:
@@ -189,4 +201,4 @@ class StepController:
 
 
 __all__ = ["StepControlConfig", "StepController", "SwingPlan", "configuration_from_sensors", "minimum_jerk",
-           "predicted_stance_placement"]
+           "predicted_stance_placement", "sensed_soles"]

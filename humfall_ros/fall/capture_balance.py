@@ -22,9 +22,9 @@ import numpy as np
 
 from humfall_ros.control.contract import Observation
 from humfall_ros.control.standing import StandingBalance, hip_flexion_profile, lateral_roll_sensed
-from humfall_ros.control.step_control import StepController, configuration_from_sensors
+from humfall_ros.control.step_control import StepController, sensed_soles
 from humfall_ros.fall.geometry import nearest_on_segments
-from humfall_ros.model.humanoid import SIDES, HumanoidModel, imu_quaternion, point_in_polygon_margin, support_polygon
+from humfall_ros.model.humanoid import SIDES, HumanoidModel, point_in_polygon_margin, support_polygon
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,12 +86,11 @@ class CaptureBalance:
     def _begin(self, obs: Observation) -> None:
         c, s = self.config, obs.state
         self.start = obs.time
-        quat = imu_quaternion(obs.inputs.get("imu"))
         ref = None
-        if quat is not None:
-            q = configuration_from_sensors(self.m, obs.joint_position, quat, s.com)
-            self.m.forward(q)
-            corners = np.vstack([self.m.sole_corners(sd)[:, :2] for sd in SIDES])
+        sensed = sensed_soles(self.m, obs.joint_position, obs.inputs.get("imu"), s.com)
+        if sensed is not None:
+            q, soles = sensed
+            corners = np.vstack(list(soles.values()))
             mid = corners.mean(axis=0)
             self.margin = point_in_polygon_margin(np.asarray(s.capture_point, float)[:2], support_polygon(corners))
             if c.settle_target == "spine":

@@ -53,6 +53,7 @@ from humfall_ros.control.step_control import (
     StepController,
     configuration_from_sensors,
     predicted_stance_placement,
+    sensed_soles,
 )
 from humfall_ros.fall.stepping_zone import stepping_zone
 from humfall_ros.model.humanoid import (SIDES, HumanoidModel, imu_quaternion, load_model, point_in_polygon_margin,
@@ -522,13 +523,11 @@ class SafeFallController:
         if ev_com is not None and np.all(np.isfinite(ev_com)) and \
                 np.linalg.norm(np.asarray(ev_com, float) - np.asarray(s.com, float)) > c.inconsistent_com_m:
             notes.append("fall event inconsistent with the state (CoM moved): deciding from the current state")
-        quat = imu_quaternion(obs.inputs.get("imu"))
-        if quat is None:
+        sensed = sensed_soles(self.m, obs.joint_position, obs.inputs.get("imu"), s.com)
+        if sensed is None:
             raise ValueError("no IMU orientation in the inputs")
-        q = configuration_from_sensors(self.m, obs.joint_position, quat, s.com)
+        q, soles = sensed
         self.q_decision = q
-        self.m.forward(q)
-        soles = {sd: self.m.sole_corners(sd)[:, :2] for sd in SIDES}
         placements = {sd: self.m.frame_placement(self.m.sole_frame[sd]).copy() for sd in SIDES}
         target, why = self._target(obs, soles)
         self.target = target
@@ -855,12 +854,8 @@ class SafeFallController:
         The new support after a step: with the capture balance the robot rocks from one sole's corner to the
         other's, and over the touching corners alone the energy read "falling" (standing_push: 0.6 s after
         touchdown, inertia shaping then took over from the balance and the robot fell)."""
-        quat = imu_quaternion(obs.inputs.get("imu"))
-        if quat is None:
-            return None
-        q = configuration_from_sensors(self.m, obs.joint_position, quat, obs.state.com)
-        self.m.forward(q)
-        return support_polygon(np.vstack([self.m.sole_corners(sd)[:, :2] for sd in SIDES]).tolist())
+        sensed = sensed_soles(self.m, obs.joint_position, obs.inputs.get("imu"), obs.state.com)
+        return None if sensed is None else support_polygon(np.vstack(list(sensed[1].values())).tolist())
 
     def _replan(self, obs: Observation, q: np.ndarray) -> None:
         """Re-decide the landing of the chosen swing side from this tick's state (ours, not the paper's).
