@@ -802,6 +802,17 @@ def test_library_file_checks(tmp_path):
     gz = tmp_path / "merged.json.gz"      # compressed by the name, and read back the same
     PlanLibrary.load(merged).save(gz)
     assert gz.read_bytes()[:2] == b"\x1f\x8b" and len(PlanLibrary.load(gz).entries) == len(both)
+    # a library that records its step capture margin is refused by a planner of another margin (its re-plans
+    # would land steps where the library did not plan them); one that does not record it (the shipped one) is not
+    margined = tmp_path / "margin25.json"
+    PlanLibrary(lib.entries[:1], {**lib.built_with, "step_capture_margin": 0.25}).save(margined)
+    with pytest.raises(ValueError, match="step_capture_margin 0.25, the planner uses 0.12"):
+        FallPlanner.from_params(library_file=str(margined))
+    assert len(FallPlanner.from_params(library_file=str(margined), step_capture_margin=0.25).library.entries) == 1
+    assert FallPlanner.from_params(library_file=SHIPPED_LIBRARY, step_capture_margin=0.25).library is not None
+    kept = tmp_path / "kept25.json"   # a merge keeps a margin its files say, and says none when they do not
+    assert library_main(["--add", str(margined), "--set", "step_capture_margin=0.25", "--out", str(kept)]) == 0
+    assert PlanLibrary.load(kept).built_with["step_capture_margin"] == 0.25
     with pytest.raises(SystemExit):
         library_main(["--out", str(tmp_path / "empty.json")])
     with pytest.raises(ValueError, match="none.json.*cannot be read: FileNotFoundError"):

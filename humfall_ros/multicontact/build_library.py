@@ -47,9 +47,11 @@ def main(argv=None) -> int:
     # one file holds plans of one capture-cost weight (its re-plans solve with it): the searched plans' and
     # the added files' (a merge without a search keeps the files' weight, whatever the planner's)
     weights = {"this build's searches": lib.capture_weight} if floats(a.kes) else {}
+    margin_said = bool(floats(a.kes))   # the searches' margin is the planner's; so is any added file's that says
     for path in a.add:
         other = PlanLibrary.load(path)
         other.check_compatible(planner.opt.cfg)
+        margin_said = margin_said or "step_capture_margin" in other.built_with
         if other.capture_weight is not None:
             weights[path] = other.capture_weight
         lib.entries += other.entries
@@ -60,6 +62,8 @@ def main(argv=None) -> int:
         lib.built_with["step_capture_weight"] = next(iter(weights.values()))
     else:   # only files that do not say: neither does the merge (their re-plans use the planner's weight)
         lib.built_with.pop("step_capture_weight", None)
+    if not margin_said:   # likewise the step capture margin (check_compatible: a file's that says is the planner's)
+        lib.built_with.pop("step_capture_margin", None)
     lib.entries.sort(key=lambda e: (e.wall_distance, -e.direction, e.kinetic_energy))
     if a.densify > 0:
         t1 = time.perf_counter()

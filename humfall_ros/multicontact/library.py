@@ -128,10 +128,10 @@ class PlanLibrary:
         return None if w is None else float(w)
 
     def check_compatible(self, cfg: OptConfig) -> None:
-        """ValueError unless every stored segment has ``cfg.n_knots`` knots, the library was built
-        with ``cfg.transition_objective`` (when it says), and a library planned with a capture cost meets
-        foot-landing NLPs that have it (``cfg.step_capture_weight`` 0 builds them without: the library's
-        weight would be ignored)."""
+        """ValueError unless every stored segment has ``cfg.n_knots`` knots, the library was built with
+        ``cfg.transition_objective`` and ``cfg.step_capture_margin`` (when it says), and a library planned with a
+        capture cost meets foot-landing NLPs that have it (``cfg.step_capture_weight`` 0 builds them without: the
+        library's weight would be ignored)."""
         bad = {len(s.time) for e in self.entries for s in e.segments} - {cfg.n_knots}
         if bad:
             raise ValueError(f"plan library: segments with {sorted(bad)} knots, the planner's NLPs have "
@@ -140,6 +140,11 @@ class PlanLibrary:
         if obj is not None and obj != cfg.transition_objective:
             raise ValueError(f"plan library built with transition_objective {obj!r}, the planner uses "
                              f"{cfg.transition_objective!r}: rebuild the library")
+        margin = self.built_with.get("step_capture_margin")
+        if margin is not None and abs(float(margin) - cfg.step_capture_margin) > 1e-9:
+            raise ValueError(f"plan library built with step_capture_margin {margin:g}, the planner uses "
+                             f"{cfg.step_capture_margin:g}: its re-plans would land steps the library did not "
+                             f"plan for (rebuild the library, or use the one of that margin)")
         if (self.capture_weight or 0.0) > 0 and cfg.step_capture_weight <= 0:
             raise ValueError(f"plan library planned with step_capture_weight {self.capture_weight:g}, the planner's "
                              f"foot landings have no capture cost (step_capture_weight 0): rebuild the library")
@@ -165,7 +170,8 @@ class PlanLibrary:
         """Full tree searches over the grid; failed pushes are left out."""
         lib = PlanLibrary(built_with={"n_knots": planner.opt.cfg.n_knots,
                                       "transition_objective": planner.opt.cfg.transition_objective,
-                                      "step_capture_weight": planner.opt.cfg.step_capture_weight})
+                                      "step_capture_weight": planner.opt.cfg.step_capture_weight,
+                                      "step_capture_margin": planner.opt.cfg.step_capture_margin})
         for w in wall_distances:
             for d in directions:
                 for ke in kinetic_energies:
