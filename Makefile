@@ -20,7 +20,7 @@ export RMW_IMPLEMENTATION := rmw_fastrtps_cpp
 export AMENT_PREFIX_PATH := $(VENV_ABS)
 export MPLBACKEND := Agg
 
-.PHONY: setup demo test lint bench interfaces install clean lock library
+.PHONY: setup demo test lint bench interfaces install clean lock library library-execution
 
 $(PY):
 	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' || { \
@@ -115,6 +115,14 @@ build/library/walls_between_b.json.gz: | $(VENV)/.deps-stamp
 
 library: $(LIBRARY_PARTS)
 	$(BUILD_LIBRARY) $(foreach f,$(LIBRARY_PARTS),--add $(f)) $(LIBRARY_TREE) --densify 1.25 --probe --out $(LIBRARY_OUT)
+
+# The library of the plans made for the 3-D robot (planner.FOR_EXECUTION: step_capture_margin 0.25; the "execution"
+# planner_profile's, planner.EXECUTION_LIBRARY): forward pushes 10-50 J by the tree search with today's defaults every
+# 2.5 J, densified to 1.25 J and probed; ~3 min on one core, 33 plans (docs/multicontact.md "Session 43").
+EXECUTION_LIBRARY_OUT ?= config/multicontact_library/execution_pushes.json.gz
+library-execution: | $(VENV)/.deps-stamp
+	$(BUILD_LIBRARY) --kes 10,12.5,15,17.5,20,22.5,25,27.5,30,32.5,35,37.5,40,42.5,45,47.5,50 \
+		--set step_capture_margin=0.25 --densify 1.25 --probe --out $(EXECUTION_LIBRARY_OUT)
 
 # Re-resolve the newest versions in a scratch venv and write them to constraints.txt.
 lock:

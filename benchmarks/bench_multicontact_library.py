@@ -3,7 +3,7 @@ Prints one JSON object.
 
     python benchmarks/bench_multicontact_library.py [--library multicontact_library/standing_pushes.json.gz]
         [--queries 11,12,14,16,...,48,49] [--direction 1] [--wall 0] [--repeats 2] [--budget 10]
-        [--set name=value,...]
+        [--set name=value,...] [--profile execution]
 
 The planner is the node's (config/multicontact_planner.yaml) with ``library_file`` set: each query is a
 ``FallPlanner.plan`` request, answered by a warm re-plan of the nearest entry (or, when that is not
@@ -24,7 +24,7 @@ import time
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from humfall_ros.multicontact.modes import Environment  # noqa: E402
-from humfall_ros.multicontact.planner import FallPlanner  # noqa: E402
+from humfall_ros.multicontact.planner import PROFILES, FallPlanner  # noqa: E402
 from humfall_ros.params import parse_overrides  # noqa: E402
 
 
@@ -40,8 +40,13 @@ def main(argv=None) -> int:
                     help="each request's time budget (s): what the library does not answer goes to the tree search "
                          "for what is left of it (the node's default is 120 s; 10 keeps `make bench` short)")
     ap.add_argument("--set", default="", help="planner parameter overrides, name=value,...")
+    ap.add_argument("--profile", default="", choices=("", *PROFILES),
+                    help="a request profile's planner and library (planner.PROFILES; --library then ignored)")
     a = ap.parse_args(argv)
-    planner = FallPlanner.from_params(**{"library_file": a.library, **parse_overrides(a.set)})
+    if a.profile:
+        a.library = PROFILES[a.profile].get("library_file", a.library)
+    planner = FallPlanner.from_params(**{"library_file": a.library, **PROFILES.get(a.profile, {}),
+                                         **parse_overrides(a.set)})
     t0 = time.perf_counter()
     planner.warm_up_checks()
     for e in planner.library.entries:
@@ -67,7 +72,7 @@ def main(argv=None) -> int:
                      "library_attempt": r.get("library_attempt")})
     lib_rows = [x for x in rows if x["source"] == "library" and x["success"]]
     times = [x["time_s"] for x in lib_rows]
-    out = {"library": a.library, "direction": a.direction, "wall": a.wall,
+    out = {"library": a.library, "profile": a.profile, "direction": a.direction, "wall": a.wall,
            "entries": [(e.kinetic_energy, e.direction, e.wall_distance) for e in planner.library.entries],
            "warm_start_multipliers": planner.opt.cfg.warm_start_multipliers,
            "library_check": planner.cfg.library_check, "check_workers": planner.cfg.check_workers,

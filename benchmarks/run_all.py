@@ -10,7 +10,9 @@ HERE = pathlib.Path(__file__).resolve().parent
 BENCHES = ["bench_suite.py", "bench_recorder.py", "bench_multicontact.py",
            # paper 2's sweep from one foot, as its own trees start (session 28; the issue's is from two feet)
            "bench_multicontact.py --initial-mode RF --wall 0",
-           "bench_multicontact_library.py", "bench_multicontact_exec_tick.py",
+           "bench_multicontact_library.py",
+           # the plans made for the 3-D robot from their own library (session 43)
+           "bench_multicontact_library.py --profile execution", "bench_multicontact_exec_tick.py",
            "bench_walking.py", "bench_fall.py", "bench_estop.py",
            # the ankle balance after a touchdown, as a function of the step and the capture point's depth (session 38;
            # its margin in the soles' hull since session 39), and with the hip strategy

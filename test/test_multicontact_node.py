@@ -145,12 +145,13 @@ def test_plan_fall_from_the_shipped_library(ros_env, in_ros_domain, tmp_path):
         out = subprocess.run(run + ["--ke", "60", "--budget", "0.5"], env=in_ros_domain, capture_output=True,
                              text=True, timeout=90)
         assert json.loads(out.stdout)["tree_nodes"] >= 1, out.stdout
-        # a plan for the 3-D robot (planner_profile "execution"): the tree search with FOR_EXECUTION, not the library
+        # a plan for the 3-D robot (planner_profile "execution"): FOR_EXECUTION with its own library, not the node's
         # (planned with the declared margin); an unknown profile gets its reason
         out = subprocess.run(run + ["--ke", "21", "--profile", "execution", "--budget", "120"], env=in_ros_domain,
                              capture_output=True, text=True, timeout=240)
         d = json.loads(out.stdout)
-        assert d["success"] and d["tree_nodes"] >= 1 and "library" not in d["reason"], d["reason"]
+        assert d["success"] and d["tree_nodes"] == 0, d["reason"]
+        assert "re-solved library plan for 21.25 J" in d["reason"] and d["contact_sequence"] == ["LF/RF", "RF", "LF/RF"]
         out = subprocess.run(run + ["--ke", "21", "--profile", "bogus"], env=in_ros_domain, capture_output=True,
                              text=True, timeout=60)
         assert out.returncode == 1 and "unknown planner_profile 'bogus'" in json.loads(out.stdout)["reason"]
@@ -158,7 +159,7 @@ def test_plan_fall_from_the_shipped_library(ros_env, in_ros_domain, tmp_path):
         proc.terminate()
         log = proc.communicate(timeout=20)[0]
         assert "the library first: no library entry within 5 J of 60.0 J (nearest 50 J)" in log, log[-2000:]
-    assert "profile=execution source=tree_search" in log, log[-2000:]
+    assert "profile=execution source=library" in log, log[-2000:]
 
 
 def test_planner_node_refuses_an_unreadable_library(ros_env, tmp_path):

@@ -146,16 +146,23 @@ def test_invalid_request_answers_without_planning(planner):
 
 
 def test_a_planner_profile_plans_with_its_overrides_and_an_unknown_one_is_refused():
-    """``planner_profile`` "execution": a planner of the same parameters with ``FOR_EXECUTION`` on top and no
-    library, built once; an unknown name answers with its reason and plans nothing."""
-    from humfall_ros.multicontact.planner import FOR_EXECUTION
+    """``planner_profile`` "execution": a planner of the same parameters with ``FOR_EXECUTION`` on top and its own
+    library (planned with that margin), built once, answering a push within it from the library; an unknown name
+    answers with its reason and plans nothing."""
+    from humfall_ros.multicontact.planner import EXECUTION_LIBRARY, FOR_EXECUTION
 
     base = FallPlanner.from_params(library_file="multicontact_library/standing_pushes.json.gz", max_iter=123)
     ex = base.profile("execution")
     assert ex is base.profile("execution") and base.profile("") is base
-    assert ex.library is None and base.library is not None
     assert ex.opt.cfg.step_capture_margin == FOR_EXECUTION["step_capture_margin"] != base.opt.cfg.step_capture_margin
     assert ex.opt.cfg.max_iter == 123   # the rest are the planner's own
+    assert ex.cfg.library_file == EXECUTION_LIBRARY != base.cfg.library_file
+    assert ex.library.built_with["step_capture_margin"] == FOR_EXECUTION["step_capture_margin"]
+    kes = sorted(e.kinetic_energy for e in ex.library.entries if e.direction > 0 and e.wall_distance == 0)
+    assert kes[0] <= 10.0 and kes[-1] >= 50.0 and max(np.diff(kes)) <= 1.25 + 1e-9
+    r = base.plan({"kinetic_energy": 30.0, "planner_profile": "execution"})
+    assert r["success"] and r["source"] == "library" and r["tree_nodes"] == 0, r["reason"]
+    assert r["contact_sequence"] == ["LF/RF", "RF", "LF/RF"] and r["final_ke"] < 0.1   # one protective step
     r = base.plan({"kinetic_energy": 20.0, "planner_profile": "bogus"})
     assert not r["success"] and "unknown planner_profile 'bogus'" in r["reason"] and r["nlp_count"] == 0
 

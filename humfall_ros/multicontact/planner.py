@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
+import threading
 import time
 
 from humfall_ros import params
@@ -43,9 +44,13 @@ DEPARTURE = {"transition_objective": "post_impact", "frontier_order": "post_impa
 # 60 J ends at rest, also with TYPICAL_NOISE (docs/multicontact.md "Session 41"). Not the declared default: the
 # planar sweep then takes 135 s instead of 108 s and lands its steps with more energy (30 J: 30.2 J > the push).
 FOR_EXECUTION = {"step_capture_margin": 0.25}
+# The library of FOR_EXECUTION's plans (forward pushes 10-50 J: tree searches every 2.5 J, densified to 1.25 J and
+# probed; `make library-execution`, docs/multicontact.md "Session 43"): the declared library is planned with the
+# declared margin, which a planner of FOR_EXECUTION's refuses (PlanLibrary.check_compatible).
+EXECUTION_LIBRARY = "multicontact_library/execution_pushes.json.gz"
 # A request's ``planner_profile`` (PlanFall): overrides on top of the planner's own parameters, for one request.
-# "execution": FOR_EXECUTION, without the library (the shipped one is planned with the declared margin).
-PROFILES = {"execution": {**FOR_EXECUTION, "library_file": ""}}
+# "execution": FOR_EXECUTION with its own library (a request beyond it goes to the tree search, as ever).
+PROFILES = {"execution": {**FOR_EXECUTION, "library_file": EXECUTION_LIBRARY}}
 
 
 @dataclasses.dataclass
@@ -172,6 +177,7 @@ class FallPlanner:
         self.opt = TrajectoryOptimizer(self.model, opt_cfg or OptConfig())
         self.values: dict | None = None   # the parameters it was built from (from_params), for the profiles
         self._profiles: dict[str, FallPlanner] = {}
+        self._profiles_lock = threading.Lock()   # the node's warm-up and a request may ask for one at once
         self.library = None
         if self.cfg.library_file:
             path = library_path(self.cfg.library_file)
@@ -208,9 +214,10 @@ class FallPlanner:
             return self
         if name not in PROFILES:
             raise ValueError(f"unknown planner_profile {name!r} (one of '', {', '.join(map(repr, PROFILES))})")
-        if name not in self._profiles:
-            self._profiles[name] = FallPlanner.from_params(self.values, **PROFILES[name])
-        return self._profiles[name]
+        with self._profiles_lock:
+            if name not in self._profiles:
+                self._profiles[name] = FallPlanner.from_params(self.values, **PROFILES[name])
+            return self._profiles[name]
 
     def warm_up_checks(self) -> bool:
         """Start the check's worker process (``check_workers``) before the first request needs it; False

@@ -22,7 +22,7 @@ from rclpy.node import Node
 
 from humfall_ros.multicontact import contacts as C
 from humfall_ros.multicontact.modes import Environment, mode_label
-from humfall_ros.multicontact.planner import FallPlanner
+from humfall_ros.multicontact.planner import PROFILES, FallPlanner
 from humfall_ros.multicontact.resim import shutdown_check_pool
 from humfall_ros.nodes.common import Params, leave_now, run_node
 
@@ -72,20 +72,36 @@ class MulticontactPlanner(Node):
                 return
             self.planner.opt.structures(mode, change, ext, Environment())   # NLP and seed projector
         self.get_logger().info(f"warm-up: {len(segments)} NLP structures built in {time.perf_counter() - t0:.1f} s")
-        if self.planner.library is not None:
-            # the library's re-plans: their structures and warm-start solvers (~2 s each), the check's worker
+        self._warm_library(self.planner, "the library")
+        # then each request profile's planner and library (the execution profile's: ~20 s), so that the first
+        # request of a profile is answered as fast as the later ones
+        for name in PROFILES:
+            if self._closing:
+                return
             t0 = time.perf_counter()
-            worker = self.planner.warm_up_checks()
-            self.get_logger().info("warm-up: re-simulation checks of library re-plans "
-                                   + ("in a worker process" if worker else "in process"))
-            stored = [(s, Environment.from_distance(e.wall_distance))
-                      for e in self.planner.library.entries for s in e.segments]
-            for s, env in stored:
-                if self._closing:
-                    return
-                self.planner.opt.prepare_warm(s, env)
-            self.get_logger().info(f"warm-up: the library's {len(stored)} segments ready in "
-                                   f"{time.perf_counter() - t0:.1f} s")
+            try:
+                planner = self.planner.profile(name)
+            except ValueError as e:   # its library cannot be used: its requests will say why
+                self.get_logger().warning(f"warm-up: planner_profile {name!r} not usable: {e}")
+                continue
+            self.get_logger().info(f"warm-up: planner_profile {name!r} built in {time.perf_counter() - t0:.1f} s")
+            self._warm_library(planner, f"profile {name!r}'s library")
+
+    def _warm_library(self, planner: FallPlanner, label: str) -> None:
+        """A library's re-plans made ready: their structures and warm-start solvers (~2 s each), the check's
+        worker."""
+        if planner.library is None:
+            return
+        t0 = time.perf_counter()
+        worker = planner.warm_up_checks()
+        self.get_logger().info(f"warm-up: re-simulation checks of {label}'s re-plans "
+                               + ("in a worker process" if worker else "in process"))
+        stored = [(s, Environment.from_distance(e.wall_distance)) for e in planner.library.entries for s in e.segments]
+        for s, env in stored:
+            if self._closing:
+                return
+            planner.opt.prepare_warm(s, env)
+        self.get_logger().info(f"warm-up: {label}'s {len(stored)} segments ready in {time.perf_counter() - t0:.1f} s")
 
     def close(self):
         self._closing = True

@@ -32,7 +32,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap.add_argument("--mode", default="LF/RF", help="initial contact mode, e.g. LF/RF")
     ap.add_argument("--budget", type=float, default=0.0, help="planning time budget (s); 0: node default")
     ap.add_argument("--profile", default="", help="planner_profile: '' (the node's parameters) or 'execution' "
-                    "(a plan for the 3-D robot: multicontact.planner.FOR_EXECUTION, no library)")
+                    "(a plan for the 3-D robot: multicontact.planner.FOR_EXECUTION and its library)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--plots", default="", help="write the tree, stick-figure and KE plots of the answer into DIR")
     ap.add_argument("--service", default=SERVICE, help="service name")
