@@ -85,7 +85,7 @@ class MulticontactPlanner(Node):
                 self.get_logger().warning(f"warm-up: planner_profile {name!r} not usable: {e}")
                 continue
             self.get_logger().info(f"warm-up: planner_profile {name!r} built in {time.perf_counter() - t0:.1f} s")
-            self._warm_library(planner, f"profile {name!r}'s library")
+            self._warm_library(planner, f"the {name!r} profile's library")
 
     def _warm_library(self, planner: FallPlanner, label: str) -> None:
         """A library's re-plans made ready: their structures and warm-start solvers (~2 s each), the check's
