@@ -23,7 +23,6 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from humfall_ros.multicontact.modes import Environment  # noqa: E402
 from humfall_ros.multicontact.planner import PROFILES, FallPlanner  # noqa: E402
 from humfall_ros.params import parse_overrides  # noqa: E402
 
@@ -48,10 +47,7 @@ def main(argv=None) -> int:
     planner = FallPlanner.from_params(**{"library_file": a.library, **PROFILES.get(a.profile, {}),
                                          **parse_overrides(a.set)})
     t0 = time.perf_counter()
-    planner.warm_up_checks()
-    for e in planner.library.entries:
-        for s in e.segments:
-            planner.opt.prepare_warm(s, Environment.from_distance(e.wall_distance))
+    planner.warm_up_library()
     warm_up = time.perf_counter() - t0
     rows = []
     for ke in (float(x) for x in a.queries.split(",") if x.strip()):

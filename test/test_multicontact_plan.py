@@ -913,3 +913,25 @@ def test_wall_40J_lands_a_hand_on_the_wall_below_the_push_energy(planner):
     assert landing.limb in ("LH", "RH") and landing.surface == "wall" and landing.within_limits
     assert landing.normal_speed <= planner.opt.cfg.landing_limits.hand_normal_speed_max + 1e-6
     assert landing.pre_impact_ke <= 40.0
+
+
+def test_warm_up_library_readies_every_stored_segment_and_stops_when_asked():
+    """``FallPlanner.warm_up_library`` (the node's warm-up of its library and of each profile's, the library
+    benchmark's): every stored segment's NLP and warm-start solver in the library's order, each in its entry's
+    environment; ``stop`` ends it at once; nothing without a library."""
+    from humfall_ros.multicontact.library import PlanLibrary
+    from humfall_ros.multicontact.planner import PROFILES
+
+    p = FallPlanner.from_params(**PROFILES["execution"])
+    p.library = PlanLibrary(p.library.entries[:3], p.library.built_with)
+    seen = []
+    p.opt.prepare_warm = lambda s, env: seen.append((s, env.has_wall))
+    p.warm_up_checks = lambda: False   # no worker process for this test
+    stored = [s for e in p.library.entries for s in e.segments]
+    assert len(stored) >= 3
+    assert p.warm_up_library() == (False, len(stored))
+    assert [s for s, _ in seen] == stored and not any(w for _, w in seen)
+    seen.clear()
+    assert p.warm_up_library(stop=lambda: len(seen) >= 2) == (False, 2) and len(seen) == 2
+    p.library = None
+    assert p.warm_up_library() == (False, 0)

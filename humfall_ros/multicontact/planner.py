@@ -22,6 +22,7 @@ from humfall_ros.multicontact.collocation import OptConfig, TrajectoryOptimizer
 from humfall_ros.multicontact.landing import LandingLimits
 from humfall_ros.multicontact.library import PlanLibrary
 from humfall_ros.multicontact.model import PlanarModel, load_model
+from humfall_ros.multicontact.modes import Environment
 from humfall_ros.multicontact.resim import PlanCheck, warm_check_pool
 from humfall_ros.multicontact.request import InvalidRequest, ValidRequest, validate  # noqa: F401 (re-exported)
 from humfall_ros.multicontact.tree import SearchResult, search
@@ -218,6 +219,23 @@ class FallPlanner:
             if name not in self._profiles:
                 self._profiles[name] = FallPlanner.from_params(self.values, **PROFILES[name])
             return self._profiles[name]
+
+    def warm_up_library(self, stop=None) -> tuple[bool, int]:
+        """Ready the library's re-plans before the first request (the node's warm-up, the library benchmark): the
+        check's worker (:meth:`warm_up_checks`), then each stored segment's NLP structure and warm-start solver.
+        ``stop()`` true ends it early. Returns (the check runs in a worker, segments readied); (False, 0) without
+        a library."""
+        if self.library is None:
+            return False, 0
+        worker, n = self.warm_up_checks(), 0
+        for e in self.library.entries:
+            env = Environment.from_distance(e.wall_distance)
+            for s in e.segments:
+                if stop is not None and stop():
+                    return worker, n
+                self.opt.prepare_warm(s, env)
+                n += 1
+        return worker, n
 
     def warm_up_checks(self) -> bool:
         """Start the check's worker process (``check_workers``) before the first request needs it; False

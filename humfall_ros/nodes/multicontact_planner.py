@@ -88,20 +88,13 @@ class MulticontactPlanner(Node):
             self._warm_library(planner, f"the {name!r} profile's library")
 
     def _warm_library(self, planner: FallPlanner, label: str) -> None:
-        """A library's re-plans made ready: their structures and warm-start solvers (~2 s each), the check's
-        worker."""
+        """A library's re-plans made ready (``FallPlanner.warm_up_library``), logged."""
         if planner.library is None:
             return
         t0 = time.perf_counter()
-        worker = planner.warm_up_checks()
-        self.get_logger().info(f"warm-up: re-simulation checks of {label}'s re-plans "
-                               + ("in a worker process" if worker else "in process"))
-        stored = [(s, Environment.from_distance(e.wall_distance)) for e in planner.library.entries for s in e.segments]
-        for s, env in stored:
-            if self._closing:
-                return
-            planner.opt.prepare_warm(s, env)
-        self.get_logger().info(f"warm-up: {label}'s {len(stored)} segments ready in {time.perf_counter() - t0:.1f} s")
+        worker, n = planner.warm_up_library(stop=lambda: self._closing)
+        self.get_logger().info(f"warm-up: {label}'s {n} segments ready in {time.perf_counter() - t0:.1f} s, its "
+                               "re-plans checked " + ("in a worker process" if worker else "in process"))
 
     def close(self):
         self._closing = True
