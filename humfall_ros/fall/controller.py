@@ -142,7 +142,7 @@ class SafeFallConfig:
     max_extra_steps: int = 0
     restep_after_s: float = 0.1
     capture_abandon: bool = True
-    capture_abandon_margin_m: float = 0.0
+    capture_abandon_margin_m: float = 0.02
 
     @classmethod
     def from_params(cls, d: dict[str, Any]) -> SafeFallConfig:
