@@ -185,6 +185,9 @@ def main() -> int:
     ap.add_argument("--set", default="", help="planner parameters name=value,... (yaml names)")
     ap.add_argument("--run", default="", help="RunConfig fields name=value,... (e.g. swing_control=task)")
     ap.add_argument("--series", action="store_true", help="keep the per-tick series in the JSON")
+    ap.add_argument("--plan-from", choices=("truth", "sensors"), default="truth",
+                    help="plan from the simulator's state at the push's end, or from the sensors and the estimator "
+                         "(multicontact.live, as the executor node's plan_live)")
     ap.add_argument("--walking-push", default="", help="forces [N] of walking_push, executed from one foot (LF)")
     a = ap.parse_args()
     if a.hold is None:
@@ -233,7 +236,7 @@ def main() -> int:
         else:
             force, table = force_for_energy(sc, ke)
             s = mr.with_push(sc, force)
-            r = mr.execute(s, planner=planner, cfg=run_cfg)
+            r = mr.execute(s, planner=planner, cfg=run_cfg, plan_from=a.plan_from)
         r["target_ke"] = ke
         r["push_force_n"] = force
         r["push_table"] = table

@@ -15,8 +15,9 @@ import pinocchio as pin
 
 from humfall_ros import params as params_mod
 from humfall_ros.dynamics.pendulum import GRAVITY, capture_point, lean_angle
-from humfall_ros.model.humanoid import (SIDES, HumanoidModel, cop_from_wrenches, cross3, point_in_polygon_margin,
-                                        quat_matrix, support_polygon)
+from humfall_ros.model.humanoid import (SIDES, HumanoidModel, base_angular_velocity_from_imu, base_rotation_from_imu,
+                                        cop_from_wrenches, cross3, point_in_polygon_margin, quat_matrix,
+                                        support_polygon)
 
 
 @dataclasses.dataclass
@@ -71,7 +72,6 @@ class CentroidalEstimator:
         self.reset()
         pin_model = model.model
         self._corner_ids = {s: [model.frame_ids[c] for c in model.corner_frames[s]] for s in SIDES}
-        self._imu_id = model.frame_ids[model.imu_frame]
         self._data = pin_model.createData()
 
     def reset(self) -> None:
@@ -193,12 +193,8 @@ class CentroidalEstimator:
         v_rel[6:] = v_joints
         pin.forwardKinematics(m, d, q_rel, v_rel)
         pin.updateFramePlacements(m, d)
-        R_imu = quat_matrix(imu_quat)
-        R_base = R_imu @ d.oMf[self._imu_id].rotation.T
-        # the IMU sits on the chest, above the waist joints: its gyro reads the base's angular velocity plus the
-        # waist joints' (relative to the base, the IMU frame's angular velocity in the base-fixed pass above)
-        imu_rel = pin.getFrameVelocity(m, d, self._imu_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED).angular
-        omega = R_imu @ np.asarray(imu_gyro, float) - R_base @ imu_rel
+        R_base = base_rotation_from_imu(self.m, d, imu_quat)
+        omega = base_angular_velocity_from_imu(self.m, d, imu_quat, imu_gyro)
         quat = pin.Quaternion(R_base).coeffs()  # x, y, z, w
         cand = self._candidates(contacts)
         rel = {n: R_base @ d.oMf[fid].translation for n, fid in cand}  # corner - base, world axes

@@ -227,6 +227,19 @@ def base_rotation_from_imu(model: HumanoidModel, data, imu_quat_xyzw) -> np.ndar
     return quat_matrix(imu_quat_xyzw) @ data.oMf[model.frame_ids[model.imu_frame]].rotation.T
 
 
+def base_angular_velocity_from_imu(model: HumanoidModel, data, imu_quat_xyzw, imu_gyro) -> np.ndarray:
+    """World angular velocity of the floating base from the IMU (orientation x, y, z, w; gyro in the IMU frame), given
+    ``data`` after a forward kinematics pass with the base at identity and at rest and the joints moving
+    (``pin.forwardKinematics(m, data, q_rel, v_rel)`` and the frames' placements): the IMU sits on the chest, above
+    the waist joints, so its gyro reads the base's angular velocity plus the waist joints' (the IMU frame's angular
+    velocity in that pass) - the estimator's construction."""
+    fid = model.frame_ids[model.imu_frame]
+    R_imu = quat_matrix(imu_quat_xyzw)
+    R_base = R_imu @ data.oMf[fid].rotation.T
+    imu_rel = pin.getFrameVelocity(model.model, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED).angular
+    return R_imu @ np.asarray(imu_gyro, float) - R_base @ imu_rel
+
+
 def imu_quaternion(imu) -> np.ndarray | None:
     """The world orientation (x, y, z, w) of an IMU reading, or None for a missing or unusable one.
 

@@ -19,8 +19,8 @@ directory, then in ``config/multicontact_plans/``.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
-
 import pathlib
 import sys
 
@@ -58,18 +58,36 @@ class _NeverTakesOver:
 
 
 def make_controller(p: dict, model):
-    """The executor of ``p["plan_file"]`` (the node's declared parameters)."""
-    if not p["plan_file"]:
+    """The executor of ``p["plan_file"]``, or with ``p["plan_live"]`` of a plan made at the take-over from the
+    sensors (``multicontact.live.SensedPlanSource``) (the node's declared parameters)."""
+    if p["plan_live"] and p["plan_file"]:
+        raise ValueError("give plan_file or plan_live, not both")
+    if p["plan_live"] and p["start_time"] < 0:
+        raise ValueError("plan_live needs start_time (the sim time to plan and take over at, e.g. the push's end)")
+    if not p["plan_file"] and not p["plan_live"]:
         return _NeverTakesOver(p["source"])
     from humfall_ros.multicontact.model import load_model as load_planar
 
-    plan = StoredPlan.load(plan_path(p["plan_file"]))
-    start = plan.take_over_time if p["start_time"] < 0 else p["start_time"]
+    segments, source = [], None
+    if p["plan_live"]:
+        from humfall_ros.multicontact.live import SensedPlanSource
+        from humfall_ros.multicontact.planner import FallPlanner
+
+        own = copy.copy(model)          # the sensed state's kinematics must not overwrite a shared data
+        own.data = model.model.createData()
+        source = SensedPlanSource(FallPlanner.from_params(), own, profile=p["planner_profile"],
+                                  time_budget=p["plan_time_budget"])
+        start = p["start_time"]
+    else:
+        plan = StoredPlan.load(plan_path(p["plan_file"]))
+        segments = plan.segments
+        start = plan.take_over_time if p["start_time"] < 0 else p["start_time"]
     # every declared parameter named like an ExecutorConfig field is that field (a test checks the declaration
     # has them all); start_time < 0 means the plan file's
     fields = {f.name for f in dataclasses.fields(ExecutorConfig)}
     cfg = ExecutorConfig.from_params({**{k: v for k, v in p.items() if k in fields}, "start_time": start})
-    ex = MulticontactExecutor(plan.segments, load_planar().joint_names, model.joint_names, cfg, model=model)
+    ex = MulticontactExecutor(segments, load_planar().joint_names, model.joint_names, cfg, plan_source=source,
+                              model=model)
     ex.source = p["source"]
     return ex
 
@@ -90,7 +108,23 @@ def make_node(name: str | None = None):
     node = ControllerNode(name or f"{CONFIG}_{source_from_argv(sys.argv)}", make_controller, inputs=[IMU],
                           config_name=CONFIG)
     ex = node.controller
-    if isinstance(ex, MulticontactExecutor):
+    if isinstance(ex, MulticontactExecutor) and ex.plan_source is not None:
+        live = ex.plan_source
+
+        def logged(observation):   # the plan made at the take-over, said in the log
+            segs = live(observation)
+            i = live.info
+            node.get_logger().info(
+                f"plan from the sensors at {observation.time:.3f} s: success={i.get('success')} "
+                f"source={i.get('source', '')} {' -> '.join(i.get('contact_sequence') or [])} "
+                f"planar KE {i.get('ke_planar_projected', float('nan')):.2f} J, {i.get('compute_s', 0.0):.2f} s: "
+                f"{i.get('reason', '')}")
+            return segs
+
+        ex.plan_source = logged
+        node.get_logger().info(f"plan: made at the take-over ({ex.cfg.start_time:.3f} s) from the sensors, "
+                               f"planner_profile {live.profile!r}")
+    elif isinstance(ex, MulticontactExecutor):
         node.get_logger().info(f"plan: {len(ex.segments)} segments "
                                f"({' -> '.join(s.target_mode and '/'.join(s.target_mode) for s in ex.segments)}), "
                                f"take-over at {ex.cfg.start_time:.3f} s")

@@ -244,7 +244,8 @@ def _matching_change(mask: np.ndarray, start: int, ticks: int, t: np.ndarray, pl
 
 
 def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start_time: float | None = None,
-            cfg: RunConfig | None = None, duration: float | None = None, initial_mode: str = INITIAL_MODE) -> dict:
+            cfg: RunConfig | None = None, duration: float | None = None, initial_mode: str = INITIAL_MODE,
+            plan_from: str = "truth") -> dict:
     """Push, plan at the push's end (or take ``segments``), execute, measure; a JSON-able report.
 
     Args:
@@ -257,7 +258,13 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
         initial_mode: the contact mode the measured state is made consistent with and planned from: the feet on
             the ground at the take-over ("LF/RF" standing; "LF" for a push in a walking robot's right swing,
             session 28, where ``cfg.executor.hold`` "measured" keeps the gait's lateral weight shift).
+        plan_from: "truth" (the simulator's state at the take-over, projected onto the planar model) or "sensors"
+            (``multicontact.live.SensedPlanSource``: the encoders, the IMU and the estimator, as the executor node
+            plans with ``plan_live``); with "sensors" the report's ``state_at_plan`` also gives the ground truth's
+            planar state and the difference.
     """
+    if plan_from not in ("truth", "sensors"):
+        raise ValueError(f"plan_from must be 'truth' or 'sensors', not {plan_from!r}")
     cfg = cfg or RunConfig()
     if (planner is None) == (segments is None):
         raise ValueError("give a planner or a stored plan (segments), not both")
@@ -292,6 +299,20 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
                         "landings": [x.to_dict() for x in r["landings"]]}
         return r["segments"] if r["success"] else None
 
+    def sensed_source(obs):
+        truth = measured_state()     # for the report only: the plan is made from the sensors
+        segs = live(obs)
+        li = live.info
+        info["plan"] = {k: li.get(k) for k in ("success", "reason", "compute_s", "contact_sequence", "final_ke",
+                                                "source")}
+        if "q" in li:
+            info["state"].update({"sensed_ke_planar": li["ke_planar"], "sensed_ke_planar_projected":
+                                  li["ke_planar_projected"],
+                                  "sensed_minus_truth_q_max": float(np.abs(np.subtract(li["q"], truth.q)).max()),
+                                  "sensed_minus_truth_v_max": float(np.abs(np.subtract(li["v"], truth.v)).max()),
+                                  "sensed_minus_truth_v": np.subtract(li["v"], truth.v).round(4).tolist()})
+        return segs
+
     def stored_source(obs):
         proj = measured_state()
         s0 = segments[0]
@@ -304,8 +325,14 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
     t_start = t_start + cfg.plan_latency
     ex_cfg = dataclasses.replace(cfg.executor, start_time=t_start)
     hm = _model()
-    executor = MulticontactExecutor([], pm.joint_names, _joint_names(), ex_cfg,
-                                    plan_source=plan_source if segments is None else stored_source, model=hm)
+    if plan_from == "sensors" and planner is not None:
+        from humfall_ros.multicontact.live import SensedPlanSource
+
+        live = SensedPlanSource(planner, _sensing_model(), initial_mode, time_budget=cfg.time_budget)
+        source = sensed_source
+    else:
+        source = plan_source if segments is None else stored_source
+    executor = MulticontactExecutor([], pm.joint_names, _joint_names(), ex_cfg, plan_source=source, model=hm)
     loop = ClosedLoop(sc, controllers=[locomotion_controller(sc, hm), executor],
                       priorities={executor.source: EXECUTOR_PRIORITY})
     if cfg.speed_limit not in SPEED_LIMITS:
@@ -359,6 +386,15 @@ def _model():
 
         _MODEL_CACHE["hm"] = load_model()
     return _MODEL_CACHE["hm"]
+
+
+def _sensing_model():
+    """A 3-D model of its own for the sensed state (its data is overwritten there)."""
+    if "sensing" not in _MODEL_CACHE:
+        from humfall_ros.model.humanoid import load_model
+
+        _MODEL_CACHE["sensing"] = load_model()
+    return _MODEL_CACHE["sensing"]
 
 
 def _joint_names() -> list[str]:
