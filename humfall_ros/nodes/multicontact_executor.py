@@ -10,9 +10,11 @@ tracks the plan's sagittal joints and holds the rest; it never releases after th
 ``benchmarks/bench_multicontact_exec.py --save-plans DIR`` from the in-process run of the same scenario:
 the push's end state measured in PyBullet, mapped to the planar state and planned there. The
 simulation is deterministic and the lockstep graph gives the in-process joint states (tested), so the
-state at ``start_time`` over ROS is the one the plan was made from. Planning inside the node's tick
-would also work in lockstep (the bridge waits for the tick's answer; raise ``params.sim_bridge.stall_timeout``
-above the plan time), but needs the planar base state from the estimator's topics: not built.
+state at ``start_time`` over ROS is the one the plan was made from. Or, with ``plan_live`` (session 43), planned
+inside the take-over tick at ``start_time`` from that tick's sensors and the estimator (``multicontact.live``; the
+planner's ``planner_profile``, "execution" by default: its library answers 10-50 J forward pushes); in lockstep
+the bridge waits for the answer (``params.sim_bridge.stall_timeout`` above ``plan_time_budget``). The scenario
+``multicontact_push_live`` does that.
 
 Parameters: ``config/multicontact_executor.yaml``. Relative plan files are looked up from the working
 directory, then in ``config/multicontact_plans/``.
