@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/fall_closed_loop.py push [SCALE] [KINDS] [OUT] [KEY=VALUE ...]  # standing_push
         (KEY=VALUE: scenario overrides, e.g. params.safe_fall_controller.balance_kd=0.1)
+    .venv/bin/python benchmarks/fall_closed_loop.py band [SCALES] [KEY=VALUE ...]  # standing_push over 1.33-1.5x
     .venv/bin/python benchmarks/fall_closed_loop.py ftb [KEY=VALUE ...]         # 0.9x / 1.1x per direction
     .venv/bin/python benchmarks/fall_closed_loop.py quiet [SECONDS]             # standing_quiet, exact + noise
     .venv/bin/python benchmarks/fall_closed_loop.py small                       # small_push in 8 directions: FTB quiet?
@@ -100,6 +101,38 @@ def small_pushes(duration: float | None = None) -> dict:
         rows.append({"angle_deg": angle, "force_n": round(mag, 1), "triggered": r.fall_event is not None,
                      "fell": r.metrics["fell"]})
     return {"rows": rows, "no_trigger": all(not r["triggered"] for r in rows)}
+
+
+BAND = (1.33, 1.36, 1.38, 1.4, 1.42, 1.45, 1.5)   # session 43: the standing pushes just past the last capture
+
+
+def band(scales=BAND, overrides=()) -> dict:
+    """``standing_push`` stepping and stepping_inertia over a band of scales (ours; session 43): each scale's alpha2,
+    whether it was captured or touched the target, and over the falls the mean / worst alpha2 and the count meeting
+    the standing figure (shaping >= 160 deg and >= 20 over stepping). The outcomes there flip from one scale to the
+    next (docs/safe_fall.md, sessions 42-43): one push's figure says as much about the push as the controller."""
+    rows, falls = [], {"stepping": [], "stepping_inertia": []}
+    for s in scales:
+        r = standing_push(["stepping", "stepping_inertia"], s, None, overrides)
+        row = {"scale": s}
+        for k in falls:
+            m = r[k]
+            a = m["avoidance_angle_p2_deg"]
+            row[k] = {"captured": bool(m["captured"]), "alpha2_deg": None if a is None else round(a, 1),
+                      "touched": m["min_target_distance_m"] is not None and m["min_target_distance_m"] < 0.05}
+            if not m["captured"] and a is not None:
+                falls[k].append(a)
+        st, sh = row["stepping"]["alpha2_deg"], row["stepping_inertia"]["alpha2_deg"]
+        row["figure_met"] = bool(st is not None and sh is not None and not row["stepping"]["captured"]
+                                 and not row["stepping_inertia"]["touched"] and sh >= 160.0 and sh >= st + 20.0)
+        rows.append(row)
+    out = {"scales": list(scales), "overrides": list(overrides), "rows": rows,
+           "figure_met": f"{sum(r['figure_met'] for r in rows)}/{len(rows)}",
+           "touched": {k: [r["scale"] for r in rows if r[k]["touched"]] for k in falls}}
+    for k, a in falls.items():
+        out[k] = {"falls": len(a), "mean_alpha2_deg": round(float(np.mean(a)), 1) if a else None,
+                  "worst_alpha2_deg": round(float(np.min(a)), 1) if a else None}
+    return out
 
 
 def noise_runs(scale: float = 1.0, kind: str = "stepping_inertia", overrides=()) -> dict:
@@ -293,6 +326,9 @@ def main(argv: list[str]) -> None:
         folders = [a for a in rest if "=" not in a]   # an override is never taken for the figures' folder
         out = standing_push(kinds, scale, folders[0] if folders else "runs/fall_figures",
                             [a for a in rest if "=" in a])
+    elif what == "band":
+        scales = tuple(float(x) for x in argv[1].split(",")) if len(argv) > 1 and "=" not in argv[1] else BAND
+        out = band(scales, [a for a in argv[1:] if "=" in a])
     elif what == "ftb":
         out = ftb_check(overrides=[a for a in argv[1:] if "=" in a])
     elif what == "small":
