@@ -61,3 +61,23 @@ def test_the_executor_node_plans_live_and_matches_the_in_process_loop(in_ros_dom
     assert ex.task_swings and ex.switches[-1][2] == "touchdown"   # the step landed within the 1.2 s
     log = next((tmp_path / "runs").glob("*/logs/multicontact_executor_multicontact.log")).read_text()
     assert "plan from the sensors at 0.600 s: success=True source=library LF/RF -> RF -> LF/RF" in log, log[-1500:]
+
+
+def test_a_sensed_state_that_cannot_be_used_gives_no_plan_and_says_why():
+    """No IMU, or a NaN in the estimator's state: no plan (the executor then releases with the reason), no crash."""
+    import types
+
+    from humfall_ros.multicontact.live import SensedPlanSource
+
+    hm = load_humanoid()
+    src = SensedPlanSource(FallPlanner.from_params(), hm, profile="execution")
+    n = len(hm.joint_names)
+    state = types.SimpleNamespace(com=np.array([0.0, 0.0, 0.8]), com_velocity=np.array([np.nan, 0.0, 0.0]))
+    imu = (np.array([0.0, 0.0, 0.0, 1.0]), np.zeros(3))
+    obs = types.SimpleNamespace(state=state, inputs={"imu": imu}, joint_position=np.zeros(n),
+                                joint_velocity=np.zeros(n), time=0.6)
+    assert src(obs) is None and "non-finite" in src.info["reason"]
+    obs.inputs = {}
+    assert src(obs) is None and "no IMU" in src.info["reason"]
+    with pytest.raises(ValueError, match="unknown planner_profile"):
+        SensedPlanSource(FallPlanner.from_params(), hm, profile="bogus")
