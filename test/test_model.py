@@ -201,3 +201,16 @@ def test_swing_com_gain_is_the_com_shift_of_a_sole_moved_by_its_leg_alone():
                    for j in ("hip_yaw", "hip_roll", "hip_pitch", "knee", "ankle_pitch", "ankle_roll"))
     assert 0.3 * leg_mass / m.total_mass < gain[0, 0] < leg_mass / m.total_mass
     assert abs(gain[0, 1]) < 0.1 * gain[0, 0] and abs(gain[1, 0]) < 0.1 * gain[0, 0]
+
+
+def test_a_model_with_own_data_shares_the_model_but_not_the_kinematics():
+    m = HumanoidModel()
+    own = m.with_own_data()
+    assert own.model is m.model and own.joint_names == m.joint_names and own.data is not m.data
+    m.forward(m.neutral())
+    before = m.frame_position(m.sole_frame["l"])
+    q = m.neutral()
+    q[:3] = [1.0, 2.0, 3.0]
+    own.forward(q)
+    np.testing.assert_allclose(own.frame_position(own.sole_frame["l"]) - before, [1.0, 2.0, 3.0], atol=1e-12)
+    np.testing.assert_array_equal(m.frame_position(m.sole_frame["l"]), before)   # untouched

@@ -9,6 +9,7 @@ joint velocities...]``, joints in ``joint_names`` order.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import math
@@ -79,6 +80,13 @@ class HumanoidModel:
         self.foot_length = float(c[:, 0].max() - c[:, 0].min())
         self.foot_width = float(c[:, 1].max() - c[:, 1].min())
         self.ankle_height = float(-c[:, 2].mean())
+
+    def with_own_data(self) -> HumanoidModel:
+        """This model (URDF, frames, limits: shared) with pinocchio data of its own, so that kinematics computed on
+        it do not overwrite this one's (a controller's IK, a sensed configuration)."""
+        own = copy.copy(self)
+        own.data = self.model.createData()
+        return own
 
     # ------------------------------------------------------------------ basics
     @functools.cached_property
@@ -234,10 +242,9 @@ def base_angular_velocity_from_imu(model: HumanoidModel, data, imu_quat_xyzw, im
     the waist joints, so its gyro reads the base's angular velocity plus the waist joints' (the IMU frame's angular
     velocity in that pass) - the estimator's construction."""
     fid = model.frame_ids[model.imu_frame]
-    R_imu = quat_matrix(imu_quat_xyzw)
-    R_base = R_imu @ data.oMf[fid].rotation.T
     imu_rel = pin.getFrameVelocity(model.model, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED).angular
-    return R_imu @ np.asarray(imu_gyro, float) - R_base @ imu_rel
+    return (quat_matrix(imu_quat_xyzw) @ np.asarray(imu_gyro, float)
+            - base_rotation_from_imu(model, data, imu_quat_xyzw) @ imu_rel)
 
 
 def imu_quaternion(imu) -> np.ndarray | None:

@@ -42,7 +42,6 @@ of the plan's and the robot turned over the front foot (docs/multicontact.md "Se
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 from typing import Callable
@@ -233,15 +232,13 @@ class MulticontactExecutor:
                       if j.endswith("hip_pitch")}
         self.stepper = None
         if self.cfg.swing_control == "task" and model is not None:
-            own = copy.copy(model)             # the IK's forward kinematics must not overwrite a shared data
-            own.data = model.model.createData()
-            self.stepper = StepController(own, StepControlConfig(clearance=self.cfg.swing_clearance,
+            # the IK's forward kinematics must not overwrite a shared data
+            self.stepper = StepController(model.with_own_data(), StepControlConfig(clearance=self.cfg.swing_clearance,
                                                                  posture_gain=self.cfg.swing_posture_gain))
             self._legs = np.array(model.leg_joint_indices("l") + model.leg_joint_indices("r"))
         self._lateral_model = None
         if self.cfg.lateral_gain > 0 and model is not None:
-            self._lateral_model = copy.copy(model)     # its own data: the sensed configuration's kinematics
-            self._lateral_model.data = model.model.createData()
+            self._lateral_model = model.with_own_data()   # the sensed configuration's kinematics
             self._rolls = (np.array([model.joint_index(f"{sd}_ankle_roll") for sd in "lr"]),
                            np.array([model.joint_index(f"{sd}_hip_roll") for sd in "lr"]))
         self.reset()

@@ -56,7 +56,7 @@ class SensedPlanSource:
 
     Args:
         planner: a ``FallPlanner`` (``profile`` picks one of its request profiles; "" itself).
-        model: the 3-D robot, joints in the observation's order.
+        model: the 3-D robot, joints in the observation's order (the sensed state is computed on data of its own).
         initial_mode: the contact mode the robot is in at the take-over (the state is projected onto it).
         time_budget: the request's budget [s].
 
@@ -66,7 +66,7 @@ class SensedPlanSource:
     def __init__(self, planner, model: HumanoidModel, initial_mode: str = "LF/RF", profile: str = "",
                  time_budget: float = 30.0):
         self.planner = planner
-        self.model = model
+        self.model = model.with_own_data()
         self.mode = parse_mode(initial_mode)
         self.profile = profile
         self.time_budget = float(time_budget)
@@ -75,12 +75,12 @@ class SensedPlanSource:
 
     def __call__(self, observation):
         s = observation.state
-        imu = observation.inputs.get("imu")
+        imu = observation.inputs.get("imu")   # (orientation, gyro), as both loops give it
         quat = imu_quaternion(imu)
-        gyro = None if quat is None else np.asarray(imu[1], float) if isinstance(imu, (tuple, list)) else None
-        if quat is None or gyro is None or s is None:
+        if quat is None or not isinstance(imu, (tuple, list)) or s is None:
             self.info = {"reason": "no IMU reading or state at the take-over: no plan"}
             return None
+        gyro = np.asarray(imu[1], float)
         vals = [s.com, s.com_velocity, observation.joint_position, observation.joint_velocity, gyro]
         if not all(np.all(np.isfinite(np.asarray(x, float))) for x in vals):
             self.info = {"reason": "a non-finite sensed state at the take-over: no plan"}

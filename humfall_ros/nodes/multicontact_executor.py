@@ -21,7 +21,6 @@ directory, then in ``config/multicontact_plans/``.
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import pathlib
 import sys
@@ -75,9 +74,7 @@ def make_controller(p: dict, model):
         from humfall_ros.multicontact.live import SensedPlanSource
         from humfall_ros.multicontact.planner import FallPlanner
 
-        own = copy.copy(model)          # the sensed state's kinematics must not overwrite a shared data
-        own.data = model.model.createData()
-        source = SensedPlanSource(FallPlanner.from_params(), own, profile=p["planner_profile"],
+        source = SensedPlanSource(FallPlanner.from_params(), model, profile=p["planner_profile"],
                                   time_budget=p["plan_time_budget"])
         start = p["start_time"]
     else:

@@ -328,7 +328,7 @@ def execute(sc: dict, planner=None, segments: list[Segment] | None = None, start
     if plan_from == "sensors" and planner is not None:
         from humfall_ros.multicontact.live import SensedPlanSource
 
-        live = SensedPlanSource(planner, _sensing_model(), initial_mode, time_budget=cfg.time_budget)
+        live = SensedPlanSource(planner, hm, initial_mode, time_budget=cfg.time_budget)
         source = sensed_source
     else:
         source = plan_source if segments is None else stored_source
@@ -386,15 +386,6 @@ def _model():
 
         _MODEL_CACHE["hm"] = load_model()
     return _MODEL_CACHE["hm"]
-
-
-def _sensing_model():
-    """A 3-D model of its own for the sensed state (its data is overwritten there)."""
-    if "sensing" not in _MODEL_CACHE:
-        from humfall_ros.model.humanoid import load_model
-
-        _MODEL_CACHE["sensing"] = load_model()
-    return _MODEL_CACHE["sensing"]
 
 
 def _joint_names() -> list[str]:
